@@ -1,0 +1,24 @@
+# neumat: measured-material synthesis workflow.
+# Entry points: `snakemake --cores 2 report` (default config) or
+# `snakemake --cores 2 --configfile config/tiny.yaml report`.
+from snakemake.utils import min_version, validate
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "config/schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/data.smk"
+include: "workflow/rules/augment.smk"
+include: "workflow/rules/report.smk"
+
+
+rule all:
+    input:
+        report_inputs(),
+    default_target: True

@@ -1,0 +1,95 @@
+"""The NBRDF neural field (Sztrajman et al. 2021) used throughout M3ashy.
+
+MLP 6 -> 21 -> 21 -> 3 (675 parameters). Input: [h_xyz (phi_h = 0), d_xyz]; output:
+max(exp(x) - 1, 0) = physical BRDF per RGB channel.
+
+Flatten order (the diffusion model's input format, fixed forever):
+    [W1 (21x6), b1 (21), W2 (21x21), b2 (21), W3 (3x21), b3 (3)]
+each weight row-major as (out, in), i.e. torch.nn.Linear's `weight` layout. Keras kernels
+(in, out) must be transposed.
+
+Every function takes a *batch* of weight vectors (B, 675), so many materials are evaluated
+in one batched matmul.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+LAYERS = [(6, 21), (21, 21), (21, 3)]  # (in, out)
+PARAM_SHAPES = [s for i, o in LAYERS for s in ((o, i), (o,))]
+PARAM_NAMES = ["W1", "b1", "W2", "b2", "W3", "b3"]
+N_PARAMS = sum(int(np.prod(s)) for s in PARAM_SHAPES)  # 675
+ACTIVATIONS = ("relu", "leaky_relu")
+
+
+def unflatten(w: torch.Tensor) -> list[torch.Tensor]:
+    """(B, 675) -> [W1 (B,21,6), b1 (B,21), W2, b2, W3, b3] views."""
+    if w.shape[-1] != N_PARAMS:
+        raise ValueError(f"NBRDF weight vectors have {N_PARAMS} entries, got {w.shape[-1]}")
+    out, k = [], 0
+    for shape in PARAM_SHAPES:
+        n = int(np.prod(shape))
+        out.append(w[..., k:k + n].reshape(*w.shape[:-1], *shape))
+        k += n
+    return out
+
+
+def flatten(params: list[torch.Tensor]) -> torch.Tensor:
+    """Inverse of `unflatten`: list of (B, *shape) tensors -> (B, 675)."""
+    b = params[0].shape[0]
+    return torch.cat([p.reshape(b, -1) for p in params], -1)
+
+
+def _act(x, activation):
+    if activation == "relu":
+        return torch.relu(x)
+    if activation == "leaky_relu":
+        return torch.nn.functional.leaky_relu(x, 0.01)
+    raise ValueError(f"unknown activation {activation!r}; choose from {ACTIVATIONS}")
+
+
+def forward_raw(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch.Tensor:
+    """Pre-output-activation value. w (B, 675), x (B, N, 6) or (N, 6) -> (B, N, 3)."""
+    W1, b1, W2, b2, W3, b3 = unflatten(w)
+    if x.dim() == 2:  # shared inputs for all materials
+        h = torch.einsum("nk,bok->bno", x, W1)
+    else:
+        h = torch.bmm(x, W1.transpose(1, 2))
+    h = _act(h + b1[:, None], activation)
+    h = _act(torch.baddbmm(b2[:, None], h, W2.transpose(1, 2)), activation)
+    return torch.baddbmm(b3[:, None], h, W3.transpose(1, 2))
+
+
+def forward(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch.Tensor:
+    """Physical BRDF values (B, N, 3) = max(exp(raw) - 1, 0)."""
+    return torch.relu(torch.expm1(forward_raw(w, x, activation)))
+
+
+def init_weights(n: int, generator: torch.Generator | None = None) -> torch.Tensor:
+    """(n, 675) weights with torch.nn.Linear's default init (Kaiming-uniform, a = sqrt(5))."""
+    parts = []
+    for fan_in, fan_out in LAYERS:
+        bound = 1.0 / np.sqrt(fan_in)
+        parts.append((torch.rand(n, fan_out * fan_in, generator=generator) * 2 - 1) * bound)
+        parts.append((torch.rand(n, fan_out, generator=generator) * 2 - 1) * bound)
+    return torch.cat(parts, -1)
+
+
+def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int = 1 << 18,
+                  device: str | torch.device = "cpu") -> np.ndarray:
+    """Evaluate fields on the full MERL grid -> (B, 3, 90, 90, 180) float64 physical BRDF.
+
+    Below-horizon bins are set to -1/scale like measured MERL files (negative = invalid)."""
+    from neumat.io import merl
+
+    x_all = torch.as_tensor(merl.half_diff_cartesian(*merl.grid_angles()), dtype=torch.float32)
+    w = w.to(device=device, dtype=torch.float32)
+    out = np.empty((w.shape[0], merl.N_BINS, 3), dtype=np.float64)
+    with torch.no_grad():
+        for s in range(0, merl.N_BINS, chunk):
+            out[:, s:s + chunk] = forward(w, x_all[s:s + chunk].to(device), activation).cpu().numpy()
+    out = out.transpose(0, 2, 1)
+    out[:, :, ~merl.valid_mask()] = -1.0 * merl.SCALE[None, :, None]
+    return out.reshape(w.shape[0], *merl.SHAPE)

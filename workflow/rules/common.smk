@@ -1,0 +1,77 @@
+# Helpers shared by all rule files: paths, material lists, config look-ups.
+import math
+import sys
+from pathlib import Path
+
+import pandas as pd
+
+# The library lives in src/; make it importable for DAG-time helpers even without `pip install -e`.
+sys.path.insert(0, str(Path(workflow.basedir) / "src"))
+
+from neumat.data import catalog as _catalog  # noqa: E402
+
+RUN = config["run"]
+OUT = f"results/{RUN}"
+SEED = config["seed"]
+
+
+def out(path):
+    """Output path under results/<run>/."""
+    return f"{OUT}/{path}"
+
+
+def log(name):
+    return f"{OUT}/logs/{name}.log"
+
+
+def bench(name):
+    return f"{OUT}/benchmarks/{name}.tsv"
+
+
+# ----------------------------------------------------------------------------- MERL
+
+
+def merl_catalog():
+    """DataFrame of the MERL materials this run uses (name, type, description, colours, sha256)."""
+    m = config["merl"]
+    if m["source"] == "synthetic":
+        return _catalog.synthetic_catalog(m["synthetic"]["count"], SEED)
+    return _catalog.load_catalog(m["materials"], m["subset"], m["sha256_override"])
+
+
+MERL = merl_catalog()
+MERL_NAMES = list(MERL["name"])
+
+
+def merl_table(name):
+    """Path of one MERL-format table of this run."""
+    if config["merl"]["source"] == "synthetic":
+        return out(f"merl/{name}.binary")
+    return f"resources/merl/{name}.binary"
+
+
+def merl_sha256(name):
+    return MERL.set_index("name").at[name, "sha256"]
+
+
+# ----------------------------------------------------------------------------- AugMERL
+
+
+def augmerl_count():
+    a = config["augmerl"]
+    base = len(MERL_NAMES) * (6 if a["permutations"] else 1)
+    return max(a["size"], base)
+
+
+AUG_SHARDS = [f"{i:03d}" for i in range(math.ceil(augmerl_count() / config["augmerl"]["shard_size"]))]
+
+
+def augmerl_shards():
+    return expand(out("augmerl/shards/{shard}.npz"), shard=AUG_SHARDS)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def report_inputs():
+    return [out("report/index.html"), out("report/index.md")]
