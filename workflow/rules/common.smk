@@ -72,6 +72,10 @@ def augmerl_shards():
 
 # ----------------------------------------------------------------------------- report
 
+# Every stage appends its Markdown fragment(s) (out("report/sections/NN_stage.md")) here;
+# the `report` rule stitches them, in file-name order, into index.md and index.html.
+REPORT_SECTIONS = []
+
 
 def report_inputs():
     return [out("report/index.html"), out("report/index.md")]
