@@ -1,0 +1,268 @@
+"""AugMERL: RGB permutations and PCA interpolation of measured BRDFs (M3ashy paper §3.1).
+
+Every source material yields 6 channel permutations ("rows"). Pairs of rows are linearly
+interpolated in a PCA space of `pca_dims` dimensions, up to `size` materials in total.
+
+The PCA works on log(1 + f) over the bins valid in every source table. Interpolating
+coefficients and reconstructing equals projecting the linear interpolant onto the top-k
+principal subspace, so every material is an exact linear mixture of the rows:
+
+    log(1 + f_i) = sum_j C[i, j] log(1 + row_j)         (C one-hot for rows themselves)
+
+`recipe.npz` stores C; any material is rebuilt exactly from the source tables.
+
+Splits are by source material: all rows of a source share its split, pairs are drawn inside a
+split, and each split gets its own PCA, so no test material leaks into a training one.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from neumat.data.catalog import drop_colours
+from neumat.io import merl
+
+log = logging.getLogger(__name__)
+
+PERMS = ["".join(p) for p in itertools.permutations("rgb")]  # "rgb" (identity) first
+MANIFEST_COLUMNS = ["id", "name", "operation", "sources", "weight", "permutation", "type",
+                    "description", "split", "shard"]
+
+
+def permute(table: np.ndarray, perm: str) -> np.ndarray:
+    """Channel permutation of a (3, ...) array: output channel c = input channel perm[c]."""
+    return table[["rgb".index(ch) for ch in perm]]
+
+
+# ----------------------------------------------------------------------------- plan
+
+
+def split_sources(names: list[str], test_fraction: float, seed: int) -> dict[str, str]:
+    """Assign each source material to train/test (at least one of each when test_fraction > 0)."""
+    rng = np.random.default_rng(seed)
+    n_test = int(round(test_fraction * len(names)))
+    if test_fraction > 0:
+        n_test = min(max(n_test, 1), len(names) - 1)
+    test = set(rng.permutation(len(names))[:n_test].tolist())
+    return {n: ("test" if i in test else "train") for i, n in enumerate(names)}
+
+
+def plan_rows(catalog: pd.DataFrame, permutations: bool, split: dict[str, str]) -> pd.DataFrame:
+    """The originals and their RGB permutations, one row each."""
+    perms = PERMS if permutations else PERMS[:1]
+    rows = []
+    for rec in catalog.itertuples():
+        for p in perms:
+            desc = rec.description if p == "rgb" else drop_colours(rec.description, rec.colours)
+            rows.append(dict(name=rec.name if p == "rgb" else f"{rec.name}@{p}",
+                             operation="original" if p == "rgb" else "permutation",
+                             sources=rec.name, weight=1.0, permutation=p, type=rec.type,
+                             description=desc, split=split[rec.name]))
+    return pd.DataFrame(rows)
+
+
+def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
+    """Draw `n_interp` (row_a, row_b, weight_a) triples inside splits, in proportion to their size.
+
+    Rows of different source materials are paired when the split has more than one source."""
+    rng = np.random.default_rng(seed + 1)
+    splits = sorted(rows["split"].unique())
+    sizes = np.array([(rows["split"] == s).sum() for s in splits])
+    counts = np.floor(n_interp * sizes / sizes.sum()).astype(int)
+    counts[np.argmax(sizes)] += n_interp - counts.sum()
+    pairs = []
+    for s, n in zip(splits, counts):
+        idx = np.flatnonzero(rows["split"].to_numpy() == s)
+        src = rows["sources"].to_numpy()
+        multi = len(set(src[idx])) > 1
+        while n > 0:
+            a, b = rng.choice(idx, 2, replace=False)
+            if multi and src[a] == src[b]:
+                continue
+            pairs.append((int(a), int(b), float(rng.uniform(0.2, 0.8))))
+            n -= 1
+    return pairs
+
+
+def build_manifest(rows: pd.DataFrame, pairs, shard_size: int) -> pd.DataFrame:
+    interp = [dict(name=f"mix{k:04d}", operation="interpolation",
+                   sources=f"{rows.at[a, 'name']}|{rows.at[b, 'name']}", weight=w,
+                   permutation="", type="",
+                   description=f"a mixture of {rows.at[a, 'description']} and "
+                               f"{rows.at[b, 'description']}",
+                   split=rows.at[a, "split"])
+              for k, (a, b, w) in enumerate(pairs)]
+    man = pd.concat([rows, pd.DataFrame(interp, columns=rows.columns)], ignore_index=True)
+    man.insert(0, "id", np.arange(len(man)))
+    man["shard"] = [f"{i // shard_size:03d}" for i in range(len(man))]
+    return man[MANIFEST_COLUMNS]
+
+
+# ----------------------------------------------------------------------------- PCA
+
+
+def load_log_tables(paths: list[str | Path]):
+    """Read source tables -> (log1p values (M, 3, V) float32, valid flat bin indices (V,)).
+
+    Valid = above the horizon at the bin centre and non-negative in every table. Tables are
+    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB."""
+    geo = np.flatnonzero(merl.valid_mask())
+    keep = np.ones(len(geo), dtype=bool)
+    logs = []
+    for p in paths:
+        t = merl.read_merl(p).reshape(3, -1)[:, geo]
+        keep &= (t >= 0).all(0)
+        logs.append(np.log1p(np.maximum(t, 0)).astype(np.float32))
+    return np.stack(logs)[:, :, keep], geo[keep]
+
+
+def row_gram(logs: np.ndarray, row_src: np.ndarray, row_perm: np.ndarray,
+             chunk: int = 1 << 16) -> np.ndarray:
+    """Gram matrix of the permuted rows without materialising them.
+
+    Channel cross-products H[(m,c),(m',c')] are summed over bins once (chunked, float64);
+    row (m, p) . row (m', p') = sum_c H[(m, p[c]), (m', p'[c])]."""
+    M, _, V = logs.shape
+    flat = logs.reshape(M * 3, V)
+    H = np.zeros((M * 3, M * 3))
+    for s in range(0, V, chunk):
+        blk = flat[:, s:s + chunk].astype(np.float64)
+        H += blk @ blk.T
+    H = H.reshape(M, 3, M, 3)
+    chans = np.array([["rgb".index(ch) for ch in PERMS[p]] for p in row_perm])  # (P, 3)
+    G = np.zeros((len(row_src), len(row_src)))
+    for c in range(3):
+        G += H[row_src[:, None], chans[:, None, c], row_src[None, :], chans[None, :, c]]
+    return G
+
+
+def mixing_weights(G: np.ndarray, k: int, pairs_local) -> tuple[np.ndarray, np.ndarray]:
+    """Coefficients over the rows of one split for each interpolated pair, and the explained
+    variance ratio of the kept k components.
+
+    recon = mean + Xc^T U_k U_k^T e,  e = w e_a + (1 - w) e_b  (derivation in module doc);
+    the coefficient of raw row j is m_j + (1 - sum m) / P."""
+    P = G.shape[0]
+    J = np.eye(P) - 1.0 / P
+    evals, U = np.linalg.eigh(J @ G @ J)
+    order = np.argsort(evals)[::-1]
+    evals, U = np.clip(evals[order], 0, None), U[:, order]
+    k = min(k, P - 1)
+    Uk = U[:, :k]
+    coefs = np.zeros((len(pairs_local), P))
+    for i, (a, b, w) in enumerate(pairs_local):
+        e = np.zeros(P)
+        e[a] += w
+        e[b] += 1 - w
+        m = Uk @ (Uk.T @ e)
+        coefs[i] = m + (1 - m.sum()) / P
+    explained = evals[:k].sum() / max(evals.sum(), 1e-300)
+    return coefs, np.array([k, explained])
+
+
+def build_recipe(manifest: pd.DataFrame, rows: pd.DataFrame, pairs, logs, source_names,
+                 pca_dims: int) -> dict:
+    """The exact mixing matrix C (N, P) over rows, per split PCA."""
+    src_index = {n: i for i, n in enumerate(source_names)}
+    row_src = np.array([src_index[s] for s in rows["sources"]])
+    row_perm = np.array([PERMS.index(p) for p in rows["permutation"]])
+    N, P = len(manifest), len(rows)
+    C = np.zeros((N, P))
+    C[np.arange(P), np.arange(P)] = 1.0
+    stats = {}
+    split_of_row = rows["split"].to_numpy()
+    for s in sorted(set(split_of_row)):
+        idx = np.flatnonzero(split_of_row == s)
+        local = {g: l for l, g in enumerate(idx)}
+        which = [i for i, (a, _, _) in enumerate(pairs) if split_of_row[a] == s]
+        if not which:
+            continue
+        G = row_gram(logs, row_src[idx], row_perm[idx])
+        coefs, st = mixing_weights(G, pca_dims, [(local[pairs[i][0]], local[pairs[i][1]],
+                                                   pairs[i][2]) for i in which])
+        C[np.ix_(P + np.array(which), idx)] = coefs
+        stats[s] = st
+        log.info("split %s: %d rows, PCA k=%d keeps %.4f of the variance", s, len(idx),
+                 int(st[0]), st[1])
+    return dict(coef=C, row_src=row_src, row_perm=row_perm,
+                source_names=np.array(source_names), pca_stats=stats)
+
+
+# ----------------------------------------------------------------------------- materialise
+
+
+class AugMERL:
+    """Materialise AugMERL materials from the recipe and the source tables.
+
+    Holds log1p of the sources over their common valid bins; `values(ids, bins)` gives the
+    physical BRDF of materials at chosen bins, `table(id)` a full MERL table."""
+
+    def __init__(self, recipe_path: str | Path, table_paths: dict[str, str | Path]):
+        r = np.load(recipe_path, allow_pickle=False)
+        self.coef, self.row_src, self.row_perm = r["coef"], r["row_src"], r["row_perm"]
+        self.source_names = [str(s) for s in r["source_names"]]
+        self.shard_bins = r["bins"]
+        self.logs, self.valid_bins = load_log_tables([table_paths[n] for n in self.source_names])
+        self._pos = np.full(merl.N_BINS, -1)
+        self._pos[self.valid_bins] = np.arange(len(self.valid_bins))
+
+    def values(self, ids, bins=None, chunk: int = 1 << 15) -> np.ndarray:
+        """Physical BRDF (n, 3, B) float32 at flat bin indices `bins` (default: shard bins)."""
+        bins = self.shard_bins if bins is None else np.asarray(bins)
+        cols = self._pos[bins]
+        if (cols < 0).any():
+            raise ValueError("requested bins outside the common valid region of the sources")
+        coef = self.coef[np.asarray(ids)]
+        used = np.flatnonzero(np.abs(coef).sum(0) > 0)  # rows that contribute
+        coef = coef[:, used].astype(np.float32)
+        src, perm = self.row_src[used], self.row_perm[used]
+        out = np.empty((len(coef), 3, len(bins)), dtype=np.float32)
+        for c in range(3):
+            # row j, channel c reads source channel PERMS[perm_j][c]
+            ch = np.array(["rgb".index(PERMS[p][c]) for p in perm])
+            for s in range(0, len(cols), chunk):
+                rows_c = self.logs[:, :, cols[s:s + chunk]][src, ch]  # (rows, chunk)
+                out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ rows_c), 0.0)
+        return out
+
+    def table(self, i: int) -> np.ndarray:
+        """Full physical MERL table (3, 90, 90, 180); invalid bins negative as in MERL files."""
+        t = np.empty((3, merl.N_BINS))
+        t[:] = -1.0 * merl.SCALE[:, None]
+        t[:, self.valid_bins] = self.values([i], self.valid_bins)[0]
+        return t.reshape(merl.SHAPE)
+
+
+def choose_bins(valid_bins: np.ndarray, bins, seed: int) -> np.ndarray:
+    """All valid bins, or a fixed random subset of `bins` of them (sorted)."""
+    if bins == "all":
+        return valid_bins
+    if not isinstance(bins, int) or bins < 1:
+        raise ValueError(f"config augmerl.bins must be 'all' or a positive integer, got {bins!r}")
+    if bins > len(valid_bins):
+        raise ValueError(f"config augmerl.bins = {bins} exceeds the {len(valid_bins)} valid bins")
+    rng = np.random.default_rng(seed + 2)
+    return np.sort(rng.choice(valid_bins, bins, replace=False))
+
+
+def save_shard(path: str | Path, ids: np.ndarray, bins: np.ndarray, values: np.ndarray) -> None:
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part.npz")
+    np.savez(tmp, ids=ids.astype(np.int64), bins=bins.astype(np.int64),
+             values=values.astype(np.float32))
+    tmp.replace(path)
+
+
+def load_shard(path: str | Path) -> dict[str, np.ndarray]:
+    """A shard: ids (n,), bins (B,) flat MERL bin indices, values (n, 3, B) physical BRDF."""
+    with np.load(path) as z:
+        d = {k: z[k] for k in ("ids", "bins", "values")}
+    if d["values"].shape != (len(d["ids"]), 3, len(d["bins"])):
+        raise ValueError(f"{path}: inconsistent shard shapes "
+                         f"{d['values'].shape} vs ids {d['ids'].shape}, bins {d['bins'].shape}")
+    return d

@@ -1,0 +1,159 @@
+import numpy as np
+import pandas as pd
+import pytest
+
+from neumat import augment
+from neumat.io import merl
+
+
+def _catalog(names, types=None):
+    types = types or [n.split("-")[-1] for n in names]
+    return pd.DataFrame({
+        "name": names, "sha256": "", "type": types,
+        "description": [n.replace("-", " ") for n in names],
+        "colours": [" ".join(w for w in n.split("-") if w in {"red", "blue", "green"})
+                    for n in names],
+    })
+
+
+def _plan(names, size, test_fraction=0.25, seed=0, shard_size=8):
+    cat = _catalog(names)
+    split = augment.split_sources(names, test_fraction, seed)
+    rows = augment.plan_rows(cat, True, split)
+    pairs = augment.plan_pairs(rows, size - len(rows), seed)
+    return rows, pairs, augment.build_manifest(rows, pairs, shard_size)
+
+
+def test_permute_channels():
+    t = np.arange(3)[:, None] * np.ones((3, 4))
+    assert augment.permute(t, "gbr")[:, 0].tolist() == [1, 2, 0]
+    assert augment.PERMS[0] == "rgb" and len(set(augment.PERMS)) == 6
+
+
+def test_manifest_counts_descriptions_and_splits():
+    names = ["red-plastic", "blue-acrylic", "green-fabric", "nickel"]
+    rows, pairs, man = _plan(names, size=40)
+    assert len(man) == 40 and man["id"].tolist() == list(range(40))
+    assert (man["operation"] == "original").sum() == 4
+    assert (man["operation"] == "permutation").sum() == 20
+    assert (man["operation"] == "interpolation").sum() == 16
+    perm = man[man["name"] == "red-plastic@gbr"].iloc[0]
+    assert perm["description"] == "plastic" and perm["type"] == "plastic"
+    mix = man[man["operation"] == "interpolation"].iloc[0]
+    assert mix["description"].startswith("a mixture of ") and " and " in mix["description"]
+    assert mix["type"] == ""
+    # everything derived from one source stays in that source's split
+    split_of = dict(zip(man.loc[man["operation"] == "original", "name"],
+                        man.loc[man["operation"] == "original", "split"]))
+    for r in man.itertuples():
+        for s in r.sources.split("|"):
+            assert split_of[s.split("@")[0]] == r.split
+    assert set(man["split"]) == {"train", "test"}
+    assert man["shard"].iloc[0] == "000" and man["shard"].iloc[-1] == "004"
+
+
+def test_pairs_never_cross_splits_and_use_distinct_sources():
+    names = [f"m{i}-plastic" for i in range(10)]
+    rows, pairs, _ = _plan(names, size=200, test_fraction=0.3)
+    src = rows["sources"].to_numpy()
+    sp = rows["split"].to_numpy()
+    for a, b, w in pairs:
+        assert sp[a] == sp[b] and src[a] != src[b] and 0.2 <= w <= 0.8
+
+
+def test_row_gram_matches_explicit_rows():
+    rng = np.random.default_rng(1)
+    logs = rng.random((3, 3, 50)).astype(np.float32)
+    row_src = np.repeat(np.arange(3), 6)
+    row_perm = np.tile(np.arange(6), 3)
+    X = np.stack([augment.permute(logs[m], augment.PERMS[p]).ravel()
+                  for m, p in zip(row_src, row_perm)]).astype(np.float64)
+    G = augment.row_gram(logs, row_src, row_perm, chunk=16)
+    np.testing.assert_allclose(G, X @ X.T, rtol=1e-6)
+
+
+def _explicit_pca_interp(X, a, b, w, k):
+    mean = X.mean(0)
+    Xc = X - mean
+    _, _, Vt = np.linalg.svd(Xc, full_matrices=False)
+    z = Vt[:k] @ (w * Xc[a] + (1 - w) * Xc[b])
+    return mean + Vt[:k].T @ z
+
+
+@pytest.mark.parametrize("k", [2, 5])
+def test_mixing_weights_equal_pca_interpolation(k):
+    rng = np.random.default_rng(2)
+    X = rng.random((8, 30))
+    coefs, stats = augment.mixing_weights(X @ X.T, k, [(0, 3, 0.3), (5, 6, 0.7)])
+    for c, (a, b, w) in zip(coefs, [(0, 3, 0.3), (5, 6, 0.7)]):
+        np.testing.assert_allclose(c @ X, _explicit_pca_interp(X, a, b, w, k), atol=1e-10)
+    assert stats[0] == k and 0 < stats[1] <= 1
+
+
+def test_full_rank_pca_interpolation_is_linear():
+    rng = np.random.default_rng(3)
+    X = rng.random((6, 40))
+    (c,), _ = augment.mixing_weights(X @ X.T, 10, [(1, 4, 0.25)])  # k capped at P - 1
+    np.testing.assert_allclose(c @ X, 0.25 * X[1] + 0.75 * X[4], atol=1e-10)
+
+
+def _lambert_table(rgb):
+    wi, wo = merl.half_diff_to_dirs(*merl.grid_angles())
+    t = np.repeat(np.asarray(rgb, float)[:, None] / np.pi, merl.N_BINS, 1)
+    below = (wi[:, 2] <= 0) | (wo[:, 2] <= 0)
+    t[:, below] = -merl.SCALE[:, None]
+    return t.reshape(merl.SHAPE)
+
+
+def test_augmerl_materialises_rows_and_interpolations(tmp_path):
+    names = ["red-plastic", "blue-acrylic", "green-fabric"]
+    albedo = {"red-plastic": [0.8, 0.1, 0.1], "blue-acrylic": [0.1, 0.2, 0.9],
+              "green-fabric": [0.2, 0.6, 0.3]}
+    paths = {}
+    for n in names:
+        paths[n] = tmp_path / f"{n}.binary"
+        merl.write_merl(paths[n], _lambert_table(albedo[n]))
+    rows, pairs, man = _plan(names, size=24, test_fraction=0.0)
+    logs, valid = augment.load_log_tables([paths[n] for n in names])
+    recipe = augment.build_recipe(man, rows, pairs, logs, names, pca_dims=17)
+    bins = augment.choose_bins(valid, 100, seed=0)
+    np.savez(tmp_path / "recipe.npz", bins=bins,
+             **{k: v for k, v in recipe.items() if k != "pca_stats"})
+    aug = augment.AugMERL(tmp_path / "recipe.npz", paths)
+
+    vals = aug.values(man["id"].to_numpy())
+    assert vals.shape == (24, 3, 100) and (vals >= 0).all()
+    r = man.set_index("name")
+    gbr = vals[r.at["blue-acrylic@gbr", "id"]]
+    np.testing.assert_allclose(gbr[0], albedo["blue-acrylic"][1] / np.pi, rtol=1e-5)
+    np.testing.assert_allclose(gbr[2], albedo["blue-acrylic"][0] / np.pi, rtol=1e-5)
+    # 18 rows span at most 17 dims: full-rank PCA -> interpolation is linear in log space
+    for rec in man[man["operation"] == "interpolation"].itertuples():
+        a, b = (r.at[s, "id"] for s in rec.sources.split("|"))
+        expect = np.expm1(rec.weight * np.log1p(vals[a]) + (1 - rec.weight) * np.log1p(vals[b]))
+        np.testing.assert_allclose(vals[rec.id], expect, rtol=1e-4)
+    full = aug.table(int(r.at["red-plastic", "id"]))
+    np.testing.assert_allclose(full.reshape(3, -1)[:, valid],
+                               _lambert_table(albedo["red-plastic"]).reshape(3, -1)[:, valid],
+                               rtol=1e-5)
+    assert (full.reshape(3, -1)[:, ~merl.valid_mask()] < 0).all()
+
+
+def test_choose_bins_errors():
+    valid = np.arange(10)
+    assert augment.choose_bins(valid, "all", 0) is valid
+    with pytest.raises(ValueError, match="augmerl.bins"):
+        augment.choose_bins(valid, 11, 0)
+    with pytest.raises(ValueError, match="augmerl.bins"):
+        augment.choose_bins(valid, "some", 0)
+
+
+def test_shard_roundtrip_and_shape_check(tmp_path):
+    ids, bins = np.arange(3), np.array([5, 9])
+    vals = np.ones((3, 3, 2), np.float32)
+    augment.save_shard(tmp_path / "000.npz", ids, bins, vals)
+    d = augment.load_shard(tmp_path / "000.npz")
+    assert d["values"].dtype == np.float32 and d["bins"].tolist() == [5, 9]
+    np.savez(tmp_path / "bad.npz", ids=ids, bins=bins, values=vals[:2])
+    with pytest.raises(ValueError, match="bad.npz"):
+        augment.load_shard(tmp_path / "bad.npz")
