@@ -196,6 +196,30 @@ def build_recipe(manifest: pd.DataFrame, rows: pd.DataFrame, pairs, logs, source
 # ----------------------------------------------------------------------------- materialise
 
 
+def mix_values(logs, row_src, row_perm, coef, cols, chunk: int = 1 << 15) -> np.ndarray:
+    """expm1(coef @ log1p(rows)) at columns `cols` of `logs` -> (n, 3, len(cols)) float32.
+
+    Rows are (source, permutation) pairs; only rows with a non-zero coefficient are read."""
+    used = np.flatnonzero(np.abs(coef).sum(0) > 0)
+    coef = coef[:, used].astype(np.float32)
+    src, perm = row_src[used], row_perm[used]
+    out = np.empty((len(coef), 3, len(cols)), dtype=np.float32)
+    for c in range(3):
+        # row j, channel c reads source channel PERMS[perm_j][c]
+        ch = np.array(["rgb".index(PERMS[p][c]) for p in perm])
+        for s in range(0, len(cols), chunk):
+            rows_c = logs[:, :, cols[s:s + chunk]][src, ch]  # (rows, chunk)
+            out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ rows_c), 0.0)
+    return out
+
+
+def interpolation_coefs(logs, row_src, row_perm, a: int, b: int, weights, k: int):
+    """Coefficient vectors over all rows for PCA-space interpolation of rows a -> b."""
+    G = row_gram(logs, row_src, row_perm)
+    coefs, _ = mixing_weights(G, k, [(a, b, float(w)) for w in weights])
+    return coefs
+
+
 class AugMERL:
     """Materialise AugMERL materials from the recipe and the source tables.
 
@@ -217,25 +241,21 @@ class AugMERL:
         cols = self._pos[bins]
         if (cols < 0).any():
             raise ValueError("requested bins outside the common valid region of the sources")
-        coef = self.coef[np.asarray(ids)]
-        used = np.flatnonzero(np.abs(coef).sum(0) > 0)  # rows that contribute
-        coef = coef[:, used].astype(np.float32)
-        src, perm = self.row_src[used], self.row_perm[used]
-        out = np.empty((len(coef), 3, len(bins)), dtype=np.float32)
-        for c in range(3):
-            # row j, channel c reads source channel PERMS[perm_j][c]
-            ch = np.array(["rgb".index(PERMS[p][c]) for p in perm])
-            for s in range(0, len(cols), chunk):
-                rows_c = self.logs[:, :, cols[s:s + chunk]][src, ch]  # (rows, chunk)
-                out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ rows_c), 0.0)
-        return out
+        return mix_values(self.logs, self.row_src, self.row_perm, self.coef[np.asarray(ids)],
+                          cols, chunk)
+
+    def tables_from_coefs(self, coefs: np.ndarray) -> np.ndarray:
+        """Full physical MERL tables (n, 3, 90, 90, 180) of row mixtures; invalid bins negative
+        as in MERL files."""
+        t = np.empty((len(coefs), 3, merl.N_BINS))
+        t[:] = -1.0 * merl.SCALE[:, None]
+        t[:, :, self.valid_bins] = mix_values(self.logs, self.row_src, self.row_perm, coefs,
+                                              np.arange(len(self.valid_bins)))
+        return t.reshape(len(coefs), *merl.SHAPE)
 
     def table(self, i: int) -> np.ndarray:
-        """Full physical MERL table (3, 90, 90, 180); invalid bins negative as in MERL files."""
-        t = np.empty((3, merl.N_BINS))
-        t[:] = -1.0 * merl.SCALE[:, None]
-        t[:, self.valid_bins] = self.values([i], self.valid_bins)[0]
-        return t.reshape(merl.SHAPE)
+        """Full physical MERL table (3, 90, 90, 180) of material `i`."""
+        return self.tables_from_coefs(self.coef[[i]])[0]
 
 
 def choose_bins(valid_bins: np.ndarray, bins, seed: int) -> np.ndarray:

@@ -1,0 +1,96 @@
+# AugMERL (paper §3.1): RGB permutations x6 + PCA interpolation, sharded tables.
+
+
+rule augmerl_pca:
+    input:
+        tables=[merl_table(n) for n in MERL_NAMES],
+    output:
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+    params:
+        catalog=MERL.to_dict("records"),
+        cfg=config["augmerl"],
+        seed=SEED,
+    log:
+        log("augmerl_pca"),
+    benchmark:
+        bench("augmerl_pca")
+    threads: 2
+    resources:
+        mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
+        runtime=60,
+    script:
+        "../scripts/augmerl_pca.py"
+
+
+rule augmerl_shard:
+    input:
+        tables=[merl_table(n) for n in MERL_NAMES],
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+    output:
+        out("augmerl/shards/{shard}.npz"),
+    log:
+        log("augmerl_shard/{shard}"),
+    benchmark:
+        bench("augmerl_shard/{shard}")
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: 3000 + 60 * len(input.tables),
+        runtime=60,
+    script:
+        "../scripts/augmerl_shard.py"
+
+
+rule augmerl_figures:
+    input:
+        tables=[merl_table(n) for n in MERL_NAMES],
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+    output:
+        permutations=report(out("report/figures/augmerl_permutations.png"),
+                            caption="../report/augmerl_permutations.rst", category="Dataset"),
+        interpolation=report(out("report/figures/augmerl_interpolation.png"),
+                             caption="../report/augmerl_interpolation.rst", category="Dataset"),
+    params:
+        material=config["augmerl"]["figure_material"] or MERL_NAMES[0],
+        pair=config["augmerl"]["figure_pair"] or MERL_NAMES[:2],
+        pca_dims=config["augmerl"]["pca_dims"],
+        resolution=config["report"]["sphere_resolution"],
+    log:
+        log("augmerl_figures"),
+    benchmark:
+        bench("augmerl_figures")
+    threads: 2
+    resources:
+        mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
+        runtime=30,
+    script:
+        "../scripts/augmerl_figures.py"
+
+
+rule dataset_section:
+    input:
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+        shards=augmerl_shards(),
+        permutations=out("report/figures/augmerl_permutations.png"),
+        interpolation=out("report/figures/augmerl_interpolation.png"),
+    output:
+        out("report/sections/10_dataset.md"),
+    params:
+        source=config["merl"]["source"],
+        cfg=config["augmerl"],
+    log:
+        log("dataset_section"),
+    benchmark:
+        bench("dataset_section")
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    script:
+        "../scripts/dataset_section.py"
+
+
+REPORT_SECTIONS.append(out("report/sections/10_dataset.md"))

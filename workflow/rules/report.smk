@@ -1,0 +1,22 @@
+# The run report: every stage's Markdown fragment -> results/<run>/report/index.{md,html}.
+
+
+rule report:
+    input:
+        sections=sorted(REPORT_SECTIONS),
+    output:
+        md=out("report/index.md"),
+        html=out("report/index.html"),
+    params:
+        run=RUN,
+        config=config,
+    log:
+        log("report"),
+    benchmark:
+        bench("report")
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=10,
+    script:
+        "../scripts/report.py"

@@ -1,0 +1,16 @@
+"""Stitch the stage fragments into index.md and index.html."""
+from pathlib import Path
+
+import yaml
+
+from neumat import report
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p = snakemake.params
+    header = ("Configuration (defaults filled in):\n\n```yaml\n"
+              + yaml.safe_dump(dict(p.config), sort_keys=False) + "```")
+    md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", header)
+    Path(snakemake.output.md).write_text(md)
+    Path(snakemake.output.html).write_text(html)
+    log.info("report with %d sections", len(snakemake.input.sections))
