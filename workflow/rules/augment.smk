@@ -15,6 +15,8 @@ rule augmerl_pca:
         log("augmerl_pca"),
     benchmark:
         bench("augmerl_pca")
+    conda:
+        CONDA_ENV
     threads: 2
     resources:
         mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
@@ -34,6 +36,8 @@ rule augmerl_shard:
         log("augmerl_shard/{shard}"),
     benchmark:
         bench("augmerl_shard/{shard}")
+    conda:
+        CONDA_ENV
     threads: 1
     resources:
         mem_mb=lambda wc, input: 3000 + 60 * len(input.tables),
@@ -61,6 +65,8 @@ rule augmerl_figures:
         log("augmerl_figures"),
     benchmark:
         bench("augmerl_figures")
+    conda:
+        CONDA_ENV
     threads: 2
     resources:
         mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
@@ -85,6 +91,8 @@ rule dataset_section:
         log("dataset_section"),
     benchmark:
         bench("dataset_section")
+    conda:
+        CONDA_ENV
     threads: 1
     resources:
         mem_mb=1000,

@@ -1,12 +1,17 @@
-# Helpers shared by all rule files: paths, material lists, config look-ups.
+# Helpers shared by all rule files (paths, material lists, config look-ups).
 import math
+import os
 import sys
 from pathlib import Path
 
 import pandas as pd
 
 # The library lives in src/; make it importable for DAG-time helpers even without `pip install -e`.
-sys.path.insert(0, str(Path(workflow.basedir) / "src"))
+SRC = str(Path(workflow.basedir) / "src")
+sys.path.insert(0, SRC)
+# ...and for the scripts' interpreters too (e.g. under --use-conda, where neumat is not installed).
+os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONPATH")) if p))
+CONDA_ENV = "../envs/neumat.yaml"
 
 from neumat.data import catalog as _catalog  # noqa: E402
 

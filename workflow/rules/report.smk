@@ -14,6 +14,8 @@ rule report:
         log("report"),
     benchmark:
         bench("report")
+    conda:
+        CONDA_ENV
     threads: 1
     resources:
         mem_mb=1000,
