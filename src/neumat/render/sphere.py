@@ -1,0 +1,202 @@
+"""Metric renderer: a sphere in one fixed view, evaluated analytically per pixel.
+
+Setup (fixed forever, so renders of different runs are comparable):
+  * unit sphere at the origin, orthographic camera looking down -z; pixel (row, col) covers
+    x, y in [-1, 1] (row 0 = top, y = +1); the view direction is wo = +z for every pixel;
+  * one point light at LIGHT_POS = (-2, 2, 3) (upper left, in front), intensity
+    (|LIGHT_POS| - 1)^2, so the irradiance at the sphere point nearest the light is 1;
+  * a dim uniform white environment of radiance AMBIENT = 0.05. On a convex sphere under a
+    uniform environment the reflected radiance is AMBIENT * a(theta_o), with a the directional
+    albedo of the material (isotropic BRDFs: a depends on theta_o alone). a is integrated on a
+    fixed grid of N_THETA_O view angles with a fixed cosine-weighted (u, phi) product quadrature
+    of AMB_U x AMB_PHI directions over the half hemisphere phi in [0, pi] (isotropy + the
+    mirror symmetry of wo in the xz-plane), and linearly interpolated per pixel in theta_o.
+  L(pixel) = f(wi, wo) I cos(theta_i) / dist^2  +  AMBIENT * a(theta_o(pixel)).
+No random sampling anywhere: the renders are deterministic and carry no Monte Carlo noise.
+
+The geometry is precomputed once per (resolution, device) in `SphereView`: every row of `wi`,
+`wo` (local shading frame, normal = +z) is one BRDF evaluation - a lit pixel under the point
+light, or one albedo quadrature node - with its `weight`. A render evaluates f on all rows for a batch
+of materials at once, weights them and writes them into the image. Output: float32 linear HDR (B, H, W, 3),
+background 0.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+
+from neumat import nbrdf
+from neumat.io import merl
+
+LIGHT_POS = np.array([-2.0, 2.0, 3.0])
+LIGHT_INTENSITY = float((np.linalg.norm(LIGHT_POS) - 1.0) ** 2)
+AMBIENT = 0.05
+N_THETA_O, AMB_U, AMB_PHI = 24, 16, 16
+EXPOSURE = 0.0  # stops applied by `tonemap`
+# Floats per material kept alive while evaluating a chunk of neural fields (two hidden layers
+# of 21 plus output): bounds the chunk size so thousands of materials fit in memory.
+_CHUNK_FLOATS = 1 << 24
+
+
+def albedo_quadrature(n_theta: int = N_THETA_O, n_u: int = AMB_U, n_phi: int = AMB_PHI):
+    """Nodes for the directional albedo a(theta_o) = int f cos dwi over the hemisphere.
+
+    Returns theta_o (n_theta,), wi, wo (n_theta * n_u * n_phi, 3) local directions, and the
+    quadrature weight per node (pi / (n_u * n_phi): cosine-weighted nodes, phi in [0, pi]
+    counted twice by symmetry)."""
+    theta_o = (np.arange(n_theta) + 0.5) / n_theta * np.pi / 2
+    u = (np.arange(n_u) + 0.5) / n_u  # sin^2(theta_i), uniform = cosine-weighted
+    phi = (np.arange(n_phi) + 0.5) / n_phi * np.pi
+    T, U, P = np.meshgrid(theta_o, u, phi, indexing="ij")
+    s = np.sqrt(U)
+    wi = np.stack([s * np.cos(P), s * np.sin(P), np.sqrt(1 - U)], -1).reshape(-1, 3)
+    wo = np.stack([np.sin(T), np.zeros_like(T), np.cos(T)], -1).reshape(-1, 3)
+    return theta_o, wi, wo, np.pi / (n_u * n_phi)
+
+
+class SphereView:
+    """Per-pixel geometry of the metric view (see module docstring).
+
+    Attributes (torch, on `device`):
+      mask   (H, W) bool - pixels on the sphere
+      wi, wo (N, 3) float32 - unit incident / outgoing directions in the local frame
+             (normal = +z); the first `n_lit` rows are lit pixels under the point light,
+             the rest the albedo quadrature nodes of the environment term
+      weight (N,) float32 - irradiance (point light) or AMBIENT * quadrature weight
+      pixel  (n_lit,) int64 - flat pixel index (row * W + col) of each point-light row
+      x6     (N, 6) float32 - neural-field input [h, d] of each row
+      bins   (N,) int64 - flat MERL bin index of each row (nearest bin)
+    """
+
+    def __init__(self, resolution: int, device: str | torch.device = "cpu"):
+        if resolution < 2:
+            raise ValueError(f"sphere resolution must be >= 2, got {resolution}")
+        self.resolution, self.device = resolution, torch.device(device)
+        r = resolution
+        c = (np.arange(r) + 0.5) / r * 2 - 1
+        x, y = np.meshgrid(c, -c)  # row 0 is the top of the image
+        rho2 = x ** 2 + y ** 2
+        mask = rho2 < 1
+        n = np.stack([x[mask], y[mask], np.sqrt(1 - rho2[mask])], -1)  # normal = surface point
+        # Local frame: tangent = world x projected onto the tangent plane (only degenerate on
+        # the silhouette, which the open mask excludes); isotropic BRDFs need nothing more.
+        t = np.array([1.0, 0, 0]) - n[:, :1] * n
+        t /= np.linalg.norm(t, axis=-1, keepdims=True)
+        frame = np.stack([t, np.cross(n, t), n], 1)  # (P, 3, 3): rows = local axes
+
+        to_light = LIGHT_POS - n
+        dist2 = np.sum(to_light ** 2, -1)
+        wi = np.einsum("pij,pj->pi", frame, to_light / np.sqrt(dist2)[:, None])
+        wo = frame[:, 2].copy()  # world +z seen from the local frame
+        lit = wi[:, 2] > 0
+        pixels = np.flatnonzero(mask.ravel())
+        weight = (LIGHT_INTENSITY / dist2 * wi[:, 2])[lit]
+
+        theta_o, awi, awo, aw = albedo_quadrature()
+        wi = np.concatenate([wi[lit], awi])
+        wo = np.concatenate([wo[lit], awo])
+        weight = np.concatenate([weight, np.full(len(awi), AMBIENT * aw)])
+        # linear interpolation of the albedo table at each sphere pixel's view angle
+        k = np.interp(np.arccos(n[:, 2]), theta_o, np.arange(len(theta_o)))
+        k0 = np.minimum(np.floor(k).astype(np.int64), len(theta_o) - 2)
+        th, td, pd = merl.dirs_to_half_diff(wi, wo)
+
+        as_t = functools.partial(torch.as_tensor, device=self.device)
+        self.n_lit, self.n_theta = int(lit.sum()), len(theta_o)
+        self.mask = as_t(mask)
+        self.wi = as_t(wi, dtype=torch.float32)
+        self.wo = as_t(wo, dtype=torch.float32)
+        self.weight = as_t(weight, dtype=torch.float32)
+        self.pixel = as_t(pixels[lit], dtype=torch.int64)
+        self.x6 = as_t(merl.half_diff_cartesian(th, td, pd), dtype=torch.float32)
+        self.bins = as_t(merl.angles_to_index(th, td, pd), dtype=torch.int64)
+        self._pixels = as_t(pixels, dtype=torch.int64)
+        self._k0 = as_t(k0, dtype=torch.int64)
+        self._t = as_t(k - k0, dtype=torch.float32)[:, None]
+
+    def __len__(self):
+        return len(self.weight)
+
+    def composite(self, values: torch.Tensor) -> torch.Tensor:
+        """BRDF values (B, N, 3) at the view's rows -> linear HDR images (B, H, W, 3)."""
+        b, r, n = values.shape[0], self.resolution, self.n_lit
+        values = values.float() * self.weight[:, None]
+        img = torch.zeros(b, r * r, 3, dtype=torch.float32, device=values.device)
+        img[:, self.pixel] = values[:, :n]  # at most one point-light row per pixel
+        albedo = values[:, n:].reshape(b, self.n_theta, -1, 3).sum(2)
+        img[:, self._pixels] += torch.lerp(albedo[:, self._k0], albedo[:, self._k0 + 1], self._t)
+        return img.reshape(b, r, r, 3)
+
+
+@functools.lru_cache(maxsize=8)
+def sphere_view(resolution: int, device: str = "cpu") -> SphereView:
+    """Cached `SphereView` (the geometry is the same for every call)."""
+    return SphereView(resolution, device)
+
+
+def _chunks(n: int, size: int):
+    for s in range(0, n, size):
+        yield slice(s, min(s + size, n))
+
+
+def render_fn(fn, B: int, resolution: int = 128, device: str = "cpu") -> torch.Tensor:
+    """Render any BRDF callable `fn(wi, wo) -> (B, N, 3)` (torch, local frame) -> (B, H, W, 3)."""
+    view = sphere_view(resolution, str(device))
+    with torch.no_grad():
+        values = fn(view.wi, view.wo)
+    if values.shape != (B, len(view), 3):
+        raise ValueError(f"BRDF callable returned shape {tuple(values.shape)}, "
+                         f"expected {(B, len(view), 3)}")
+    return view.composite(values).cpu()
+
+
+def render_fields(weights, resolution: int = 128, activation: str = "relu",
+                  device: str = "cpu", chunk: int | None = None) -> torch.Tensor:
+    """Neural fields (B, 675) -> linear HDR renders (B, H, W, 3) float32 (CPU tensor)."""
+    w = torch.as_tensor(np.asarray(weights) if not torch.is_tensor(weights) else weights,
+                        dtype=torch.float32)
+    if w.dim() != 2 or w.shape[1] != nbrdf.N_PARAMS:
+        raise ValueError(f"weights must have shape (B, {nbrdf.N_PARAMS}), got {tuple(w.shape)}")
+    view = sphere_view(resolution, str(device))
+    chunk = chunk or max(1, _CHUNK_FLOATS // (len(view) * 21))
+    out = torch.empty(len(w), resolution, resolution, 3)
+    with torch.no_grad():
+        for s in _chunks(len(w), chunk):
+            f = nbrdf.forward(w[s].to(view.device), view.x6, activation)
+            out[s] = view.composite(f).cpu()
+    return out
+
+
+def render_tables(tables, resolution: int = 128, device: str = "cpu",
+                  chunk: int = 64) -> torch.Tensor:
+    """MERL tables (B, 3, 90, 90, 180) physical BRDF -> linear HDR renders (B, H, W, 3).
+
+    Nearest-bin lookup (as `neumat.io.merl.lookup`), one gather per chunk of materials;
+    negative (below-horizon) table entries count as 0."""
+    t = torch.as_tensor(tables)
+    if t.dim() != 5 or tuple(t.shape[1:]) != merl.SHAPE:
+        raise ValueError(f"tables must have shape (B, {', '.join(map(str, merl.SHAPE))}), "
+                         f"got {tuple(t.shape)}")
+    view = sphere_view(resolution, str(device))
+    out = torch.empty(len(t), resolution, resolution, 3)
+    for s in _chunks(len(t), chunk):
+        flat = t[s].reshape(-1, 3, merl.N_BINS).to(view.device, torch.float32)
+        f = flat[:, :, view.bins].clamp_min(0).transpose(1, 2)
+        out[s] = view.composite(f).cpu()
+    return out
+
+
+def srgb_encode(x):
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1 curve)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), 0, 1)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+
+
+def tonemap(img, exposure: float = EXPOSURE) -> np.ndarray:
+    """Linear HDR (..., 3) -> uint8 sRGB: scale by 2**exposure, clip to [0, 1], sRGB curve,
+    round. With exposure 0 a white Lambertian (albedo 1) facing the light maps to ~0.35 linear."""
+    x = img.numpy() if torch.is_tensor(img) else np.asarray(img)
+    return np.round(srgb_encode(x * 2.0 ** exposure) * 255).astype(np.uint8)
