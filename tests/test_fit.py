@@ -1,0 +1,202 @@
+"""Batched NBRDF fitting: gradients, batch == single fits, splits, checkpoints, export, merge."""
+
+import dataclasses
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from neumat import fit, nbrdf
+from neumat.io import merl
+
+SMALL = fit.FitSettings(steps=40, lr=5e-3, lr_final=5e-4, batch=64, materials_per_batch=2,
+                        eval_every=20, eval_bins=256, checkpoint_every=10)
+
+
+@pytest.fixture(scope="module")
+def data():
+    """Three 'materials' that are random NBRDF fields (teachers), at 2000 valid MERL bins."""
+    rng = np.random.default_rng(0)
+    bins = np.sort(rng.choice(np.flatnonzero(merl.valid_mask()), 2000, replace=False))
+    teach = nbrdf.init_weights(3, torch.Generator().manual_seed(7)) * 2
+    x, _ = fit.bin_inputs(bins)
+    values = nbrdf.forward(teach, x).transpose(1, 2).numpy()  # (3, 3, B)
+    init = nbrdf.init_weights(1, torch.Generator().manual_seed(1))[0].numpy()
+    return bins, values, init, teach
+
+
+@pytest.mark.parametrize("activation", nbrdf.ACTIVATIONS)
+def test_hand_written_gradient_matches_autograd(activation):
+    g = torch.Generator().manual_seed(0)
+    w = nbrdf.init_weights(3, g).double() * 3
+    x = torch.randn(3, 200, 6, generator=g, dtype=torch.float64)
+    cos = torch.rand(3, 200, 1, generator=g, dtype=torch.float64)
+    target = torch.rand(3, 200, 3, generator=g, dtype=torch.float64)
+    loss, grad = fit.loss_and_grad(w, x, target, cos, activation)
+    wr = w.clone().requires_grad_(True)
+    raw = nbrdf.forward_raw(wr, x, activation)  # training uses exp(y) - 1 without the clamp
+    ref = (torch.log1p(torch.expm1(raw) * cos) - target).abs().mean((1, 2))
+    (ref_grad,) = torch.autograd.grad(ref.sum(), wr)
+    torch.testing.assert_close(loss, ref)
+    torch.testing.assert_close(grad, ref_grad)
+    assert grad.abs().max() > 1e-3
+
+
+def test_bin_inputs_match_merl_geometry():
+    bins = np.array([0, 12345, merl.N_BINS - 1])
+    x, cos = fit.bin_inputs(bins)
+    th, td, pd_ = (a[bins] for a in merl.grid_angles())
+    np.testing.assert_allclose(x.numpy(), merl.half_diff_cartesian(th, td, pd_), atol=1e-6)
+    np.testing.assert_allclose(cos.numpy(), np.clip(merl.cos_theta_i(th, td, pd_), 0, None),
+                               atol=1e-6)
+    with pytest.raises(ValueError, match="indices"):
+        fit.bin_inputs(np.array([merl.N_BINS]))
+
+
+def test_split_is_80_20_disjoint_and_per_material():
+    tr, va = fit.split_bins(1000, 5, 0, 0.2)
+    assert len(va) == 200 and len(tr) == 800
+    assert set(tr.tolist()) | set(va.tolist()) == set(range(1000))
+    tr2, va2 = fit.split_bins(1000, 5, 0, 0.2)
+    assert torch.equal(va, va2)  # deterministic
+    assert not torch.equal(va, fit.split_bins(1000, 6, 0, 0.2)[1])  # another material
+    assert not torch.equal(va, fit.split_bins(1000, 5, 1, 0.2)[1])  # another seed
+
+
+def test_batch_of_three_equals_three_single_fits(data):
+    bins, values, init, _ = data
+    s = dataclasses.replace(SMALL, materials_per_batch=3)
+    batched = fit.fit_many(values, bins, [10, 11, 12], init, s, seed=3)
+    for k, i in enumerate([10, 11, 12]):
+        single = fit.fit_many(values[k:k + 1], bins, [i], init, s, seed=3)
+        np.testing.assert_allclose(batched["weights"][k], single["weights"][0], atol=2e-5)
+        np.testing.assert_allclose(batched["val_loss"][k], single["val_loss"][0], rtol=1e-4)
+    # materials really differ, and got fitted
+    assert np.abs(batched["weights"][0] - batched["weights"][1]).max() > 1e-3
+    assert not np.allclose(batched["weights"][0], init)
+
+
+def test_fitting_recovers_a_known_field(data):
+    bins, values, init, teach = data
+    s = dataclasses.replace(SMALL, steps=600, lr=1e-2, lr_final=1e-4, eval_every=600)
+    x, cos = fit.bin_inputs(bins)
+    start = fit.field_loss(torch.as_tensor(init)[None], x[None], fit.log_target(values[:1], cos),
+                           cos[None, :, None]).item()
+    res = fit.fit_many(values[:1], bins, [0], init, s, seed=0)
+    assert res["val_loss"][0] < 0.2 * start
+    assert res["train_loss"][0] < 0.2 * start
+    assert res["val_history"].shape == (1, 1) and res["history_steps"].tolist() == [600]
+
+
+def test_killed_run_resumes_to_the_same_result(data, tmp_path, monkeypatch):
+    bins, values, init, _ = data
+    ids = [0, 1, 2]  # groups of 2: a finished group and a running one get checkpointed
+    ref = fit.fit_many(values, bins, ids, init, SMALL, seed=0)
+    ck = tmp_path / "ck.npz"
+    real_save, calls = fit._save_npz, []
+
+    def crash_after_fifth(path, **arrays):
+        real_save(path, **arrays)
+        calls.append(1)
+        if len(calls) == 5:  # 4 in-group + 1 after group 0, then killed in group 1
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit, "_save_npz", crash_after_fifth)
+    with pytest.raises(KeyboardInterrupt):
+        fit.fit_many(values, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+    monkeypatch.setattr(fit, "_save_npz", real_save)
+    with np.load(ck) as z:
+        assert len(z["weights"]) == 2 and "run_w" not in z.files
+    res = fit.fit_many(values, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+    np.testing.assert_array_equal(res["weights"], ref["weights"])
+    np.testing.assert_array_equal(res["val_history"], ref["val_history"])
+    # a mid-group checkpoint resumes bit-identically too
+    monkeypatch.setattr(fit, "_save_npz", crash_after_fifth)
+    calls.clear()
+    calls.extend([1, 1, 1])  # crash at the 2nd save: group 0 at step 20
+    with pytest.raises(KeyboardInterrupt):
+        fit.fit_many(values, bins, ids, init, SMALL, seed=1, checkpoint=ck)
+    monkeypatch.setattr(fit, "_save_npz", real_save)
+    with np.load(ck) as z:
+        assert int(z["run_step"]) == 20 and len(z["weights"]) == 0
+    res = fit.fit_many(values, bins, ids, init, SMALL, seed=1, checkpoint=ck)
+    ref1 = fit.fit_many(values, bins, ids, init, SMALL, seed=1)
+    np.testing.assert_array_equal(res["weights"], ref1["weights"])
+
+
+def test_checkpoint_of_other_settings_is_not_resumed(data, tmp_path, caplog):
+    bins, values, init, _ = data
+    ck = tmp_path / "ck.npz"
+    fit.fit_many(values[:1], bins, [0], init, SMALL, seed=0, checkpoint=ck)
+    other = dataclasses.replace(SMALL, lr=1e-3)
+    res = fit.fit_many(values[:1], bins, [0], init, other, seed=0, checkpoint=ck)
+    assert "starting over" in caplog.text
+    ref = fit.fit_many(values[:1], bins, [0], init, other, seed=0)
+    np.testing.assert_array_equal(res["weights"], ref["weights"])
+
+
+def test_settings_errors_name_the_config_key(data):
+    with pytest.raises(ValueError, match="fit.activation"):
+        fit.FitSettings(activation="tanh")
+    with pytest.raises(ValueError, match="fit.val_fraction"):
+        fit.FitSettings(val_fraction=1.5)
+    bins, values, init, _ = data
+    with pytest.raises(ValueError, match="fit.batch"):
+        fit.fit_many(values[:1], bins, [0], init, dataclasses.replace(SMALL, batch=4096), seed=0)
+    s = fit.FitSettings.from_config({"steps": 5, "template_steps": 9, "lr": 1e-3, "threads": 2},
+                                    "template_steps")
+    assert s.steps == 9 and s.lr == 1e-3
+
+
+def test_save_load_fits_round_trip(data, tmp_path):
+    bins, values, init, _ = data
+    res = fit.fit_many(values[:1], bins, [4], init, dataclasses.replace(SMALL, steps=5), seed=0)
+    fit.save_fits(tmp_path / "f.npz", res)
+    back = fit.load_fits(tmp_path / "f.npz")
+    np.testing.assert_array_equal(back["weights"], res["weights"])
+    assert back["weights"].dtype == np.float32 and back["ids"].tolist() == [4]
+    np.savez(tmp_path / "bad.npz", ids=np.arange(2), weights=np.zeros((2, 5)))
+    with pytest.raises(ValueError, match="bad.npz"):
+        fit.load_fits(tmp_path / "bad.npz")
+
+
+def test_merge_orders_by_manifest_and_checks_coverage():
+    def shard(ids):
+        ids = np.array(ids)
+        return dict(ids=ids, weights=np.tile(ids[:, None], (1, 675)).astype(np.float32),
+                    train_loss=ids * 0.1, val_loss=ids * 0.2)
+
+    man = pd.DataFrame({"id": [0, 1, 2, 3], "name": list("abcd")})
+    evals = [pd.DataFrame({"id": [3, 1], "render_psnr": [33.0, 31.0]}),
+             pd.DataFrame({"id": [0, 2], "render_psnr": [30.0, 32.0]})]
+    w, table = fit.merge_fits([shard([3, 1]), shard([0, 2])], evals, man)
+    assert w.shape == (4, 675) and w[:, 0].tolist() == [0, 1, 2, 3]
+    assert table["name"].tolist() == list("abcd")
+    np.testing.assert_allclose(table["val_loss"], [0, 0.2, 0.4, 0.6])
+    np.testing.assert_allclose(table["render_psnr"], [30, 31, 32, 33])
+    with pytest.raises(ValueError, match="exactly once"):
+        fit.merge_fits([shard([3, 1])], evals, man)
+
+
+def test_export_merl_round_trip(tmp_path):
+    w = nbrdf.init_weights(1, torch.Generator().manual_seed(3))[0].numpy()
+    fit.export_merl(w, tmp_path / "m.binary")
+    table = merl.read_merl(tmp_path / "m.binary")
+    valid = merl.valid_mask()
+    flat = table.reshape(3, -1)
+    assert (flat[:, ~valid] < 0).all() and (flat[:, valid] >= 0).all()
+    idx = np.flatnonzero(valid)[::50000]
+    x, _ = fit.bin_inputs(idx)
+    ref = nbrdf.forward(torch.as_tensor(w)[None], x)[0].numpy().T
+    np.testing.assert_allclose(flat[:, idx], ref, rtol=1e-5, atol=1e-7)
+
+
+def test_psnr_known_answer():
+    a = np.zeros((1, 4, 4, 3))
+    b = a + 0.1  # MSE 0.01 -> 20 dB
+    assert fit.psnr(a, b)[0] == pytest.approx(20.0)
+    mask = np.zeros((4, 4), bool)
+    mask[0, 0] = True
+    b[0, 1:, :] = 1.0  # outside the mask: ignored
+    assert fit.psnr(a, b, mask)[0] == pytest.approx(20.0)

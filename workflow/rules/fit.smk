@@ -1,0 +1,172 @@
+# NeuMERL (paper §3.2): one NBRDF field per AugMERL material, fitted in batches per shard.
+#   fit_template (manifest id 0, longer) -> fit_shard (parallel, checkpointed) -> fit_eval
+#   (render PSNR per shard) -> neumerl (merge) -> neumerl_section; neumerl_export -> .binary
+
+FIT = config["fit"]
+FIT_SEED = SEED + 3000  # stage index 3
+
+
+def fit_runtime(materials, steps):
+    """Minutes for a fit job: ~1 ms per material-step on one CPU thread, plus slack."""
+    return 10 + math.ceil(materials * steps / 60000)
+
+
+rule fit_template:
+    input:
+        shard=out("augmerl/shards/000.npz"),
+    output:
+        out("neumerl/template.npz"),
+    params:
+        cfg=FIT,
+        seed=FIT_SEED,
+        device=config["device"],
+        checkpoint=out("neumerl/checkpoints/template.npz"),
+    log:
+        log("fit_template"),
+    benchmark:
+        bench("fit_template")
+    conda:
+        CONDA_ENV
+    threads: FIT["threads"]
+    resources:
+        mem_mb=lambda wc, input: 1000 + 2 * input.size_mb,
+        runtime=fit_runtime(1, FIT["template_steps"]),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/fit_template.py"
+
+
+rule fit_shard:
+    input:
+        shard=out("augmerl/shards/{shard}.npz"),
+        template=out("neumerl/template.npz"),
+    output:
+        out("neumerl/shards/{shard}.npz"),
+    params:
+        cfg=FIT,
+        seed=FIT_SEED,
+        device=config["device"],
+        checkpoint=out("neumerl/checkpoints/{shard}.npz"),
+    wildcard_constraints:
+        shard=r"\d{3}",
+    log:
+        log("fit_shard/{shard}"),
+    benchmark:
+        bench("fit_shard/{shard}")
+    conda:
+        CONDA_ENV
+    threads: FIT["threads"]
+    resources:
+        mem_mb=lambda wc, input: 1500 + 3 * input.size_mb,
+        runtime=fit_runtime(config["augmerl"]["shard_size"], FIT["steps"]),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/fit_shard.py"
+
+
+rule fit_eval:
+    input:
+        fits=out("neumerl/shards/{shard}.npz"),
+        recipe=out("augmerl/recipe.npz"),
+        tables=[merl_table(n) for n in MERL_NAMES],
+    output:
+        out("neumerl/eval/{shard}.tsv"),
+    params:
+        resolution=FIT["render_resolution"],
+        activation=FIT["activation"],
+        device=config["device"],
+    wildcard_constraints:
+        shard=r"\d{3}",
+    log:
+        log("fit_eval/{shard}"),
+    benchmark:
+        bench("fit_eval/{shard}")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: 2500 + 15 * len(input.tables),
+        runtime=30,
+    script:
+        "../scripts/fit_eval.py"
+
+
+rule neumerl:
+    input:
+        fits=expand(out("neumerl/shards/{shard}.npz"), shard=AUG_SHARDS),
+        evals=expand(out("neumerl/eval/{shard}.tsv"), shard=AUG_SHARDS),
+        manifest=out("augmerl/manifest.tsv"),
+    output:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        fits=out("neumerl/fits.tsv"),
+    log:
+        log("neumerl"),
+    benchmark:
+        bench("neumerl")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: 1000 + input.size_mb,
+        runtime=10,
+    script:
+        "../scripts/neumerl.py"
+
+
+rule neumerl_export:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        out("neumerl/merl/{name}.binary"),
+    params:
+        activation=FIT["activation"],
+    log:
+        log("neumerl_export/{name}"),
+    benchmark:
+        bench("neumerl_export/{name}")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=10,
+    script:
+        "../scripts/neumerl_export.py"
+
+
+rule neumerl_section:
+    input:
+        fits=out("neumerl/fits.tsv"),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        shards=expand(out("neumerl/shards/{shard}.npz"), shard=AUG_SHARDS),
+        template=out("neumerl/template.npz"),
+        recipe=out("augmerl/recipe.npz"),
+        tables=[merl_table(n) for n in MERL_NAMES],
+        exports=expand(out("neumerl/merl/{name}.binary"), name=FIT["export"]),
+    output:
+        section=out("report/sections/20_neumerl.md"),
+        quality=report(out("report/figures/neumerl_quality.png"), category="NeuMERL"),
+        best=report(out("report/figures/neumerl_best.png"), category="NeuMERL"),
+        worst=report(out("report/figures/neumerl_worst.png"), category="NeuMERL"),
+    params:
+        cfg=FIT,
+        resolution=config["report"]["sphere_resolution"],
+        device=config["device"],
+    log:
+        log("neumerl_section"),
+    benchmark:
+        bench("neumerl_section")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: 2500 + 15 * len(input.tables),
+        runtime=20,
+    script:
+        "../scripts/neumerl_section.py"
+
+
+REPORT_SECTIONS.append(out("report/sections/20_neumerl.md"))

@@ -1,0 +1,20 @@
+"""Render PSNR of each fit of one shard against its tabulated AugMERL material (metric view)."""
+import numpy as np
+import pandas as pd
+
+from neumat import augment, fit
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p = snakemake.params
+    fits = fit.load_fits(snakemake.input.fits)
+    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in snakemake.input.tables}
+    aug = augment.AugMERL(snakemake.input.recipe, paths)
+    psnr = np.concatenate([
+        fit.render_psnr(fits["weights"][s:s + 8], aug.tables_from_coefs(aug.coef[fits["ids"][s:s + 8]]),
+                        p.resolution, p.activation, str(fit.resolve_device(p.device)))
+        for s in range(0, len(fits["ids"]), 8)])
+    pd.DataFrame({"id": fits["ids"], "render_psnr": psnr}).to_csv(
+        snakemake.output[0], sep="\t", index=False, float_format="%.4f")
+    log.info("shard %s: render PSNR median %.2f dB, min %.2f dB", snakemake.wildcards.shard,
+             np.median(psnr), psnr.min())

@@ -1,0 +1,23 @@
+"""Fit every material of one AugMERL shard, batched, from the template's weights."""
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neumat import augment, fit
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p = snakemake.params
+    torch.set_num_threads(snakemake.threads)
+    shard = augment.load_shard(snakemake.input.shard)
+    template = fit.load_fits(snakemake.input.template)["weights"][0]
+    settings = fit.FitSettings.from_config(p.cfg)
+    Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
+    res = fit.fit_many(shard["values"], shard["bins"], shard["ids"], template, settings, p.seed,
+                       fit.resolve_device(p.device), checkpoint=p.checkpoint)
+    fit.save_fits(snakemake.output[0], res)
+    Path(p.checkpoint).unlink(missing_ok=True)
+    log.info("shard %s: %d materials, median val loss %.4g (max %.4g), %.1f s",
+             snakemake.wildcards.shard, len(res["ids"]), np.median(res["val_loss"]),
+             res["val_loss"].max(), res["seconds"])

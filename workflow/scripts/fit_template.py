@@ -1,0 +1,27 @@
+"""Fit the template material (manifest id 0) from a random init; its weights initialise every
+other fit (weight-symmetry alignment, paper §3.2)."""
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neumat import augment, fit, nbrdf
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p = snakemake.params
+    torch.set_num_threads(snakemake.threads)
+    shard = augment.load_shard(snakemake.input.shard)
+    hit = np.flatnonzero(shard["ids"] == 0)
+    if not len(hit):
+        raise ValueError(f"{snakemake.input.shard}: holds no material with manifest id 0")
+    k = slice(hit[0], hit[0] + 1)
+    settings = fit.FitSettings.from_config(p.cfg, "template_steps")
+    init = nbrdf.init_weights(1, torch.Generator().manual_seed(p.seed)).numpy()
+    Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
+    res = fit.fit_many(shard["values"][k], shard["bins"], shard["ids"][k], init, settings,
+                       p.seed, fit.resolve_device(p.device), checkpoint=p.checkpoint)
+    fit.save_fits(snakemake.output[0], res)
+    Path(p.checkpoint).unlink(missing_ok=True)
+    log.info("template (id 0): train loss %.4g, val loss %.4g, %d steps in %.1f s",
+             res["train_loss"][0], res["val_loss"][0], settings.steps, res["seconds"])
