@@ -15,6 +15,7 @@ validate(config, "config/schema.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/augment.smk"
+include: "workflow/rules/fit.smk"
 include: "workflow/rules/report.smk"
 
 
