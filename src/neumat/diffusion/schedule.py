@@ -1,0 +1,135 @@
+"""DDPM noise schedules, the training loss, and a DDIM sampler with classifier-free guidance.
+
+Conventions (Ho et al. 2020; Song et al. 2021): timesteps t = 0..T-1, alpha_bar[t] =
+prod_{s<=t} (1 - beta_s), x_t = sqrt(alpha_bar[t]) x0 + sqrt(1 - alpha_bar[t]) eps.
+The denoiser predicts x0 or eps (`prediction`); the other is derived from x_t.
+
+DDIM (Song et al. 2021, eq. 12) on a sub-sequence tau_1 > ... > tau_S of timesteps:
+  x_prev = sqrt(ab_prev) x0_hat + sqrt(1 - ab_prev - sigma^2) eps_hat + sigma z,
+  sigma  = eta sqrt((1 - ab_prev) / (1 - ab_t)) sqrt(1 - ab_t / ab_prev),
+with ab_prev = 1 after the last step (the output is x0_hat). eta = 0: deterministic DDIM;
+eta = 1 on the full sequence: ancestral DDPM.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+import torch
+
+PREDICTIONS = ("x0", "eps")
+SCHEDULES = ("cosine", "linear")
+
+
+@dataclass
+class ScheduleConfig:
+    timesteps: int = 1000
+    kind: str = "cosine"
+    beta_start: float = 1e-4  # linear schedule only
+    beta_end: float = 2e-2
+    prediction: str = "eps"
+
+    def to_dict(self):
+        return asdict(self)
+
+
+def make_betas(cfg: ScheduleConfig) -> torch.Tensor:
+    if cfg.kind == "linear":
+        return torch.linspace(cfg.beta_start, cfg.beta_end, cfg.timesteps, dtype=torch.float64)
+    if cfg.kind == "cosine":  # Nichol & Dhariwal 2021, s = 0.008, betas clipped at 0.999
+        s, T = 0.008, cfg.timesteps
+        f = torch.cos((torch.arange(T + 1, dtype=torch.float64) / T + s) / (1 + s) * math.pi / 2) ** 2
+        return (1 - f[1:] / f[:-1]).clamp(max=0.999)
+    raise ValueError(f"diffusion.schedule.kind: unknown schedule {cfg.kind!r}; choose from {SCHEDULES}")
+
+
+class Diffusion:
+    """Schedule tensors + forward process, loss and DDIM sampling for one ScheduleConfig."""
+
+    def __init__(self, cfg: ScheduleConfig):
+        if cfg.prediction not in PREDICTIONS:
+            raise ValueError(f"diffusion.schedule.prediction: {cfg.prediction!r} is not one of "
+                             f"{PREDICTIONS}")
+        if cfg.timesteps < 1:
+            raise ValueError("diffusion.schedule.timesteps must be >= 1")
+        self.cfg = cfg
+        self.T = cfg.timesteps
+        self.betas = make_betas(cfg)
+        self.alpha_bar = torch.cumprod(1 - self.betas, 0)  # float64, (T,)
+
+    def _ab(self, t: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        return self.alpha_bar.to(like.device)[t].to(like.dtype)[:, None]
+
+    def q_sample(self, x0, t, noise):
+        ab = self._ab(t, x0)
+        return ab.sqrt() * x0 + (1 - ab).sqrt() * noise
+
+    def split(self, out, x_t, ab):
+        """Model output -> (x0_hat, eps_hat) for x_t at cumulative alpha ab (B, 1)."""
+        if self.cfg.prediction == "x0":
+            return out, (x_t - ab.sqrt() * out) / (1 - ab).sqrt()
+        return (x_t - (1 - ab).sqrt() * out) / ab.sqrt(), out
+
+    def loss(self, model, x0, cond=None, drop=None, generator=None):
+        """Mean squared error on the prediction target at uniformly drawn timesteps.
+
+        All randomness comes from `generator` (CPU), so training is reproducible and resumable."""
+        b = x0.shape[0]
+        t = torch.randint(0, self.T, (b,), generator=generator).to(x0.device)
+        noise = torch.randn(x0.shape, generator=generator).to(x0.device, x0.dtype)
+        x_t = self.q_sample(x0, t, noise)
+        target = x0 if self.cfg.prediction == "x0" else noise
+        return torch.mean((model(x_t, t, cond, drop) - target) ** 2)
+
+    def timesteps_for(self, steps: int) -> list[int]:
+        """Evenly spaced DDIM timesteps, descending, always ending at t = 0."""
+        if not 1 <= steps <= self.T:
+            raise ValueError(f"diffusion sampling steps must be in [1, {self.T}], got {steps}")
+        ts = torch.linspace(self.T - 1, 0, steps).round().long().tolist()
+        return list(dict.fromkeys(ts))  # rounding could repeat a step for steps close to T
+
+    @torch.no_grad()
+    def ddim_sample(self, predict: Callable, shape, steps: int = 50, eta: float = 0.0,
+                    generator: torch.Generator | None = None, device="cpu",
+                    x_T: torch.Tensor | None = None, clip: float | None = None) -> torch.Tensor:
+        """Sample with `predict(x_t, t_batch) -> model output` (already guided)."""
+        x = (torch.randn(shape, generator=generator) if x_T is None else x_T.clone()).to(device)
+        ts = self.timesteps_for(steps)
+        for i, t in enumerate(ts):
+            ab = self.alpha_bar[t].item()
+            ab_prev = self.alpha_bar[ts[i + 1]].item() if i + 1 < len(ts) else 1.0
+            tb = torch.full((shape[0],), t, device=device, dtype=torch.long)
+            ab_t = torch.full((shape[0], 1), ab, device=device, dtype=x.dtype)
+            x0, eps = self.split(predict(x, tb), x, ab_t)
+            if clip is not None:  # keep x0 inside the data range; re-derive eps consistently
+                x0 = x0.clamp(-clip, clip)
+                eps = (x - math.sqrt(ab) * x0) / math.sqrt(1 - ab)
+            sigma = eta * math.sqrt((1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev))
+            x = math.sqrt(ab_prev) * x0 + math.sqrt(max(1 - ab_prev - sigma ** 2, 0.0)) * eps
+            if sigma > 0:
+                x = x + sigma * torch.randn(shape, generator=generator).to(device, x.dtype)
+        return x
+
+
+def guided(model, cond: dict | None, scale: float) -> Callable:
+    """Classifier-free guidance (Ho & Salimans 2022): out = u + scale (c - u), with u the
+    null-condition output. scale = 1: conditional model alone; 0: unconditional.
+
+    Both passes run as one batch. With no condition, the model is simply run unconditionally."""
+    if not cond or scale == 1.0:
+        return lambda x, t: model(x, t, cond or None)
+    if scale == 0.0:
+        return lambda x, t: model(x, t, None)
+
+    def predict(x, t):
+        b = x.shape[0]
+        both = {k: torch.cat([v, v]) for k, v in cond.items()}
+        drop = {k: torch.cat([torch.zeros(b, dtype=torch.bool, device=x.device),
+                              torch.ones(b, dtype=torch.bool, device=x.device)]) for k in cond}
+        out = model(torch.cat([x, x]), torch.cat([t, t]), both, drop)
+        c, u = out[:b], out[b:]
+        return u + scale * (c - u)
+
+    return predict

@@ -1,0 +1,217 @@
+"""Training (with EMA, regular checkpoints and exact resume) and sampling of the hyperdiffusion
+model.
+
+Reproducibility: every random draw of training (batch indices, timesteps, noise, condition
+dropout) comes from one CPU `torch.Generator` whose state is saved in each checkpoint together
+with the model, EMA, optimiser and step, so a run killed at any point and resumed from its last
+checkpoint ends in exactly the state of an uninterrupted run (on the same device).
+A checkpoint carries a fingerprint of the data and settings; a stale one is ignored.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from neumat import nbrdf
+from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
+from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    steps: int = 20000
+    batch_size: int = 128
+    lr: float = 3e-4
+    weight_decay: float = 0.0
+    warmup_steps: int = 500
+    ema_decay: float = 0.999
+    cond_drop: float = 0.1  # classifier-free guidance: share of labels replaced by null
+    grad_clip: float = 1.0
+    checkpoint_every: int = 1000
+    log_every: int = 100
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("config device: cuda requested but no CUDA device is available")
+    return torch.device(name)
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Linear warm-up, then cosine decay to 10 % (a pure function of the step: resume-safe)."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    p = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * (0.1 + 0.9 * 0.5 * (1 + math.cos(math.pi * min(p, 1.0))))
+
+
+@torch.no_grad()
+def ema_update(ema: torch.nn.Module, model: torch.nn.Module, step: int, decay: float) -> None:
+    # warm-up of the decay so short runs are not dominated by the random initialisation
+    d = min(decay, (1 + step) / (10 + step))
+    for e, p in zip(ema.parameters(), model.parameters()):
+        e.lerp_(p, 1 - d)
+    for e, b in zip(ema.buffers(), model.buffers()):
+        e.copy_(b)
+
+
+def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs) -> str:
+    h = hashlib.sha256(np.ascontiguousarray(weights, dtype=np.float32).tobytes())
+    h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
+    h.update(json.dumps([asdict(c) for c in cfgs], sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".part")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
+          model_cfg: DenoiserConfig, sched_cfg: ScheduleConfig, cfg: TrainConfig,
+          out_path: str | os.PathLike, checkpoint_path: str | os.PathLike, seed: int,
+          device: str = "auto", on_step=None) -> dict:
+    """Train on weight vectors (N, 675) with type labels (N,) (-1 = untyped) and write the
+    final model (EMA weights, normaliser, configs, loss log) to `out_path`. Returns that dict.
+
+    `on_step(step, loss)` is called after every optimiser step (tests use it to simulate a kill)."""
+    weights = np.asarray(weights, dtype=np.float32)
+    labels = np.asarray(labels, dtype=np.int64)
+    if weights.ndim != 2 or weights.shape[1] != nbrdf.N_PARAMS:
+        raise ValueError(f"training weights must be (N, {nbrdf.N_PARAMS}), got {weights.shape}")
+    if labels.shape != (weights.shape[0],):
+        raise ValueError(f"labels must be ({weights.shape[0]},), got {labels.shape}")
+    if not np.isfinite(weights).all():
+        raise ValueError("training weights contain NaN or inf")
+    if model_cfg.n_classes != len(class_names):
+        raise ValueError(f"{len(class_names)} class names for n_classes={model_cfg.n_classes}")
+    dev = resolve_device(device)
+    ckpt_path, out_path = Path(checkpoint_path), Path(out_path)
+    fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg)
+
+    torch.manual_seed(seed)  # model initialisation (and dropout, if enabled)
+    norm = Normalizer.fit(torch.from_numpy(weights)).to(dev)
+    model = Denoiser(model_cfg).to(dev)
+    ema = copy.deepcopy(model).requires_grad_(False)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    gen = torch.Generator().manual_seed(seed)
+    diffusion = Diffusion(sched_cfg)
+    step, history, elapsed = 0, [], 0.0
+
+    if ckpt_path.exists():
+        ck = torch.load(ckpt_path, map_location=dev, weights_only=False)
+        if ck.get("fingerprint") == fp:
+            model.load_state_dict(ck["model"])
+            ema.load_state_dict(ck["ema"])
+            opt.load_state_dict(ck["opt"])
+            gen.set_state(ck["generator"])
+            torch.set_rng_state(ck["torch_rng"])
+            step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
+            log.info("resumed from %s at step %d", ckpt_path, step)
+        else:
+            log.warning("ignoring %s: written for other data or settings", ckpt_path)
+
+    x_all = norm.encode(torch.from_numpy(weights).to(dev))
+    y_all = torch.from_numpy(labels).to(dev)
+
+    def checkpoint():
+        atomic_save({"fingerprint": fp, "model": model.state_dict(), "ema": ema.state_dict(),
+                     "opt": opt.state_dict(), "generator": gen.get_state(),
+                     "torch_rng": torch.get_rng_state(), "step": step, "history": history,
+                     "elapsed": elapsed}, ckpt_path)
+
+    model.train()
+    t0, running = time.perf_counter(), []
+    while step < cfg.steps:
+        for g in opt.param_groups:
+            g["lr"] = lr_at(step, cfg)
+        idx = torch.randint(0, len(x_all), (cfg.batch_size,), generator=gen).to(dev)
+        drop = (torch.rand(cfg.batch_size, generator=gen) < cfg.cond_drop).to(dev)
+        cond = {"type": y_all[idx]} if model_cfg.n_classes else None
+        loss = diffusion.loss(model, x_all[idx], cond, {"type": drop} if cond else None, gen)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if cfg.grad_clip:
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        opt.step()
+        ema_update(ema, model, step, cfg.ema_decay)
+        step += 1
+        running.append(loss.item())
+        if step % cfg.log_every == 0 or step == cfg.steps:
+            history.append((step, float(np.mean(running))))
+            running = []
+            log.info("step %d/%d loss %.4f lr %.2e", step, cfg.steps, history[-1][1], lr_at(step - 1, cfg))
+        if on_step is not None:
+            on_step(step, loss.item())
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            elapsed_now = elapsed + time.perf_counter() - t0
+            elapsed, t0 = elapsed_now, time.perf_counter()
+            checkpoint()
+
+    result = {"model_cfg": model_cfg.to_dict(), "sched_cfg": sched_cfg.to_dict(),
+              "train_cfg": asdict(cfg), "class_names": list(class_names),
+              "ema": {k: v.cpu() for k, v in ema.state_dict().items()},
+              "normalizer": {k: v.cpu() for k, v in norm.state_dict().items()},
+              "history": history, "train_seconds": elapsed, "n_train": len(weights),
+              "seed": seed, "fingerprint": fp}
+    atomic_save(result, out_path)
+    return result
+
+
+class Sampler:
+    """A trained model (EMA weights) ready to sample weight vectors."""
+
+    def __init__(self, bundle: dict | str | os.PathLike, device: str = "auto"):
+        if not isinstance(bundle, dict):
+            bundle = torch.load(bundle, map_location="cpu", weights_only=False)
+        self.device = resolve_device(device)
+        self.class_names = bundle["class_names"]
+        self.model = Denoiser(DenoiserConfig(**bundle["model_cfg"]))
+        self.model.load_state_dict(bundle["ema"])
+        self.model.to(self.device).eval()
+        self.norm = Normalizer()
+        self.norm.load_state_dict(bundle["normalizer"])
+        self.norm.to(self.device)
+        self.diffusion = Diffusion(ScheduleConfig(**bundle["sched_cfg"]))
+
+    def labels_of(self, types: list[str]) -> torch.Tensor:
+        unknown = sorted(set(types) - set(self.class_names))
+        if unknown:
+            raise ValueError(f"unknown material type(s) {unknown}; known: {self.class_names}")
+        return torch.tensor([self.class_names.index(t) for t in types])
+
+    @torch.no_grad()
+    def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 50,
+               eta: float = 0.0, guidance: float = 1.0, batch_size: int = 256,
+               clip: float | None = None) -> np.ndarray:
+        """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
+        classifier-free guidance scale `guidance`, None samples unconditionally."""
+        if types is not None and len(types) != n:
+            raise ValueError(f"{len(types)} types for {n} samples")
+        labels = self.labels_of(types) if types is not None else None
+        gen = torch.Generator().manual_seed(seed)
+        out = []
+        for s in range(0, n, batch_size):
+            b = min(batch_size, n - s)
+            cond = {"type": labels[s:s + b].to(self.device)} if labels is not None else None
+            z = self.diffusion.ddim_sample(guided(self.model, cond, guidance),
+                                           (b, nbrdf.N_PARAMS), steps, eta, gen, self.device,
+                                           clip=clip)
+            out.append(self.norm.decode(z).float().cpu().numpy())
+        return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)

@@ -1,0 +1,273 @@
+"""Hyperdiffusion: denoiser shapes and conditioning, schedules, DDIM against closed forms on a
+Gaussian, learning a two-mode toy distribution, exact resume, plausibility checks."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neumat import nbrdf
+from neumat.diffusion import (Denoiser, DenoiserConfig, Diffusion, Normalizer, Sampler,
+                              ScheduleConfig, TrainConfig, guided, train)
+from neumat.diffusion.plausibility import albedo_quadrature, directional_albedo, plausibility
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny models: one thread is fastest, and avoids spin-waiting on a shared 2-core box."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+SMALL = DenoiserConfig(width=32, depth=2, heads=4, mlp_ratio=2.0, n_classes=3)
+
+
+def _model(cfg=SMALL, seed=0):
+    torch.manual_seed(seed)
+    m = Denoiser(cfg)
+    for lin in m.embed_out:  # the zero-initialised heads would hide conditioning effects
+        torch.nn.init.normal_(lin.weight, std=0.1)
+    return m.eval()
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def test_denoiser_shapes_and_condition_interface():
+    cfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=5, vector_conditions={"text": 7})
+    m = _model(cfg)
+    x, t = torch.randn(4, nbrdf.N_PARAMS), torch.tensor([0, 5, 10, 999])
+    assert m(x, t).shape == (4, 675)
+    out = m(x, t, {"type": torch.tensor([0, 1, -1, 4]), "text": torch.randn(4, 7)})
+    assert out.shape == (4, 675) and torch.isfinite(out).all()
+    # 6 layer tokens + time + 2 conditions
+    assert m.pos.shape == (9, 32)
+    with pytest.raises(ValueError, match="class labels"):
+        m(x, t, {"type": torch.tensor([0, 1, 2, 5])})
+    with pytest.raises(ValueError, match="unknown condition"):
+        m(x, t, {"image": torch.randn(4, 3)})
+    with pytest.raises(ValueError, match="size 3, expected 7"):
+        m(x, t, {"text": torch.randn(4, 3)})
+
+
+def test_null_condition_paths_agree():
+    """No condition, label -1, a NaN embedding and dropout all mean the same null token."""
+    cfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=3, vector_conditions={"text": 5})
+    m = _model(cfg)
+    x, t = torch.randn(3, 675), torch.tensor([1, 2, 3])
+    base = m(x, t)
+    assert torch.allclose(m(x, t, {"type": torch.full((3,), -1)}), base, atol=1e-6)
+    assert torch.allclose(m(x, t, {"text": torch.full((3, 5), float("nan"))}), base, atol=1e-6)
+    drop = {"type": torch.ones(3, dtype=torch.bool)}
+    assert torch.allclose(m(x, t, {"type": torch.tensor([0, 1, 2])}, drop), base, atol=1e-6)
+    # and a real label changes the output
+    assert not torch.allclose(m(x, t, {"type": torch.tensor([0, 1, 2])}), base, atol=1e-4)
+
+
+def test_classifier_free_guidance_combination():
+    m = _model()
+    x, t = torch.randn(4, 675), torch.tensor([3, 3, 7, 7])
+    cond = {"type": torch.tensor([0, 1, 2, 0])}
+    c, u = m(x, t, cond), m(x, t)
+    assert torch.allclose(guided(m, cond, 1.0)(x, t), c, atol=1e-6)
+    assert torch.allclose(guided(m, cond, 0.0)(x, t), u, atol=1e-6)
+    assert torch.allclose(guided(m, cond, 3.0)(x, t), u + 3.0 * (c - u), atol=1e-5)
+    assert torch.allclose(guided(m, None, 3.0)(x, t), u, atol=1e-6)
+
+
+def test_normalizer_round_trip_and_constant_coordinates():
+    w = torch.randn(50, 675) * 3 + 1
+    w[:, 10] = 0.25  # a weight no fit ever changed
+    n = Normalizer.fit(w)
+    z = n.encode(w)
+    assert torch.allclose(z.mean(0)[:10], torch.zeros(10), atol=1e-5)
+    assert torch.allclose(z.std(0)[:10], torch.ones(10), atol=1e-5)
+    assert torch.isfinite(z).all() and torch.allclose(n.decode(z), w, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- schedule
+
+
+def test_schedules():
+    lin = Diffusion(ScheduleConfig(timesteps=100, kind="linear", beta_start=1e-4, beta_end=2e-2))
+    assert lin.betas[0].item() == pytest.approx(1e-4) and lin.betas[-1].item() == pytest.approx(2e-2)
+    cos = Diffusion(ScheduleConfig(timesteps=1000, kind="cosine"))
+    ab = cos.alpha_bar
+    assert (ab[1:] < ab[:-1]).all() and ab[0] > 0.9999 and ab[-1] < 1e-4
+    # Nichol & Dhariwal: alpha_bar(t) = f(t)/f(0), f(t) = cos^2(((t/T + s)/(1+s)) pi/2)
+    f = lambda x: math.cos((x / 1000 + 0.008) / 1.008 * math.pi / 2) ** 2
+    assert ab[499].item() == pytest.approx(f(500) / f(0), rel=1e-9)
+    assert cos.timesteps_for(4) == [999, 666, 333, 0]
+    assert cos.timesteps_for(1000) == list(range(999, -1, -1))
+    with pytest.raises(ValueError, match="kind"):
+        Diffusion(ScheduleConfig(kind="sigmoid"))
+    with pytest.raises(ValueError, match="prediction"):
+        Diffusion(ScheduleConfig(prediction="v"))
+
+
+def _gaussian_posterior(mu, s2, diffusion, prediction):
+    """Exact E[x0 | x_t] for x0 ~ N(mu, s2), returned as the model output (x0 or eps)."""
+    def predict(x, t):
+        ab = diffusion.alpha_bar[t].to(x.dtype)[:, None]
+        var_t = ab * s2 + 1 - ab
+        x0 = mu + ab.sqrt() * s2 / var_t * (x - ab.sqrt() * mu)
+        return x0 if prediction == "x0" else (x - ab.sqrt() * x0) / (1 - ab).sqrt()
+    return predict
+
+
+@pytest.mark.parametrize("prediction", ["x0", "eps"])
+def test_ddim_matches_closed_form_on_gaussian(prediction):
+    """With the exact posterior mean, deterministic DDIM on Gaussian data is the linear map
+    x_prev - sqrt(ab') mu = g (x_t - sqrt(ab) mu), g = (sqrt(ab ab') s2 + sqrt((1-ab)(1-ab')))
+    / (ab s2 + 1 - ab); the sampler must reproduce it exactly."""
+    d = Diffusion(ScheduleConfig(timesteps=200, kind="cosine", prediction=prediction))
+    mu, s2 = 1.5, 0.25
+    x_T = torch.linspace(-2, 2, 9, dtype=torch.float64)[:, None]
+    got = d.ddim_sample(_gaussian_posterior(mu, s2, d, prediction), x_T.shape, steps=20, x_T=x_T)
+    y, ts = x_T.clone(), d.timesteps_for(20)
+    y = y - d.alpha_bar[ts[0]].sqrt() * mu
+    for i, t in enumerate(ts):
+        ab = d.alpha_bar[t].item()
+        abp = d.alpha_bar[ts[i + 1]].item() if i + 1 < len(ts) else 1.0
+        y = y * (math.sqrt(ab * abp) * s2 + math.sqrt((1 - ab) * (1 - abp))) / (ab * s2 + 1 - ab)
+    assert torch.allclose(got, y + mu, atol=1e-10)
+
+
+def _exact_moments(d, mu, s2, steps, eta):
+    """Mean and variance of the sampler's output for x0 ~ N(mu, s2) and the exact posterior
+    mean: each step is y' = g y + sigma z with y = x_t - sqrt(ab) mu, a linear recurrence."""
+    ts = d.timesteps_for(steps)
+    m, v = -d.alpha_bar[ts[0]].sqrt() * mu, torch.ones_like(s2)
+    for i, t in enumerate(ts):
+        ab = d.alpha_bar[t].item()
+        abp = d.alpha_bar[ts[i + 1]].item() if i + 1 < len(ts) else 1.0
+        sig2 = eta ** 2 * (1 - abp) / (1 - ab) * (1 - ab / abp)
+        g = (math.sqrt(ab * abp) * s2 + math.sqrt((1 - abp - sig2) * (1 - ab))) / (ab * s2 + 1 - ab)
+        m, v = g * m, g ** 2 * v + sig2
+    return mu + m, v
+
+
+@pytest.mark.parametrize("eta,steps", [(0.0, 200), (1.0, 200), (0.5, 50)])
+def test_ddim_recovers_gaussian_moments(eta, steps):
+    """Sampling with the true posterior mean recovers the data's mean and variance (exactly
+    as the discrete-time recurrence predicts, and within 10 % of the data variance)."""
+    d = Diffusion(ScheduleConfig(timesteps=200, kind="cosine", prediction="eps"))
+    mu = torch.tensor([-1.0, 0.5, 2.0], dtype=torch.float64)
+    s2 = torch.tensor([0.09, 0.25, 1.0], dtype=torch.float64)
+    n = 4000
+    gen = torch.Generator().manual_seed(0)
+    x_T = torch.randn(n, 3, generator=gen, dtype=torch.float64)
+    x = d.ddim_sample(_gaussian_posterior(mu, s2, d, "eps"), x_T.shape, steps=steps, eta=eta,
+                      generator=gen, x_T=x_T)
+    m_exact, v_exact = _exact_moments(d, mu, s2, steps, eta)
+    # within 4 standard errors of the exact moments
+    assert ((x.mean(0) - m_exact).abs() < 4 * (v_exact / n).sqrt()).all()
+    assert ((x.var(0) / v_exact - 1).abs() < 4 * math.sqrt(2 / n)).all()
+    assert torch.allclose(m_exact, mu, atol=1e-3)
+    if steps == d.T:  # all steps: close to the data distribution (strided eta > 0 is coarser)
+        assert torch.allclose(v_exact, s2, rtol=0.1)
+
+
+# ----------------------------------------------------------------------------- training
+
+
+def _two_modes(n=256, seed=0):
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(2, 675)).astype(np.float32)
+    labels = rng.integers(0, 2, n)
+    w = centres[labels] + 0.05 * rng.normal(size=(n, 675)).astype(np.float32)
+    return w, labels, centres
+
+
+TOY_TRAIN = TrainConfig(steps=400, batch_size=64, lr=2e-3, warmup_steps=20, ema_decay=0.99,
+                        cond_drop=0.2, checkpoint_every=100, log_every=50)
+TOY_MODEL = DenoiserConfig(width=64, depth=2, heads=4, mlp_ratio=2.0, n_classes=2)
+TOY_SCHED = ScheduleConfig(timesteps=100, kind="cosine", prediction="x0")
+
+
+def test_learns_two_mode_distribution(tmp_path):
+    w, labels, centres = _two_modes()
+    bundle = train(w, labels, ["a", "b"], TOY_MODEL, TOY_SCHED, TOY_TRAIN,
+                   tmp_path / "m.pt", tmp_path / "ck.pt", seed=1, device="cpu")
+    assert bundle["history"][-1][1] < 0.5 * bundle["history"][0][1]
+    s = Sampler(tmp_path / "m.pt", device="cpu")
+    x = s.sample(200, seed=0, steps=20)
+    dist = np.linalg.norm(x[:, None] - centres[None], axis=-1) / math.sqrt(675)  # RMS distance
+    nearest = dist.argmin(1)
+    assert np.median(dist.min(1)) < 0.25  # on a mode (modes are ~1.4 apart), not in between
+    assert 0.25 < nearest.mean() < 0.75  # both modes, not collapsed onto one
+    # type conditioning with guidance picks the requested mode
+    xc = s.sample(40, seed=1, types=["a"] * 20 + ["b"] * 20, steps=20, guidance=2.0)
+    dc = np.linalg.norm(xc[:, None] - centres[None], axis=-1)
+    assert (dc.argmin(1) == np.repeat([0, 1], 20)).mean() >= 0.9
+
+
+def test_resume_after_kill_is_identical(tmp_path):
+    w, labels, _ = _two_modes(64)
+    cfg = TrainConfig(steps=30, batch_size=16, lr=1e-3, warmup_steps=5, checkpoint_every=10,
+                      log_every=5)
+    mcfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=2)
+    args = (w, labels, ["a", "b"], mcfg, TOY_SCHED, cfg)
+    full = train(*args, tmp_path / "full.pt", tmp_path / "full_ck.pt", seed=3, device="cpu")
+
+    def kill(step, loss):
+        if step == 23:  # after the checkpoint at 20: steps 21-23 are lost and redone
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=3, device="cpu", on_step=kill)
+    assert not (tmp_path / "r.pt").exists()
+    resumed = train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=3, device="cpu")
+    for k, v in full["ema"].items():
+        assert torch.equal(v, resumed["ema"][k]), k
+    assert full["history"] == resumed["history"]
+    # a checkpoint written for other settings is ignored, not resumed
+    other = TrainConfig(**{**cfg.__dict__, "lr": 2e-3})
+    fresh = train(w, labels, ["a", "b"], mcfg, TOY_SCHED, other, tmp_path / "o.pt",
+                  tmp_path / "r_ck.pt", seed=3, device="cpu")
+    assert fresh["history"][0] != full["history"][0]
+
+
+def test_training_rejects_bad_input(tmp_path):
+    w, labels, _ = _two_modes(8)
+    args = (["a", "b"], TOY_MODEL, TOY_SCHED, TOY_TRAIN, tmp_path / "m.pt", tmp_path / "c.pt", 0)
+    with pytest.raises(ValueError, match=r"\(N, 675\)"):
+        train(w[:, :600], labels, *args)
+    bad = w.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        train(bad, labels, *args)
+
+
+# ----------------------------------------------------------------------------- plausibility
+
+
+def test_albedo_quadrature_integrates_cosine():
+    _, w, _ = albedo_quadrature(n_theta_o=4, n_theta_h=64, n_phi_h=64)
+    assert np.allclose(w.sum(1), np.pi, rtol=2e-3)  # integral of cos(theta_i) dw_i = pi
+
+
+def _constant_brdf(values):
+    """Weight vectors whose field is the constant BRDF `values` (B,) in every channel."""
+    w = np.zeros((len(values), 675), np.float32)
+    w[:, -3:] = np.log1p(np.asarray(values, np.float32))[:, None]
+    return w
+
+
+def test_lambertian_albedo_and_passivity():
+    w = _constant_brdf([1 / np.pi, 0.5 / np.pi, 1.3 / np.pi])
+    a = directional_albedo(w)
+    assert np.allclose(a[0], 1.0, atol=1e-3) and np.allclose(a[1], 0.5, atol=1e-3)
+    bad = np.zeros((1, 675), np.float32)
+    bad[0, 0] = np.nan
+    df = plausibility(np.concatenate([w, bad]), reference_max=0.2)
+    assert df["passivity_violation"].tolist() == [False, False, True, True]
+    assert df["nonfinite"].tolist() == [False, False, False, True]
+    assert df["exploding"].tolist() == [False, False, False, True]  # NaN counts as exploding
+    assert np.allclose(df["max_value"][:3], [1 / np.pi, 0.5 / np.pi, 1.3 / np.pi], rtol=1e-5)
+    assert (df["negative_share"][:3] == 0).all()
+    neg = _constant_brdf([0.1])
+    neg[0, -3:] = -0.5  # exp(-0.5) - 1 < 0 everywhere: clamped to black
+    assert plausibility(neg)["negative_share"][0] == 1.0
