@@ -1,0 +1,90 @@
+# MERL tables, one file per material: downloaded (sha256-pinned), taken from a local directory,
+# or synthesised (analytic BRDFs, offline). Only the configured source's rule is defined, so
+# every table has exactly one producer; downstream rules ask merl_table(name) (common.smk).
+import re
+
+from neumat.data import merl_files as _merl_files
+
+MERL_CFG = config["merl"]
+MERL_NAME_RE = "|".join(map(re.escape, MERL_NAMES))  # per rule: {name} means other things elsewhere
+
+
+def merl_checked(path):
+    """`path` flagged with the material's pinned sha256, unless merl.verify_sha256 is false."""
+    if MERL_CFG["verify_sha256"]:
+        return ensure(path, sha256=lambda w: merl_sha256(w.name))
+    return path
+
+
+def merl_expected_sha256(wildcards):
+    return merl_sha256(wildcards.name) if MERL_CFG["verify_sha256"] else ""
+
+
+if MERL_CFG["source"] == "download":
+
+    rule download_merl:
+        wildcard_constraints:
+            name=MERL_NAME_RE,
+        output:
+            merl_checked("resources/merl/{name}.binary"),
+        params:
+            url=lambda w: MERL_CFG["url"].format(name=w.name),
+            sha256=merl_expected_sha256,
+            retries=MERL_CFG["retries"],
+        log:
+            log("download_merl/{name}"),
+        benchmark:
+            bench("download_merl/{name}")
+        threads: 1
+        resources:
+            mem_mb=512,
+            runtime=30,
+        script:
+            "../scripts/download_merl.py"
+
+elif MERL_CFG["source"] == "local":
+    # fail at DAG time, naming the key, rather than with "missing input" per job
+    _merl_files.check_local_dir(MERL_CFG["local_dir"], MERL_NAMES)
+
+    rule local_merl:
+        wildcard_constraints:
+            name=MERL_NAME_RE,
+        input:
+            lambda w: f"{MERL_CFG['local_dir']}/{w.name}.binary",
+        output:
+            merl_checked("resources/merl/{name}.binary"),
+        params:
+            local_dir=MERL_CFG["local_dir"],
+            link=MERL_CFG["link"],
+            sha256=merl_expected_sha256,
+        log:
+            log("local_merl/{name}"),
+        benchmark:
+            bench("local_merl/{name}")
+        threads: 1
+        resources:
+            mem_mb=512,
+            runtime=5,
+        script:
+            "../scripts/local_merl.py"
+
+else:
+
+    rule synthetic_merl:
+        wildcard_constraints:
+            name=MERL_NAME_RE,
+        output:
+            out("merl/{name}.binary"),
+        params:
+            n_materials=MERL_CFG["synthetic"]["count"],
+            seed=SEED,
+        log:
+            log("synthetic_merl/{name}"),
+        benchmark:
+            bench("synthetic_merl/{name}")
+        threads: 1
+        resources:
+            mem_mb=1500,
+            runtime=5,
+        script:
+            "../scripts/synthetic_merl.py"
