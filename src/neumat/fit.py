@@ -45,7 +45,7 @@ class FitSettings:
     """Optimisation settings of one fit (config section `fit:`, see config/schema.yaml)."""
     steps: int = 4000
     lr: float = 5e-3
-    lr_final: float = 5e-5  # cosine decay from lr to lr_final over `steps`
+    lr_final: float = 5e-4  # cosine decay from lr to lr_final over `steps`
     batch: int = 512
     activation: str = "relu"
     val_fraction: float = 0.2
