@@ -190,13 +190,21 @@ def render_tables(tables, resolution: int = 128, device: str = "cpu",
 
 
 def srgb_encode(x):
-    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1 curve)."""
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1 curve); clips first."""
     x = np.clip(np.asarray(x, dtype=np.float64), 0, 1)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
+def to_srgb(img, exposure: float = EXPOSURE) -> torch.Tensor:
+    """Linear HDR (..., 3) -> float32 sRGB in [0, 1]: scale by 2**exposure, clip, sRGB curve.
+    The images the render distances (RMSE, PSNR, SSIM) and FID see."""
+    x = torch.as_tensor(img, dtype=torch.float32) * 2.0 ** exposure
+    x = x.clamp(0, 1)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
+
+
 def tonemap(img, exposure: float = EXPOSURE) -> np.ndarray:
-    """Linear HDR (..., 3) -> uint8 sRGB: scale by 2**exposure, clip to [0, 1], sRGB curve,
-    round. With exposure 0 a white Lambertian (albedo 1) facing the light maps to ~0.35 linear."""
+    """Linear HDR (..., 3) -> uint8 sRGB: `to_srgb` rounded to 8 bits. With exposure 0 a
+    white Lambertian (albedo 1) facing the light is ~0.37 linear (sRGB 163)."""
     x = img.numpy() if torch.is_tensor(img) else np.asarray(img)
     return np.round(srgb_encode(x * 2.0 ** exposure) * 255).astype(np.uint8)

@@ -1,0 +1,3 @@
+"""Material-distribution metrics (M3ashy §4.2): pairwise distances between two sets of
+materials (`distances`), the set metrics MMD / COV / 1-NNA built on them (`sets`), FID on
+renders with an Inception-v3 (`fid`, `inception`), and the whole Table-2 evaluation (`evaluate`)."""

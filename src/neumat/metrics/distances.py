@@ -1,0 +1,144 @@
+"""Pairwise distances between two sets of materials, as whole matrices in one go.
+
+* BRDF-L1 (M3ashy eq. 6): mean over a fixed sample of valid MERL bins and the 3 channels of
+  |f - f'|, physical BRDF values at bin centres - neural fields are evaluated there, tables read
+  there, so fields and tables are compared alike (`brdf_sample`, `field_values`, `table_values`).
+* RMSE, NegPSNR (= -PSNR, peak 1), NegSSIM (= -SSIM) between metric renders, as sRGB-encoded
+  float images in [0, 1] (`neumat.render.sphere.to_srgb`), over the whole image.
+
+SSIM is a vectorised torch twin of `skimage.metrics.structural_similarity(a, b,
+channel_axis=-1, data_range=1)` (7x7 uniform window, K1 = 0.01, K2 = 0.03, sample covariance,
+mean over the window-valid region and the channels); tests check it against scikit-image.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from neumat import nbrdf
+from neumat.io import merl
+
+PSNR_FLOOR_MSE = 1e-10  # identical images: NegPSNR = -100 dB instead of -inf
+SSIM_WIN, SSIM_K1, SSIM_K2 = 7, 0.01, 0.03
+_PAIR_FLOATS = 1 << 24  # bounds the per-chunk memory of the pairwise loops
+
+
+# ----------------------------------------------------------------------------- BRDF-L1
+
+
+def brdf_sample(n: int | str, seed: int) -> np.ndarray:
+    """Flat MERL bin indices: all valid bins ("all") or a fixed random subset of n of them."""
+    valid = np.flatnonzero(merl.valid_mask())
+    if n == "all" or n >= len(valid):
+        return valid
+    if not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"BRDF-L1 sample size must be a positive integer or 'all', got {n!r}")
+    return np.sort(np.random.default_rng(seed).choice(valid, n, replace=False))
+
+
+def field_values(weights, bins, activation: str = "relu", chunk: int = 64) -> torch.Tensor:
+    """Neural fields (B, 675) at the centres of `bins` -> (B, len(bins) * 3) float32."""
+    th, td, pd = (a[bins] for a in merl.grid_angles())
+    x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd), dtype=torch.float32)
+    w = torch.as_tensor(weights, dtype=torch.float32)
+    with torch.no_grad():
+        return torch.cat([nbrdf.forward(w[s:s + chunk], x, activation).reshape(len(w[s:s + chunk]), -1)
+                          for s in range(0, len(w), chunk)])
+
+
+def table_values(tables, bins) -> torch.Tensor:
+    """MERL tables (B, 3, 90, 90, 180) at `bins` -> (B, len(bins) * 3) float32, same layout
+    as `field_values` (bin-major, channel-minor); negative (invalid) entries count as 0."""
+    t = torch.as_tensor(tables).reshape(len(tables), 3, merl.N_BINS)
+    return t[:, :, torch.as_tensor(bins)].clamp_min(0).transpose(1, 2).reshape(len(t), -1).float()
+
+
+def pairwise_l1(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean absolute difference between every row of a (n, D) and of b (m, D) -> (n, m)."""
+    a, b = a.flatten(1).double(), b.flatten(1).double()
+    return torch.cdist(a, b, p=1) / a.shape[1]
+
+
+# ----------------------------------------------------------------------------- image distances
+
+
+def _images(x) -> torch.Tensor:
+    x = torch.as_tensor(x)
+    if x.dim() != 4 or x.shape[-1] not in (1, 3):
+        raise ValueError(f"images must have shape (N, H, W, C), got {tuple(x.shape)}")
+    return x.double()
+
+
+def pairwise_mse(x, y=None) -> torch.Tensor:
+    """Mean squared error between every image of x (n, H, W, C) and y (m, H, W, C) -> (n, m),
+    as |x|^2 + |y|^2 - 2 x.y in float64 (one matrix product). y=None: x against itself."""
+    x = _images(x).flatten(1)
+    y = x if y is None else _images(y).flatten(1)
+    if x.shape[1] != y.shape[1]:
+        raise ValueError(f"image sets differ in size: {x.shape[1]} vs {y.shape[1]} values")
+    d = (x * x).sum(1)[:, None] + (y * y).sum(1)[None] - 2 * x @ y.T
+    return d.clamp_min(0) / x.shape[1]
+
+
+def pairwise_rmse(x, y=None) -> torch.Tensor:
+    return pairwise_mse(x, y).sqrt()
+
+
+def pairwise_negpsnr(x, y=None) -> torch.Tensor:
+    """-PSNR with peak 1: 10 log10(MSE), MSE floored at PSNR_FLOOR_MSE."""
+    return 10 * torch.log10(pairwise_mse(x, y).clamp_min(PSNR_FLOOR_MSE))
+
+
+def _band(n: int, dtype) -> torch.Tensor:
+    """(n - 6, n) matrix averaging every run of SSIM_WIN consecutive entries."""
+    i = torch.arange(n - SSIM_WIN + 1)[:, None]
+    j = torch.arange(n)[None]
+    return ((j >= i) & (j < i + SSIM_WIN)).to(dtype) / SSIM_WIN
+
+
+def _box(x: torch.Tensor) -> torch.Tensor:
+    """Mean over every valid 7x7 window of (..., H, W) -> (..., H-6, W-6), as two matrix
+    products with band matrices (several times faster than avg_pool2d on CPU)."""
+    return _band(x.shape[-2], x.dtype) @ x @ _band(x.shape[-1], x.dtype).T
+
+
+def pairwise_ssim(x, y=None) -> torch.Tensor:
+    """SSIM of every pair (scikit-image defaults, data range 1) -> (n, m); float32 inside,
+    within 1e-5 of scikit-image's float64. y=None: x against itself, computing each
+    unordered pair once."""
+    sym = y is None
+    x = _images(x).float().permute(0, 3, 1, 2).contiguous()
+    y = x if sym else _images(y).float().permute(0, 3, 1, 2).contiguous()
+    if x.shape[1:] != y.shape[1:]:
+        raise ValueError(f"image sets differ in shape: {tuple(x.shape[1:])} vs {tuple(y.shape[1:])}")
+    if min(x.shape[2:]) < SSIM_WIN:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WIN}x{SSIM_WIN} pixels")
+    c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
+    k = SSIM_WIN ** 2 / (SSIM_WIN ** 2 - 1)  # sample covariance, as scikit-image
+    # per-image terms: SSIM = (2 ux uy + c1)(2 vxy + c2) / ((ux^2 + uy^2 + c1)(vx + vy + c2))
+    ux, uy = _box(x), _box(y)
+    qx, qy = ux * ux, uy * uy + c1
+    rx, ry = k * (_box(x * x) - qx), k * (_box(y * y) - uy * uy) + c2
+    out = torch.empty(len(x), len(y), dtype=torch.float64)
+    step = max(1, _PAIR_FLOATS // (len(y) * x[0].numel()))
+    for s in range(0, len(x), step):
+        rows = slice(s, s + step)
+        cols = slice(s if sym else 0, len(y))  # symmetric: upper triangle incl. diagonal
+        p = _box(x[rows, None] * y[None, cols])
+        uu = ux[rows, None] * uy[None, cols]
+        p.sub_(uu).mul_(2 * k).add_(c2).mul_(uu.mul_(2).add_(c1))
+        den = (qx[rows, None] + qy[None, cols]).mul_(rx[rows, None] + ry[None, cols])
+        out[rows, cols] = p.div_(den).mean((2, 3, 4)).double()
+    if sym:
+        out = torch.triu(out) + torch.triu(out, 1).T
+    return out
+
+
+def pairwise_negssim(x, y=None) -> torch.Tensor:
+    return -pairwise_ssim(x, y)
+
+
+IMAGE_DISTANCES = {"RMSE": pairwise_rmse, "NegPSNR": pairwise_negpsnr, "NegSSIM": pairwise_negssim}
+DISTANCES = ("BRDF-L1", *IMAGE_DISTANCES)

@@ -1,0 +1,144 @@
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from skimage.metrics import structural_similarity
+
+from neumat import nbrdf
+from neumat.io import merl
+from neumat.metrics import distances as D
+from neumat.metrics import evaluate, fid, sets
+from neumat.metrics.inception import FIDInception, load_fid_inception
+
+
+# ----------------------------------------------------------------------------- set metrics
+
+def test_identical_sets_give_mmd_0_and_full_coverage():
+    x = torch.randn(6, 4, dtype=torch.float64)
+    d = torch.cdist(x, x)
+    assert sets.mmd(d) == 0
+    assert sets.cov(d) == 1.0
+    # every point's nearest other point is its twin in the other set
+    assert sets.one_nna(d, d, d) == 0.0
+
+
+def test_far_apart_sets_give_1nna_100():
+    r, s = torch.randn(5, 3), torch.randn(7, 3) + 100
+    assert sets.one_nna(torch.cdist(r, r), torch.cdist(s, s), torch.cdist(r, s)) == 1.0
+
+
+def test_hand_computed_example():
+    # R = {0, 1, 10} and S = {0.2, 0.9} on the real line, d = |r - s|
+    r, s = torch.tensor([[0.0], [1.0], [10.0]]), torch.tensor([[0.2], [0.9]])
+    d_rr, d_ss, d_rs = torch.cdist(r, r), torch.cdist(s, s), torch.cdist(r, s)
+    assert sets.mmd(d_rs) == pytest.approx((0.2 + 0.1 + 9.1) / 3)
+    assert sets.cov(d_rs) == pytest.approx(2 / 3)  # 0.2 -> 0, 0.9 -> 1; 10 uncovered
+    # NN: 0 -> 0.2 (S, wrong), 1 -> 0.9 (S, wrong), 10 -> 1 (R, right),
+    #     0.2 -> 0 (R, wrong), 0.9 -> 1 (R, wrong)
+    assert sets.one_nna(d_rr, d_ss, d_rs) == pytest.approx(1 / 5)
+
+
+def test_cov_counts_each_reference_once():
+    d_rs = torch.tensor([[0.0, 0.1, 0.2], [5.0, 5.0, 5.0]])  # all samples nearest to R0
+    assert sets.cov(d_rs) == 0.5
+
+
+def test_set_metric_shape_errors():
+    with pytest.raises(ValueError, match="d_rr 2x2"):
+        sets.one_nna(torch.zeros(3, 3), torch.zeros(2, 2), torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="non-empty 2-D"):
+        sets.mmd(torch.zeros(3))
+
+
+# ----------------------------------------------------------------------------- distances
+
+def test_image_distances_match_per_pair_reference():
+    g = torch.Generator().manual_seed(0)
+    x, y = torch.rand(3, 16, 12, 3, generator=g), torch.rand(4, 16, 12, 3, generator=g)
+    mse = np.array([[((a - b) ** 2).mean().item() for b in y] for a in x])
+    ssim = np.array([[structural_similarity(a.numpy(), b.numpy(), channel_axis=-1, data_range=1)
+                      for b in y] for a in x])
+    np.testing.assert_allclose(D.pairwise_rmse(x, y), np.sqrt(mse), rtol=1e-6)
+    np.testing.assert_allclose(D.pairwise_negpsnr(x, y), 10 * np.log10(mse), rtol=1e-6)
+    np.testing.assert_allclose(D.pairwise_negssim(x, y), -ssim, atol=1e-5)
+    # self-distances: symmetric path equals the general one, SSIM(x, x) = 1, PSNR floored
+    np.testing.assert_allclose(D.pairwise_ssim(x), D.pairwise_ssim(x, x), atol=1e-6)
+    np.testing.assert_allclose(np.diag(D.pairwise_ssim(x)), 1, atol=1e-6)
+    assert D.pairwise_negpsnr(x).diagonal().eq(-100).all()
+
+
+def test_brdf_l1_fields_and_tables_alike():
+    w = nbrdf.init_weights(3, torch.Generator().manual_seed(0))
+    bins = D.brdf_sample(500, seed=0)
+    assert len(bins) == 500 and merl.valid_mask()[bins].all()
+    np.testing.assert_array_equal(bins, D.brdf_sample(500, seed=0))
+    tables = nbrdf.evaluate_grid(w).astype(np.float32)
+    fv, tv = D.field_values(w, bins), D.table_values(tables, bins)
+    torch.testing.assert_close(fv, tv, rtol=1e-5, atol=1e-6)
+    d = D.pairwise_l1(fv, tv)
+    expected = np.abs(fv[:, None].numpy() - tv[None].numpy()).mean(-1)
+    np.testing.assert_allclose(d, expected, rtol=1e-6, atol=1e-9)
+    with pytest.raises(ValueError, match="sample size"):
+        D.brdf_sample(0, seed=0)
+
+
+# ----------------------------------------------------------------------------- FID
+
+def test_frechet_distance_closed_forms():
+    rng = np.random.default_rng(0)
+    mu1, mu2 = rng.normal(size=5), rng.normal(size=5)
+    v1, v2 = rng.uniform(0.5, 2, 5), rng.uniform(0.5, 2, 5)
+    # diagonal covariances: |mu1 - mu2|^2 + sum (sqrt v1 - sqrt v2)^2
+    expected = np.sum((mu1 - mu2) ** 2) + np.sum((np.sqrt(v1) - np.sqrt(v2)) ** 2)
+    assert fid.frechet_distance(mu1, np.diag(v1), mu2, np.diag(v2)) == pytest.approx(expected)
+    # same Gaussian, any covariance: 0; a rotation of both covariances changes nothing
+    a = rng.normal(size=(5, 5))
+    s = a @ a.T + np.eye(5)
+    assert fid.frechet_distance(mu1, s, mu1, s) == pytest.approx(0, abs=1e-6)
+    q, _ = np.linalg.qr(rng.normal(size=(5, 5)))
+    assert fid.frechet_distance(mu1, q @ np.diag(v1) @ q.T, mu2, q @ np.diag(v2) @ q.T) == \
+        pytest.approx(expected)
+
+
+def test_inception_state_dict_and_features(tmp_path):
+    model = FIDInception()
+    keys = [k for k in model.state_dict() if not k.endswith("num_batches_tracked")]
+    # torchvision Inception3 names (1008 classes, no aux head) as in pt_inception-2015-12-05
+    assert len(keys) == 472 and keys[0] == "Conv2d_1a_3x3.conv.weight"
+    assert {"Mixed_7c.branch3x3dbl_3b.bn.running_var", "fc.weight"} <= set(keys)
+    assert model.fc.weight.shape == (1008, 2048)
+    assert sum(p.numel() for p in model.parameters()) == 23_850_960
+    state = {k: v for k, v in model.state_dict().items() if k in keys}  # like the TF port
+    torch.save(state, tmp_path / "w.pth")
+    loaded = load_fid_inception(tmp_path / "w.pth")
+    feats = fid.features(loaded, torch.rand(2, 40, 40, 3))
+    assert feats.shape == (2, 2048) and (feats >= 0).all()  # after ReLU + mean pool
+    torch.save({"foo": torch.zeros(1)}, tmp_path / "bad.pth")
+    with pytest.raises(ValueError, match="not a pytorch-fid Inception"):
+        load_fid_inception(tmp_path / "bad.pth")
+    with pytest.raises(FileNotFoundError, match="metrics.inception_weights"):
+        load_fid_inception(tmp_path / "absent.pth")
+
+
+# ----------------------------------------------------------------------------- evaluation
+
+def test_evaluate_and_table2(tmp_path):
+    g = torch.Generator().manual_seed(0)
+    ref = nbrdf.init_weights(4, g)
+    res = evaluate.evaluate_fields(ref, ref.clone(), resolution=16, bins=D.brdf_sample(200, 0),
+                                   fid_unavailable="no weights in test")
+    assert len(res) == 13 and list(res.columns) == evaluate.COLUMNS
+    v = res.set_index(["metric", "distance"])["value"]
+    for d in D.DISTANCES:
+        assert v[("COV", d)] == 1.0 and v[("1-NNA", d)] == 0.0
+    assert v[("MMD", "BRDF-L1")] == 0 and v[("MMD", "NegSSIM")] == pytest.approx(-1)
+    assert np.isnan(v[("FID", "Inception-v3")])
+    assert res.loc[0, "note"] == "unavailable: no weights in test"
+    t = evaluate.write_table2({"training_set": res, "ours": res}, tmp_path / "t.csv",
+                              tmp_path / "t.md", tmp_path / "t.html")
+    assert t.shape == (13, 2) and t.iloc[0, 0] == "n/a"
+    assert t.loc[("COV (%) (↑)", "RMSE"), "ours"] == "100"
+    assert "MMD (↓)" in (tmp_path / "t.md").read_text()
+    assert "<table" in (tmp_path / "t.html").read_text()
+    with pytest.raises(ValueError, match="lack rows"):
+        evaluate.table2({"bad": res.iloc[:5]})
