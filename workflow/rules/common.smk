@@ -84,3 +84,18 @@ REPORT_SECTIONS = []
 
 def report_inputs():
     return [out("report/index.html"), out("report/index.md")]
+
+
+# ----------------------------------------------------------------------------- MERL files (data.smk)
+
+
+def merl_checked(path):
+    """`path` flagged with the material's pinned sha256, unless merl.verify_sha256 is false."""
+    if config["merl"]["verify_sha256"]:
+        return ensure(path, sha256=lambda w: merl_sha256(w.name))
+    return path
+
+
+def merl_expected_sha256(wildcards):
+    """The sha256 a data rule's script checks ('' = size/header only)."""
+    return merl_sha256(wildcards.name) if config["merl"]["verify_sha256"] else ""

@@ -9,17 +9,6 @@ MERL_CFG = config["merl"]
 MERL_NAME_RE = "|".join(map(re.escape, MERL_NAMES))  # per rule: {name} means other things elsewhere
 
 
-def merl_checked(path):
-    """`path` flagged with the material's pinned sha256, unless merl.verify_sha256 is false."""
-    if MERL_CFG["verify_sha256"]:
-        return ensure(path, sha256=lambda w: merl_sha256(w.name))
-    return path
-
-
-def merl_expected_sha256(wildcards):
-    return merl_sha256(wildcards.name) if MERL_CFG["verify_sha256"] else ""
-
-
 if MERL_CFG["source"] == "download":
 
     rule download_merl:
@@ -35,6 +24,8 @@ if MERL_CFG["source"] == "download":
             log("download_merl/{name}"),
         benchmark:
             bench("download_merl/{name}")
+        conda:
+            CONDA_ENV
         threads: 1
         resources:
             mem_mb=512,
@@ -61,6 +52,8 @@ elif MERL_CFG["source"] == "local":
             log("local_merl/{name}"),
         benchmark:
             bench("local_merl/{name}")
+        conda:
+            CONDA_ENV
         threads: 1
         resources:
             mem_mb=512,
@@ -82,9 +75,11 @@ else:
             log("synthetic_merl/{name}"),
         benchmark:
             bench("synthetic_merl/{name}")
+        conda:
+            CONDA_ENV
         threads: 1
         resources:
-            mem_mb=1500,
+            mem_mb=1000,
             runtime=5,
         script:
             "../scripts/synthetic_merl.py"
