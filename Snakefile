@@ -16,6 +16,7 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/data.smk"
 include: "workflow/rules/augment.smk"
 include: "workflow/rules/fit.smk"
+include: "workflow/rules/diffusion.smk"
 include: "workflow/rules/report.smk"
 
 

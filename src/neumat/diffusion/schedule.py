@@ -29,7 +29,7 @@ class ScheduleConfig:
     kind: str = "cosine"
     beta_start: float = 1e-4  # linear schedule only
     beta_end: float = 2e-2
-    prediction: str = "eps"
+    prediction: str = "x0"
 
     def to_dict(self):
         return asdict(self)

@@ -1,0 +1,81 @@
+"""Which NeuMERL rows each model trains on, type labels, and nearest-neighbour look-ups.
+
+Models (paper §4.3, §4.6): `ours` trains on the NeuMERL train split (all of AugMERL there);
+`merl100` on the train-split fits of the original MERL materials only. The reference set of
+Table 2 is the test split; the `training` column is a random train subset of the same size.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+MODELS = ("ours", "merl100")
+MANIFEST_COLUMNS = ("id", "name", "operation", "type", "split")
+
+
+def read_manifest(path: str | Path, n_weights: int | None = None) -> pd.DataFrame:
+    man = pd.read_csv(path, sep="\t", keep_default_na=False, dtype={"type": str})
+    missing = [c for c in MANIFEST_COLUMNS if c not in man.columns]
+    if missing:
+        raise ValueError(f"{path}: missing columns {missing}")
+    if n_weights is not None and len(man) != n_weights:
+        raise ValueError(f"{path}: {len(man)} rows but the NeuMERL weights have {n_weights}")
+    return man
+
+
+def class_names(types) -> list[str]:
+    """Sorted distinct non-empty type names: the class index of a type is its position."""
+    return sorted({t for t in types if t})
+
+
+def training_rows(man: pd.DataFrame, model: str) -> np.ndarray:
+    train = man["split"] == "train"
+    if model == "ours":
+        rows = np.flatnonzero(train)
+    elif model == "merl100":
+        rows = np.flatnonzero(train & (man["operation"] == "original"))
+    else:
+        raise ValueError(f"unknown diffusion model {model!r}; choose from {MODELS}")
+    if len(rows) == 0:
+        raise ValueError(f"no training materials for model {model!r} in the manifest")
+    return rows
+
+
+def reference_rows(man: pd.DataFrame) -> np.ndarray:
+    rows = np.flatnonzero(man["split"] == "test")
+    if len(rows) == 0:
+        raise ValueError("the manifest has no test-split materials (augmerl.test_fraction)")
+    return rows
+
+
+def labels(types, names: list[str]) -> np.ndarray:
+    """Type names -> class indices; '' (interpolated materials) -> -1 (the null class)."""
+    index = {n: i for i, n in enumerate(names)}
+    unknown = sorted({t for t in types if t and t not in index})
+    if unknown:
+        raise ValueError(f"types {unknown} are not among the model's classes {names}")
+    return np.array([index[t] if t else -1 for t in types], dtype=np.int64)
+
+
+def training_subset(man: pd.DataFrame, seed: int) -> np.ndarray:
+    """Rows of a random train-split subset as large as the test split (Table 2 'Training set')."""
+    train, n = training_rows(man, "ours"), len(reference_rows(man))
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(train, size=min(n, len(train)), replace=False))
+
+
+def nearest(a: torch.Tensor, b: torch.Tensor, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """For each row of a (n, D), the index of and BRDF-L1 distance to its nearest row of b."""
+    from neumat.metrics.distances import pairwise_l1
+
+    idx, dist = [], []
+    for s in range(0, len(a), chunk):
+        d = pairwise_l1(a[s:s + chunk], b)
+        m = d.min(1)
+        idx.append(m.indices.numpy())
+        dist.append(m.values.numpy())
+    return np.concatenate(idx), np.concatenate(dist)

@@ -1,0 +1,260 @@
+# Hyperdiffusion (paper §3.3, §4.3, §4.6): train `ours` (NeuMERL train split) and `merl100`
+# (train-split fits of the original MERL materials), sample unconditionally (as many as the
+# test reference set) and per material type, export a few samples as MERL .binary, check
+# physical plausibility, find each sample's nearest training material, write the report section.
+#   neumerl -> train_diffusion -> sample_uncond / sample_type -> diffusion_nearest,
+#   diffusion_plausibility, export_samples -> diffusion_section
+
+DIFF = config["diffusion"]
+DIFF_SEED = SEED + 5000  # stage index 5
+DIFF_MODELS = ["ours", "merl100"]
+# Class names of the type condition: every type of this run's MERL catalogue (48 for MERL).
+DIFF_CLASSES = sorted(set(MERL["type"]))
+DIFF_ACTIVATION = config["fit"]["activation"]
+# Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
+# split ('reference', for the distance of unseen real materials to their nearest training one).
+DIFF_SETS = ["training", "ours", "merl100", "ours_type"]
+NEAREST_SETS = ["reference", "ours", "merl100", "ours_type"]
+
+
+def diffusion_runtime():
+    """Minutes for a training job: ~0.5 s per step of a width-256, depth-4, batch-128 model
+    on one CPU thread, scaled by width^2 * depth * batch, plus slack."""
+    m, t = DIFF["model"], DIFF["train"]
+    per_step = 0.5 * (m["width"] / 256) ** 2 * m["depth"] / 4 * t["batch_size"] / 128
+    return 10 + math.ceil(t["steps"] * per_step / 60)
+
+
+rule train_diffusion:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        model=out("diffusion/{model}/model.pt"),
+        history=out("diffusion/{model}/history.tsv"),
+    params:
+        cfg=DIFF,
+        class_names=DIFF_CLASSES,
+        seed=DIFF_SEED,
+        device=config["device"],
+        checkpoint=out("diffusion/{model}/checkpoint.pt"),
+    wildcard_constraints:
+        model="|".join(DIFF_MODELS),
+    log:
+        log("train_diffusion/{model}"),
+    benchmark:
+        bench("train_diffusion/{model}")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=diffusion_runtime(),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/train_diffusion.py"
+
+
+rule sample_uncond:
+    input:
+        model=out("diffusion/{model}/model.pt"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        weights=out("samples/{model}/weights.npy"),
+        table=out("samples/{model}/samples.tsv"),
+        timing=out("samples/{model}/timing.tsv"),
+    params:
+        cfg=DIFF,
+        mode="uncond",
+        seed=DIFF_SEED + 100,
+        device=config["device"],
+    wildcard_constraints:
+        model="|".join(DIFF_MODELS),
+    log:
+        log("sample_uncond/{model}"),
+    benchmark:
+        bench("sample_uncond/{model}")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_diffusion.py"
+
+
+rule sample_type:
+    input:
+        model=out("diffusion/ours/model.pt"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        weights=out("samples/ours_type/weights.npy"),
+        table=out("samples/ours_type/samples.tsv"),
+        timing=out("samples/ours_type/timing.tsv"),
+    params:
+        cfg=DIFF,
+        mode="type",
+        seed=DIFF_SEED + 200,
+        device=config["device"],
+    log:
+        log("sample_type"),
+    benchmark:
+        bench("sample_type")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_diffusion.py"
+
+
+rule diffusion_training_set:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        weights=out("samples/training/weights.npy"),
+        table=out("samples/training/samples.tsv"),
+        ref_weights=out("samples/reference/weights.npy"),
+        ref_table=out("samples/reference/samples.tsv"),
+    params:
+        seed=DIFF_SEED + 300,
+    log:
+        log("diffusion_training_set"),
+    benchmark:
+        bench("diffusion_training_set")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=1000,
+        runtime=5,
+    script:
+        "../scripts/diffusion_training_set.py"
+
+
+rule diffusion_nearest:
+    input:
+        samples=expand(out("samples/{set}/weights.npy"), set=NEAREST_SETS),
+        tables=expand(out("samples/{set}/samples.tsv"), set=NEAREST_SETS),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        expand(out("samples/{set}/nearest.tsv"), set=NEAREST_SETS),
+    params:
+        bins=DIFF["nn_bins"],
+        seed=DIFF_SEED + 400,
+        activation=DIFF_ACTIVATION,
+    log:
+        log("diffusion_nearest"),
+    benchmark:
+        bench("diffusion_nearest")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=lambda wc, input: 2000 + 2 * input.size_mb,
+        runtime=20,
+    script:
+        "../scripts/diffusion_nearest.py"
+
+
+rule diffusion_plausibility:
+    input:
+        samples=expand(out("samples/{set}/weights.npy"), set=DIFF_SETS),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        summary=out("samples/plausibility.tsv"),
+        per_sample=out("samples/plausibility_per_sample.tsv"),
+    params:
+        names=DIFF_SETS,
+        angles=DIFF["plausibility_angles"],
+        explode_factor=DIFF["explode_factor"],
+        seed=DIFF_SEED + 500,
+        activation=DIFF_ACTIVATION,
+    log:
+        log("diffusion_plausibility"),
+    benchmark:
+        bench("diffusion_plausibility")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=30,
+    script:
+        "../scripts/diffusion_plausibility.py"
+
+
+rule export_samples:
+    input:
+        out("samples/{set}/weights.npy"),
+    output:
+        expand(out("samples/{{set}}/merl/sample_{i:03d}.binary"), i=range(DIFF["export_merl"])),
+    params:
+        activation=DIFF_ACTIVATION,
+    wildcard_constraints:
+        set="ours|merl100|ours_type",
+    log:
+        log("export_samples/{set}"),
+    benchmark:
+        bench("export_samples/{set}")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=1500 + 300 * DIFF["export_merl"],
+        runtime=10,
+    script:
+        "../scripts/export_samples.py"
+
+
+def diffusion_exports():
+    if DIFF["export_merl"] == 0:
+        return []
+    return expand(out("samples/{set}/merl/sample_{i:03d}.binary"), set=["ours", "merl100"],
+                  i=range(DIFF["export_merl"]))
+
+
+rule diffusion_section:
+    input:
+        histories=expand(out("diffusion/{model}/history.tsv"), model=DIFF_MODELS),
+        models=expand(out("diffusion/{model}/model.pt"), model=DIFF_MODELS),
+        samples=expand(out("samples/{set}/weights.npy"), set=DIFF_SETS),
+        nearest=expand(out("samples/{set}/nearest.tsv"), set=NEAREST_SETS),
+        timings=expand(out("samples/{set}/timing.tsv"), set=["ours", "merl100", "ours_type"]),
+        plausibility=out("samples/plausibility.tsv"),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        exports=diffusion_exports(),
+    output:
+        section=out("report/sections/40_diffusion.md"),
+        loss=report(out("report/figures/diffusion_loss.png"), category="Diffusion"),
+        gallery=report(out("report/figures/diffusion_gallery.png"), category="Diffusion"),
+        gallery_merl100=report(out("report/figures/diffusion_gallery_merl100.png"),
+                               category="Diffusion"),
+        types=report(out("report/figures/diffusion_types.png"), category="Diffusion"),
+    params:
+        cfg=DIFF,
+        resolution=config["report"]["sphere_resolution"],
+        activation=DIFF_ACTIVATION,
+        device=config["device"],
+    log:
+        log("diffusion_section"),
+    benchmark:
+        bench("diffusion_section")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=3000,
+        runtime=20,
+    script:
+        "../scripts/diffusion_section.py"
+
+
+REPORT_SECTIONS.append(out("report/sections/40_diffusion.md"))
