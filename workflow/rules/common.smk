@@ -99,3 +99,31 @@ def merl_checked(path):
 def merl_expected_sha256(wildcards):
     """The sha256 a data rule's script checks ('' = size/header only)."""
     return merl_sha256(wildcards.name) if config["merl"]["verify_sha256"] else ""
+
+
+# ----------------------------------------------------------------------------- metrics
+
+# Table 2: model name -> its set of neural-field weights (N, 675). Stages that produce a model
+# add it here (e.g. MODEL_WEIGHTS["pca_a"] = out("samples/pca_a/weights.npy")); the reference
+# set every model is scored against is the NeuMERL test split.
+MODEL_WEIGHTS = {
+    "training_set": out("samples/training/weights.npy"),
+    "ours": out("samples/ours/weights.npy"),
+    "merl100": out("samples/merl100/weights.npy"),
+}
+REFERENCE_WEIGHTS = out("samples/reference/weights.npy")
+
+
+def model_weights(model):
+    """Weights file of a Table-2 model (see MODEL_WEIGHTS)."""
+    if model not in MODEL_WEIGHTS:
+        raise ValueError(f"unknown model {model!r} (metrics.models); known: {sorted(MODEL_WEIGHTS)}")
+    return MODEL_WEIGHTS[model]
+
+
+# ----------------------------------------------------------------------------- NeuMERL fits
+
+
+def fit_runtime(materials, steps):
+    """Minutes for a fit job: ~1 ms per material-step on one CPU thread, plus slack."""
+    return 10 + math.ceil(materials * steps / 60000)

@@ -6,11 +6,6 @@ FIT = config["fit"]
 FIT_SEED = SEED + 3000  # stage index 3
 
 
-def fit_runtime(materials, steps):
-    """Minutes for a fit job: ~1 ms per material-step on one CPU thread, plus slack."""
-    return 10 + math.ceil(materials * steps / 60000)
-
-
 rule fit_template:
     input:
         shard=out("augmerl/shards/000.npz"),
