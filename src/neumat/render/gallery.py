@@ -1,0 +1,48 @@
+"""Image grids: N images + labels -> one PNG (numpy layout, labels drawn with PIL)."""
+
+from __future__ import annotations
+
+import os
+import textwrap
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from neumat.render.sphere import tonemap
+
+
+def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 8,
+            pad: int = 4, label_height: int = 14, background: int = 255) -> np.ndarray:
+    """Lay out images (each (H, W, 3): uint8 sRGB, or float linear HDR, tone-mapped) in a grid
+    with a label under each; all images are padded to the largest size. Saves a PNG if `path`.
+    Returns the grid as uint8 (rows, cols, 3)."""
+    images = [np.asarray(i) for i in images]
+    if len(images) != len(labels):
+        raise ValueError(f"gallery: {len(images)} images but {len(labels)} labels")
+    if not images:
+        raise ValueError("gallery: no images")
+    images = [i if i.dtype == np.uint8 else tonemap(i) for i in images]
+    h = max(i.shape[0] for i in images)
+    w = max(i.shape[1] for i in images)
+    ncols = max(1, min(ncols, len(images)))
+    nrows = -(-len(images) // ncols)
+    cell_w = max(w, 1)
+    chars = max(4, cell_w // 6)  # the default PIL font is ~6 px per character
+    lines = [textwrap.wrap(str(lbl), chars)[:2] or [""] for lbl in labels]
+    lab_h = label_height * max(len(l) for l in lines)
+    grid = np.full((nrows * (h + lab_h + pad) + pad, ncols * (w + pad) + pad, 3), background,
+                   np.uint8)
+    for k, img in enumerate(images):
+        r, c = divmod(k, ncols)
+        y, x = pad + r * (h + lab_h + pad), pad + c * (w + pad)
+        grid[y:y + img.shape[0], x:x + img.shape[1]] = img[..., :3]
+    pil = Image.fromarray(grid)
+    draw, font = ImageDraw.Draw(pil), ImageFont.load_default()
+    for k, text in enumerate(lines):
+        r, c = divmod(k, ncols)
+        y, x = pad + r * (h + lab_h + pad) + h + 1, pad + c * (w + pad)
+        draw.text((x, y), "\n".join(text), fill=(0, 0, 0), font=font)
+    out = np.asarray(pil)
+    if path is not None:
+        pil.save(path)
+    return out
