@@ -43,15 +43,15 @@ def main():
     values = flat[:, :, bins].astype(np.float32)
     ids = np.arange(len(paths))
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     tmpl_s = fit.FitSettings.from_config(fcfg, "template_steps")
     init = nbrdf.init_weights(1, torch.Generator().manual_seed(seed)).numpy()
     tmpl = fit.fit_many(values[:1], bins, ids[:1], init, tmpl_s, seed)
-    t_tmpl = time.perf_counter() - t0
+    t_tmpl, c_tmpl = time.perf_counter() - t0, time.process_time() - c0
     s = fit.FitSettings.from_config(fcfg)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     res = fit.fit_many(values, bins, ids, tmpl["weights"][0], s, seed)
-    t_fit = time.perf_counter() - t0
+    t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
     t0 = time.perf_counter()
     psnr = np.concatenate([fit.render_psnr(res["weights"][i:i + 8], tabs[i:i + 8],
                                            fcfg["render_resolution"], s.activation)
@@ -64,7 +64,7 @@ def main():
     if args.out:
         df.to_csv(args.out, sep="\t", index=False, float_format="%.6g")
     n_aug, threads = cfg["augmerl"]["size"], fcfg.get("threads", 1)
-    per = t_fit / len(ids)
+    per, cper = t_fit / len(ids), c_fit / len(ids)
     print(df.sort_values("render_psnr").to_string(index=False))
     print(f"\n{len(ids)} materials, {n_bins} bins, steps {s.steps}, batch {s.batch}, lr {s.lr}->"
           f"{s.lr_final}, {s.materials_per_batch} per batched model, {threads} thread(s)")
@@ -74,8 +74,10 @@ def main():
           f"{np.percentile(res['val_loss'], 90):.5f}; template val loss {tmpl['val_loss'][0]:.5f}")
     print(f"wall: template {t_tmpl:.1f} s, fits {t_fit:.1f} s ({per:.2f} s/material), "
           f"render PSNR {t_eval:.1f} s; peak RSS {rss:.0f} MB")
-    print(f"extrapolated {n_aug} fits: {n_aug * per / 3600:.2f} h on {threads} thread(s); "
-          f"{n_aug * per / 3600 / 2:.2f} h with 2 such jobs in parallel on 2 cores")
+    print(f"CPU time: template {c_tmpl:.1f} s, fits {c_fit:.1f} s ({cper:.2f} CPU-s/material)")
+    print(f"extrapolated {n_aug} fits: wall {n_aug * per / 3600:.2f} h on {threads} thread(s) at "
+          f"this run's load; from CPU time {n_aug * cper / 3600:.2f} CPU-h = "
+          f"{n_aug * cper / 3600 / 2:.2f} h with 2 such jobs on 2 free cores")
 
 
 if __name__ == "__main__":

@@ -54,9 +54,12 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
         for step in range(s.steps):
             epoch, k = divmod(step, spe)
             if k == 0:
-                order = fit.epoch_order(len(train), int(i), seed, epoch)
-            idx = train[order[k * s.batch:(k + 1) * s.batch]]
+                order, mirror = fit.epoch_order(len(train), int(i), seed, epoch)
+            sl = slice(k * s.batch, (k + 1) * s.batch)
+            idx = train[order[sl]]
             x, t, c = x_all[idx], target_all[m, idx], cos_all[idx, None]
+            if s.mirror_phi_d:
+                x = fit.mirror_phi_d(x, mirror[sl])
             loss = (torch.log1p(torch.expm1(net(x)) * c) - t).abs().mean()
             for g in opt.param_groups:
                 g["lr"] = s.lr_at(step)

@@ -200,3 +200,28 @@ def test_psnr_known_answer():
     mask[0, 0] = True
     b[0, 1:, :] = 1.0  # outside the mask: ignored
     assert fit.psnr(a, b, mask)[0] == pytest.approx(20.0)
+
+
+def test_render_psnr_prefers_the_right_table(tmp_path):
+    # a random field is not phi_d-symmetric, unlike the folded table: PSNR well below a fit's
+    w = nbrdf.init_weights(2, torch.Generator().manual_seed(5))
+    tables = nbrdf.evaluate_grid(w)
+    same = fit.render_psnr(w, tables, resolution=32)
+    swapped = fit.render_psnr(w, tables[::-1].copy(), resolution=32)
+    assert (same > 25).all() and (same > swapped + 10).all()
+    fit.plot_fit_quality(same, [0.01, 0.02], np.array([10, 20]), np.array([[0.1, 0.2], [0.05, 0.1]]),
+                         tmp_path / "q.png")
+    assert (tmp_path / "q.png").stat().st_size > 1000
+
+
+def test_mirror_is_phi_d_plus_pi_and_keeps_the_bin():
+    rng = np.random.default_rng(1)
+    th, td, pd_ = rng.uniform(0, np.pi / 2, 50), rng.uniform(0, np.pi / 2, 50), rng.uniform(0, np.pi, 50)
+    x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
+    flip = torch.arange(50) % 2 == 0
+    got = fit.mirror_phi_d(x, flip)
+    ref = merl.half_diff_cartesian(th, td, np.where(flip.numpy(), pd_ + np.pi, pd_))
+    np.testing.assert_allclose(got.numpy(), ref, atol=1e-6)
+    wi, wo = merl.half_diff_to_dirs(th, td, pd_ + np.pi)
+    np.testing.assert_array_equal(merl.angles_to_index(*merl.dirs_to_half_diff(wi, wo)),
+                                  merl.angles_to_index(th, td, pd_))

@@ -10,7 +10,10 @@ Objective (paper eq. 2, Sztrajman et al. 2021), per material, mean over samples 
 
 Data: the shard's MERL bins (shared by all materials) and physical BRDF values. Each material
 splits the bins 80/20 (train/val) with its own seed; minibatches walk through a fresh random
-permutation of its training bins every epoch. All randomness of material `id` is a pure
+permutation of its training bins every epoch. MERL stores phi_d folded to [0, pi) (reciprocity:
+f(phi_d) = f(phi_d + pi)), but renderers query the field at any phi_d; with `mirror_phi_d` each
+training sample is shown at phi_d or phi_d + pi (d -> (-dx, -dy, dz)) at random, so the field
+learns the symmetric BRDF instead of extrapolating to half of its input domain. All randomness of material `id` is a pure
 function of (seed, id, epoch), so results do not depend on which materials share a batch, and a
 run resumed from a checkpoint (weights, Adam moments, step) continues bit-identically.
 
@@ -48,6 +51,7 @@ class FitSettings:
     lr_final: float = 5e-4  # cosine decay from lr to lr_final over `steps`
     batch: int = 512
     activation: str = "relu"
+    mirror_phi_d: bool = True  # also train at phi_d + pi (see module docstring)
     val_fraction: float = 0.2
     materials_per_batch: int = 50
     eval_every: int = 500  # validation-loss history (on `eval_bins` val bins per material)
@@ -123,9 +127,18 @@ def split_bins(n_bins: int, material_id: int, seed: int, val_fraction: float):
     return perm[n_val:].sort().values, perm[:n_val].sort().values
 
 
-def epoch_order(n_train: int, material_id: int, seed: int, epoch: int) -> torch.Tensor:
-    """The order in which material `material_id` visits its training bins in `epoch`."""
-    return torch.randperm(n_train, generator=_generator(seed, 1, material_id, epoch))
+def epoch_order(n_train: int, material_id: int, seed: int, epoch: int):
+    """The order in which material `material_id` visits its training bins in `epoch`, and
+    which visits see the bin mirrored to phi_d + pi -> (order (n,) int64, mirror (n,) bool)."""
+    g = _generator(seed, 1, material_id, epoch)
+    return torch.randperm(n_train, generator=g), torch.randint(0, 2, (n_train,), generator=g) > 0
+
+
+def mirror_phi_d(x: torch.Tensor, mirror: torch.Tensor) -> torch.Tensor:
+    """Inputs (..., 6) = [h, d] -> d rotated by pi about the normal where `mirror` (...,) is set."""
+    x = x.clone()
+    x[..., 3:5] *= 1 - 2 * mirror[..., None].to(x.dtype)
+    return x
 
 
 # ----------------------------------------------------------------------------- model maths
@@ -232,18 +245,22 @@ class BatchFitter:
     def _batch_positions(self, step):
         epoch, k = divmod(step, self.steps_per_epoch)
         if epoch != self._epoch:
-            self._order = torch.stack([epoch_order(self.n_train, i, self.seed, epoch)
-                                       for i in self.ids]).to(self.dev)
+            orders = [epoch_order(self.n_train, i, self.seed, epoch) for i in self.ids]
+            self._order = torch.stack([o for o, _ in orders]).to(self.dev)
+            self._mirror = torch.stack([m for _, m in orders]).to(self.dev)
             self._epoch = epoch
-        b = self.s.batch
-        return torch.gather(self.train_idx, 1, self._order[:, k * b:(k + 1) * b])
+        sl = slice(k * self.s.batch, (k + 1) * self.s.batch)
+        return torch.gather(self.train_idx, 1, self._order[:, sl]), self._mirror[:, sl]
 
     def train(self, until: int | None = None, on_checkpoint=None):
         """Run steps up to `until` (default: settings.steps); `on_checkpoint(self)` every
         `checkpoint_every` steps."""
         until = self.s.steps if until is None else until
         while self.step < until:
-            x, t, c = self._points(self._batch_positions(self.step))
+            idx, mirror = self._batch_positions(self.step)
+            x, t, c = self._points(idx)
+            if self.s.mirror_phi_d:
+                x = mirror_phi_d(x, mirror)
             loss, g = loss_and_grad(self.w, x, t, c, self.s.activation)
             self.step += 1
             adam_step(self.w, g, self.m, self.v, self.step, self.s.lr_at(self.step - 1))
