@@ -50,9 +50,11 @@ MERL_NAMES = list(MERL["name"])
 
 def merl_table(name):
     """Path of one MERL-format table of this run."""
-    if config["merl"]["source"] == "synthetic":
+    source = config["merl"]["source"]
+    if source == "synthetic":
         return out(f"merl/{name}.binary")
-    return f"resources/merl/{name}.binary"
+    # local tables may be unverified stand-ins: never mix them with verified downloads
+    return f"resources/{'merl' if source == 'download' else 'merl_local'}/{name}.binary"
 
 
 def merl_sha256(name):
@@ -127,3 +129,21 @@ def model_weights(model):
 def fit_runtime(materials, steps):
     """Minutes for a fit job: ~1 ms per material-step on one CPU thread, plus slack."""
     return 10 + math.ceil(materials * steps / 60000)
+
+
+# ----------------------------------------------------------------------------- diffusion
+
+
+def diffusion_runtime():
+    """Minutes for a train_diffusion job: ~0.5 s per step of a width-256, depth-4, batch-128
+    model on one CPU thread, scaled by width^2 * depth * batch (a GPU: assumed 50x faster)."""
+    m, t = config["diffusion"]["model"], config["diffusion"]["train"]
+    per_step = 0.5 * (m["width"] / 256) ** 2 * m["depth"] / 4 * t["batch_size"] / 128
+    per_step /= 50 if config["device"] == "cuda" else 1
+    return 10 + math.ceil(t["steps"] * per_step / 60)
+
+
+def diffusion_exports():
+    """MERL .binary exports of the first `diffusion.export_merl` samples of ours and merl100."""
+    return expand(out("samples/{set}/merl/sample_{i:03d}.binary"), set=["ours", "merl100"],
+                  i=range(config["diffusion"]["export_merl"]))

@@ -43,7 +43,7 @@ elif MERL_CFG["source"] == "local":
         input:
             lambda w: f"{MERL_CFG['local_dir']}/{w.name}.binary",
         output:
-            merl_checked("resources/merl/{name}.binary"),
+            merl_checked("resources/merl_local/{name}.binary"),
         params:
             local_dir=MERL_CFG["local_dir"],
             link=MERL_CFG["link"],

@@ -13,7 +13,6 @@ import os
 from pathlib import Path
 
 import numpy as np
-import torch
 
 N_TH, N_TD, N_PD = 90, 90, 180
 N_BINS = N_TH * N_TD * N_PD
@@ -180,9 +179,11 @@ def cos_theta_i(theta_h, theta_d, phi_d):
     return np.cos(theta_d) * np.cos(theta_h) - np.sin(theta_d) * np.cos(phi_d) * np.sin(theta_h)
 
 
-def dirs_to_half_diff_torch(wi: torch.Tensor, wo: torch.Tensor):
+def dirs_to_half_diff_torch(wi, wo):
     """Torch twin of `dirs_to_half_diff` (differentiable, any device), returns the 6-D
     Cartesian neural-field input [h (phi_h = 0), d] of shape (..., 6)."""
+    import torch  # lazily: data jobs that only read/write tables skip torch's import cost
+
     h = torch.nn.functional.normalize(wi + wo, dim=-1)
     theta_h = torch.acos(h[..., 2].clamp(-1, 1))
     phi_h = torch.atan2(h[..., 1], h[..., 0])
