@@ -236,11 +236,15 @@ class BatchFitter:
         self.m, self.v = torch.zeros_like(self.w), torch.zeros_like(self.w)
         self.step, self.history = 0, []  # history: (step, val loss on eval bins (M,))
         self._epoch, self._order = -1, None
-        self._rows = torch.arange(M, device=self.dev)[:, None]
+        self._xc = torch.cat([self.x, self.cos[:, None]], 1)  # (B, 7): one gather for both
+        self._row_offset = torch.arange(M, device=self.dev)[:, None] * B
 
     def _points(self, idx):
-        """Per-material bin positions (M, k) -> inputs, targets, cos for those bins."""
-        return self.x[idx], self.target[self._rows, idx], self.cos[idx][..., None]
+        """Per-material bin positions (M, k) -> inputs (M, k, 6), targets (M, k, 3), cos
+        (M, k, 1). index_select on flat views: several times faster than fancy indexing."""
+        xc = self._xc.index_select(0, idx.reshape(-1)).view(*idx.shape, 7)
+        t = self.target.view(-1, 3).index_select(0, (idx + self._row_offset).reshape(-1))
+        return xc[..., :6], t.view(*idx.shape, 3), xc[..., 6:]
 
     def _batch_positions(self, step):
         epoch, k = divmod(step, self.steps_per_epoch)
