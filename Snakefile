@@ -17,6 +17,8 @@ include: "workflow/rules/data.smk"
 include: "workflow/rules/augment.smk"
 include: "workflow/rules/fit.smk"
 include: "workflow/rules/diffusion.smk"
+include: "workflow/rules/render.smk"
+include: "workflow/rules/metrics.smk"
 include: "workflow/rules/report.smk"
 
 

@@ -63,23 +63,26 @@ def evaluate_fields(ref_weights, smp_weights, *, resolution: int, bins, activati
 
 # ----------------------------------------------------------------------------- Table 2
 
-# display units as in the paper: value / unit (BRDF-L1 in 1e-3, RMSE in 1e-2, NegSSIM in 1e-1)
-UNITS = {("MMD", "BRDF-L1"): 1e-3, ("MMD", "RMSE"): 1e-2, ("MMD", "NegSSIM"): 1e-1}
+# display factors of the paper's row labels, shown = value x factor ("RMSE x10^2": 0.0754 ->
+# 7.54; "NegSSIM x10": -0.955 -> -9.55; "BRDF-L1 x10^-3" on physical MERL values)
+FACTORS = {("MMD", "BRDF-L1"): 1e-3, ("MMD", "RMSE"): 1e2, ("MMD", "NegSSIM"): 1e1}
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
 ARROWS = {"FID": "↓", "MMD": "↓", "COV": "↑", "1-NNA": "↓"}
 
 
 def _row_label(metric, distance):
     if metric == "FID":
         return "FID (↓)", ""
-    unit = UNITS.get((metric, distance))
-    scale = f" ×10^{round(np.log10(unit))}" if unit else ""
+    factor = FACTORS.get((metric, distance))
+    exp = round(np.log10(factor)) if factor else 0
+    scale = "" if not factor else " ×10" + ("" if exp == 1 else str(exp).translate(_SUPERSCRIPT))
     pct = " (%)" if metric in ("COV", "1-NNA") else ""
     return f"{metric}{pct} ({ARROWS[metric]})", f"{distance}{scale}"
 
 
 def table2(results: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """{model: metrics table} -> wide table: rows (metric, distance) in paper order, one column
-    per model, values in display units; unavailable entries are 'n/a'."""
+    per model, values x the paper's display factors; unavailable entries are 'n/a'."""
     order = [("FID", "Inception-v3")] + [(m, d) for m in SET_METRICS for d in D.DISTANCES]
     cols = {}
     for model, df in results.items():
@@ -97,7 +100,7 @@ def _display(metric, distance, value):
         return "n/a"
     if metric in ("COV", "1-NNA"):
         value = 100 * value
-    value /= UNITS.get((metric, distance), 1.0)
+    value *= FACTORS.get((metric, distance), 1.0)
     return f"{value:.3g}"
 
 

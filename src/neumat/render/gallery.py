@@ -12,9 +12,11 @@ from neumat.render.sphere import tonemap
 
 
 def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 8,
-            pad: int = 4, label_height: int = 14, background: int = 255) -> np.ndarray:
+            pad: int = 4, label_height: int = 14, background: int = 255,
+            min_cell: int = 0) -> np.ndarray:
     """Lay out images (each (H, W, 3): uint8 sRGB, or float linear HDR, tone-mapped) in a grid
-    with a label under each; all images are padded to the largest size. Saves a PNG if `path`.
+    with a label under each; cells are as large as the largest image (at least `min_cell`
+    pixels wide, so labels of small images stay readable). Saves a PNG if `path`.
     Returns the grid as uint8 (rows, cols, 3)."""
     images = [np.asarray(i) for i in images]
     if len(images) != len(labels):
@@ -23,11 +25,10 @@ def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 
         raise ValueError("gallery: no images")
     images = [i if i.dtype == np.uint8 else tonemap(i) for i in images]
     h = max(i.shape[0] for i in images)
-    w = max(i.shape[1] for i in images)
+    w = max(max(i.shape[1] for i in images), min_cell)
     ncols = max(1, min(ncols, len(images)))
     nrows = -(-len(images) // ncols)
-    cell_w = max(w, 1)
-    chars = max(4, cell_w // 6)  # the default PIL font is ~6 px per character
+    chars = max(4, w // 6)  # the default PIL font is ~6 px per character
     lines = [textwrap.wrap(str(lbl), chars)[:2] or [""] for lbl in labels]
     lab_h = label_height * max(len(l) for l in lines)
     grid = np.full((nrows * (h + lab_h + pad) + pad, ncols * (w + pad) + pad, 3), background,

@@ -4,8 +4,9 @@ Setup (fixed forever, so renders of different runs are comparable):
   * unit sphere at the origin, orthographic camera looking down -z; pixel (row, col) covers
     x, y in [-1, 1] (row 0 = top, y = +1); the view direction is wo = +z for every pixel;
   * one point light at LIGHT_POS = (-2, 2, 3) (upper left, in front), intensity
-    (|LIGHT_POS| - 1)^2, so the irradiance at the sphere point nearest the light is 1;
-  * a dim uniform white environment of radiance AMBIENT = 0.05. On a convex sphere under a
+    pi (|LIGHT_POS| - 1)^2, so the irradiance at the sphere point nearest the light is pi
+    (a white Lambertian surface facing the light has radiance 1);
+  * a dim uniform white environment of radiance AMBIENT = 0.1. On a convex sphere under a
     uniform environment the reflected radiance is AMBIENT * a(theta_o), with a the directional
     albedo of the material (isotropic BRDFs: a depends on theta_o alone). a is integrated on a
     fixed grid of N_THETA_O view angles with a fixed cosine-weighted (u, phi) product quadrature
@@ -32,8 +33,8 @@ from neumat import nbrdf
 from neumat.io import merl
 
 LIGHT_POS = np.array([-2.0, 2.0, 3.0])
-LIGHT_INTENSITY = float((np.linalg.norm(LIGHT_POS) - 1.0) ** 2)
-AMBIENT = 0.05
+LIGHT_INTENSITY = float(np.pi * (np.linalg.norm(LIGHT_POS) - 1.0) ** 2)
+AMBIENT = 0.1
 N_THETA_O, AMB_U, AMB_PHI = 24, 16, 16
 EXPOSURE = 0.0  # stops applied by `tonemap`
 # Floats per material kept alive while evaluating a chunk of neural fields (two hidden layers
@@ -90,7 +91,7 @@ class SphereView:
         to_light = LIGHT_POS - n
         dist2 = np.sum(to_light ** 2, -1)
         wi = np.einsum("pij,pj->pi", frame, to_light / np.sqrt(dist2)[:, None])
-        wo = frame[:, 2].copy()  # world +z seen from the local frame
+        wo = frame[:, :, 2].copy()  # the camera direction (world +z) in the local frame
         lit = wi[:, 2] > 0
         pixels = np.flatnonzero(mask.ravel())
         weight = (LIGHT_INTENSITY / dist2 * wi[:, 2])[lit]
@@ -205,6 +206,6 @@ def to_srgb(img, exposure: float = EXPOSURE) -> torch.Tensor:
 
 def tonemap(img, exposure: float = EXPOSURE) -> np.ndarray:
     """Linear HDR (..., 3) -> uint8 sRGB: `to_srgb` rounded to 8 bits. With exposure 0 a
-    white Lambertian (albedo 1) facing the light is ~0.37 linear (sRGB 163)."""
+    white Lambertian (albedo 1) facing the light is 1.0 linear plus the ambient (clipped: 255)."""
     x = img.numpy() if torch.is_tensor(img) else np.asarray(img)
     return np.round(srgb_encode(x * 2.0 ** exposure) * 255).astype(np.uint8)

@@ -1,0 +1,66 @@
+# Table 2 (paper §4.2): each model's sample set vs the NeuMERL test split -> MMD / COV / 1-NNA
+# x {BRDF-L1, RMSE, NegPSNR, NegSSIM} + FID; then one table over all models.
+#   samples/<model>/weights.npy + samples/reference/weights.npy -> metrics/<model>.csv
+#   -> metrics/table2.{csv,md,html} + report section 50_table2.md
+
+METRICS = config["metrics"]
+METRICS_SEED = SEED + 7000  # stage index 7
+
+
+rule metrics:
+    input:
+        reference=REFERENCE_WEIGHTS,
+        samples=lambda wc: model_weights(wc.model),
+    output:
+        out("metrics/{model}.csv"),
+    wildcard_constraints:
+        model="|".join(sorted(MODEL_WEIGHTS)),
+    params:
+        resolution=config["render"]["resolution"],
+        brdf_samples=METRICS["brdf_samples"],
+        inception_weights=METRICS["inception_weights"],
+        activation=config["fit"]["activation"],
+        device=config["device"],
+        seed=METRICS_SEED,
+    log:
+        log("metrics/{model}"),
+    benchmark:
+        bench("metrics/{model}")
+    conda:
+        CONDA_ENV
+    threads: 2
+    resources:
+        # pairwise SSIM works in bounded chunks (~1 GB); renders add n * res^2 * 12 bytes
+        mem_mb=lambda wc: 3000 + config["render"]["resolution"] ** 2 // 40,
+        runtime=120,
+    script:
+        "../scripts/metrics_eval.py"
+
+
+rule metrics_table:
+    input:
+        expand(out("metrics/{model}.csv"), model=METRICS["models"]),
+    output:
+        csv=out("metrics/table2.csv"),
+        md=out("metrics/table2.md"),
+        html=out("metrics/table2.html"),
+        section=out("report/sections/50_table2.md"),
+    params:
+        models=METRICS["models"],
+        resolution=config["render"]["resolution"],
+        brdf_samples=METRICS["brdf_samples"],
+    log:
+        log("metrics_table"),
+    benchmark:
+        bench("metrics_table")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=500,
+        runtime=5,
+    script:
+        "../scripts/metrics_table.py"
+
+
+REPORT_SECTIONS.append(out("report/sections/50_table2.md"))
