@@ -1,0 +1,144 @@
+"""Classical BTF compression baselines on the measurement grid (paper Fig. 8), per RGB channel
+in linear space, all with the `GridBTF` query API:
+
+- PCA: rank-k approximation of the (texels x light*view) matrix around the mean ABRDF
+  (Koudelka et al. 2003; paper: 5 components per channel).
+- SH: per texel and view, the light-dependent slice fitted by least squares with real
+  spherical harmonics of bands 0-2 (9 per channel, 27 per view; Kawasaki et al. 2005).
+- TD: Tucker decomposition of the (texel x light x view) tensor by sequentially truncated
+  HOSVD (ranks r_texel, r_light, r_view), a dense stand-in for Ruiters & Klein's sparse
+  tensor decomposition (paper: k1 = k2 = 13 angular ranks).
+Fits stream texels in chunks through `BTFData.abrdf`, so the dense tensor is never held.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from neumat.btf.grid import GridBTF, bilinear_texels
+
+
+def _chunks(n, size):
+    for s in range(0, n, size):
+        yield torch.arange(s, min(n, s + size))
+
+
+class PCA(GridBTF):
+    method = "pca"
+
+    def __init__(self, width, height, light_dirs, view_dirs, components=5):
+        super().__init__(width, height, light_dirs, view_dirs)
+        lv = len(light_dirs) * len(view_dirs)
+        self.kwargs = dict(components=components)
+        self.register_buffer("mean", torch.zeros(3, lv))
+        self.register_buffer("basis", torch.zeros(3, components, lv))
+        self.register_buffer("coef", torch.zeros(self.n_texels, 3, components))
+
+    def values(self, t, l, v):
+        lv = v * self.n_lights + l
+        return self.mean[:, lv].T + torch.einsum("nck,ckn->nc", self.coef[t], self.basis[:, :, lv])
+
+    @classmethod
+    @torch.no_grad()
+    def fit(cls, data, components=5, fit_texels=4096, chunk=256, seed=0):
+        m = cls(data.width, data.height, data.light_dirs, data.view_dirs, components)
+        gen = torch.Generator().manual_seed(seed)
+        sub = torch.randperm(data.n_texels, generator=gen)[:fit_texels].sort().values
+        X = data.abrdf(sub).reshape(len(sub), -1, 3).permute(2, 0, 1).double()  # (3, n, LV)
+        mean = X.mean(1, keepdim=True)
+        X = X - mean
+        for c in range(3):  # eigenvectors of the small (n x n) Gram matrix -> basis over LV
+            w, vec = torch.linalg.eigh(X[c] @ X[c].T)
+            top = torch.argsort(w, descending=True)[:components]
+            b = vec[:, top].T @ X[c]
+            m.basis[c] = (b / b.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
+        m.mean.copy_(mean[:, 0].float())
+        for t in _chunks(data.n_texels, chunk):
+            Y = data.abrdf(t).reshape(len(t), -1, 3).permute(2, 0, 1) - m.mean[:, None]
+            m.coef[t] = torch.einsum("cnj,ckj->nck", Y, m.basis)
+        return m
+
+
+def sh_basis(w: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics, bands 0-2, at unit vectors (N, 3) -> (N, 9)."""
+    x, y, z = w[:, 0], w[:, 1], w[:, 2]
+    return torch.stack([
+        torch.full_like(x, 0.282095), 0.488603 * y, 0.488603 * z, 0.488603 * x,
+        1.092548 * x * y, 1.092548 * y * z, 0.315392 * (3 * z * z - 1), 1.092548 * x * z,
+        0.546274 * (x * x - y * y)], -1)
+
+
+class SH(GridBTF):
+    """Per texel and view: 9 SH coefficients per channel of the light-dependent slice."""
+
+    method = "sh"
+
+    def __init__(self, width, height, light_dirs, view_dirs):
+        super().__init__(width, height, light_dirs, view_dirs)
+        self.kwargs = {}
+        self.register_buffer("coef", torch.zeros(self.n_texels, len(view_dirs), 3, 9))
+
+    def values(self, t, l, v):
+        return torch.einsum("nck,nk->nc", self.coef[t, v], sh_basis(self.light_dirs[l]))
+
+    def _query(self, u, wi, wo):
+        # The light dependence is continuous (SH), only texels and views are interpolated.
+        ti, tw = bilinear_texels(u, self.width, self.height)
+        vi, vw = self.interps()[1](wo)
+        c = self.coef[ti[:, :, None], vi[:, None, :]]               # (N, 4, 3, 3ch, 9)
+        w = (tw[:, :, None] * vw[:, None, :])[..., None, None]
+        return torch.einsum("nck,nk->nc", (c * w).sum((1, 2)), sh_basis(wi))
+
+    @classmethod
+    @torch.no_grad()
+    def fit(cls, data, chunk=256):
+        m = cls(data.width, data.height, data.light_dirs, data.view_dirs)
+        P = torch.linalg.pinv(sh_basis(data.light_dirs.double())).float()   # (9, L)
+        for t in _chunks(data.n_texels, chunk):
+            m.coef[t] = torch.einsum("kl,nvlc->nvck", P, data.abrdf(t))
+        return m
+
+
+class Tucker(GridBTF):
+    """X_c[t, l, v] ~ sum A_c[t, a] G_c[a, i, j] B_c[l, i] C_c[v, j] per channel c."""
+
+    method = "td"
+
+    def __init__(self, width, height, light_dirs, view_dirs, ranks=(32, 13, 13)):
+        super().__init__(width, height, light_dirs, view_dirs)
+        rt, rl, rv = ranks
+        self.kwargs = dict(ranks=tuple(ranks))
+        self.register_buffer("A", torch.zeros(3, self.n_texels, rt))
+        self.register_buffer("G", torch.zeros(3, rt, rl, rv))
+        self.register_buffer("B", torch.zeros(3, len(light_dirs), rl))
+        self.register_buffer("C", torch.zeros(3, len(view_dirs), rv))
+
+    def values(self, t, l, v):
+        core = torch.einsum("cna,caij->ncij", self.A[:, t], self.G)      # per-sample texel core
+        return torch.einsum("ncij,cni,cnj->nc", core, self.B[:, l], self.C[:, v])
+
+    @classmethod
+    @torch.no_grad()
+    def fit(cls, data, ranks=(32, 13, 13), chunk=128):
+        rt, rl, rv = (min(r, n) for r, n in zip(ranks, (data.n_texels, data.n_lights, data.n_views)))
+        m = cls(data.width, data.height, data.light_dirs, data.view_dirs, (rt, rl, rv))
+        gl = torch.zeros(3, data.n_lights, data.n_lights, dtype=torch.float64)
+        gv = torch.zeros(3, data.n_views, data.n_views, dtype=torch.float64)
+        for t in _chunks(data.n_texels, chunk):
+            X = data.abrdf(t).permute(3, 0, 1, 2).double()               # (3, n, V, L)
+            gl += torch.einsum("cnvl,cnvk->clk", X, X)
+            gv += torch.einsum("cnvl,cnwl->cvw", X, X)
+        for c in range(3):
+            m.B[c] = torch.linalg.eigh(gl[c])[1][:, -rl:].flip(1).float()
+            m.C[c] = torch.linalg.eigh(gv[c])[1][:, -rv:].flip(1).float()
+        Y = torch.zeros(3, data.n_texels, rv * rl)
+        for t in _chunks(data.n_texels, chunk):
+            X = data.abrdf(t).permute(3, 0, 1, 2)                         # (3, n, V, L)
+            Y[:, t] = torch.einsum("cnvl,cvj,cli->cnij", X, m.C, m.B).reshape(3, len(t), -1)
+        for c in range(3):
+            Yc = Y[c].double()
+            W = torch.linalg.eigh(Yc.T @ Yc)[1][:, -rt:].flip(1)        # (rl*rv, rt)
+            m.A[c] = (Yc @ W).float()
+            m.G[c] = W.T.reshape(rt, rl, rv).float()
+        return m

@@ -1,0 +1,47 @@
+"""One registry for every BTF representation: build, fit/train, save, load.
+
+Every model answers `model(u, wi, wo) -> (N, 3)` RGB for batches of texture coordinates
+u (N, 2; wrapping = repetitive tiling), light directions wi and view directions wo (N, 3,
+unit vectors, z = surface normal)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+
+from neumat.btf.classical import PCA, SH, Tucker
+from neumat.btf.neural import NeuMIP, TriplePlane
+
+NEURAL = {"triple_plane": TriplePlane, "neumip": NeuMIP}
+GRID = {"pca": PCA, "sh": SH, "td": Tucker}
+METHODS = list(NEURAL) + list(GRID)
+LABELS = {"reference": "reference", "triple_plane": "Triple Plane", "neumip": "NeuMIP",
+          "pca": "PCA", "sh": "SH", "td": "TD"}
+
+
+def save(model, path) -> None:
+    """Model file: method, constructor arguments, state dict (written atomically)."""
+    if model.method in NEURAL:
+        args = dict(model.kwargs)
+    else:
+        args = dict(width=model.width, height=model.height, light_dirs=model.light_dirs,
+                    view_dirs=model.view_dirs, **model.kwargs)
+    tmp = Path(f"{path}.tmp")
+    torch.save({"method": model.method, "args": args, "state": model.state_dict()}, tmp)
+    os.replace(tmp, path)
+
+
+def load(path):
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    cls = {**NEURAL, **GRID}.get(ck.get("method"))
+    if cls is None:
+        raise ValueError(f"{path}: unknown BTF model method {ck.get('method')!r}; known {METHODS}")
+    model = cls(**ck["args"])
+    model.load_state_dict(ck["state"])
+    return model.eval()
+
+
+def n_params(model) -> int:
+    return model.n_params()

@@ -1,0 +1,171 @@
+"""BTF branch: direction sets, Rusinkiewicz vectors, query API, fitting, data verification."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neumat.btf import models, synthetic
+from neumat.btf.classical import PCA, SH, Tucker, sh_basis
+from neumat.btf.data import BTFData
+from neumat.btf.directions import RINGS, half_diff, to_cartesian, ubo2014_angles
+from neumat.btf.neural import fetch, train
+from neumat.data import ubo2014
+
+
+@pytest.fixture(scope="module")
+def tiny_btf(tmp_path_factory):
+    p = tmp_path_factory.mktemp("btf") / "wood.btf"
+    synthetic.synthesize("wood", 8, 3, 16, p)
+    return BTFData(p)
+
+
+def test_ubo2014_direction_set():
+    a = ubo2014_angles()
+    assert a.shape == (151, 2)
+    theta = np.round(np.degrees(a[:, 0]), 3)
+    counts = {t: int((theta == t).sum()) for t, _ in RINGS}
+    assert counts == {0.0: 1, 11.0: 6, 23.5: 12, 30.0: 12, 37.5: 12, 45.0: 18, 52.5: 18,
+                      60.0: 24, 67.5: 24, 75.0: 24}
+    d = to_cartesian(a)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1) and d[:, 2].min() > 0.25
+    assert len(np.unique(np.round(d, 6), axis=0)) == 151
+
+
+def test_half_diff_known_answers():
+    z = torch.tensor([[0.0, 0.0, 1.0]])
+    h, d = half_diff(z, z)
+    assert torch.allclose(h, z) and torch.allclose(d, z, atol=1e-6)
+    # wi at 60 deg, wo at 0 deg in the xz plane: h at 30 deg, d at 30 deg (theta_d = half angle)
+    wi = torch.tensor([[math.sin(math.pi / 3), 0.0, math.cos(math.pi / 3)]])
+    h, d = half_diff(wi, z)
+    assert torch.allclose(h, torch.tensor([[0.5, 0.0, math.sqrt(3) / 2]]), atol=1e-6)
+    assert torch.allclose(d, torch.tensor([[0.5, 0.0, math.sqrt(3) / 2]]), atol=1e-6)
+    # general: |d| = 1, d_z = wi . h, and rotating both directions about z keeps d (phi_h removed)
+    g = torch.Generator().manual_seed(0)
+    w = torch.nn.functional.normalize(torch.randn(100, 3, generator=g).abs(), dim=-1)
+    v = torch.nn.functional.normalize(torch.randn(100, 3, generator=g).abs(), dim=-1)
+    h, d = half_diff(w, v)
+    assert torch.allclose(d.norm(dim=-1), torch.ones(100), atol=1e-5)
+    assert torch.allclose(d[:, 2], (w * h).sum(-1), atol=1e-5)
+    c, s = math.cos(0.7), math.sin(0.7)
+    R = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    _, d2 = half_diff(w @ R.T, v @ R.T)
+    assert torch.allclose(d, d2, atol=1e-5)
+
+
+def test_fetch_bilinear_and_wrap():
+    plane = torch.arange(12.0).reshape(3, 4, 1)
+    centres = torch.tensor([[0.5 / 4, 0.5 / 3], [3.5 / 4, 2.5 / 3]])
+    assert fetch(plane, centres, True)[:, 0].tolist() == [0.0, 11.0]
+    mid = torch.tensor([[1.0 / 4, 0.5 / 3]])                      # halfway between 0 and 1
+    assert fetch(plane, mid, True).item() == pytest.approx(0.5)
+    # wrapping: halfway between the last and the first column
+    assert fetch(plane, torch.tensor([[0.0, 0.5 / 3]]), True).item() == pytest.approx(1.5)
+    assert fetch(plane, torch.tensor([[0.0, 0.5 / 3]]), False).item() == pytest.approx(0.0)
+
+
+def test_sh_basis_orthonormal():
+    g = torch.Generator().manual_seed(0)
+    w = torch.nn.functional.normalize(torch.randn(200000, 3, generator=g, dtype=torch.float64), dim=-1)
+    Y = sh_basis(w)
+    gram = 4 * math.pi * Y.T @ Y / len(w)
+    assert torch.allclose(gram, torch.eye(9, dtype=torch.float64), atol=0.03)
+
+
+def _queries(data, n=300, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    t, l, v, y = data.sample(n, g)
+    return t, l, v, y, data.texel_uv(t), data.light_dirs[l], data.view_dirs[v]
+
+
+def test_reference_query_matches_grid(tiny_btf):
+    t, l, v, y, u, wi, wo = _queries(tiny_btf)
+    assert torch.allclose(tiny_btf(u, wi, wo), y, atol=1e-5)
+    # between texels: bilinear mix of the neighbours
+    u2 = torch.tensor([[1.0 / 8, 0.5 / 8]])
+    mix = tiny_btf(u2, wi[:1], wo[:1])
+    ends = tiny_btf.values(torch.tensor([0, 1]), l[:1].repeat(2), v[:1].repeat(2))
+    assert torch.allclose(mix, ends.mean(0, keepdim=True), atol=1e-5)
+
+
+@pytest.mark.parametrize("make", [lambda d: PCA.fit(d, 5, 64), lambda d: SH.fit(d),
+                                  lambda d: Tucker.fit(d, (16, 13, 13)),
+                                  lambda d: models.TriplePlane(8, 8),
+                                  lambda d: models.NeuMIP(8, 8)])
+def test_query_api_shapes_and_save_load(tiny_btf, make, tmp_path):
+    m = make(tiny_btf)
+    t, l, v, y, u, wi, wo = _queries(tiny_btf, 50)
+    with torch.no_grad():
+        out = m(u, wi, wo)
+        assert out.shape == (50, 3) and torch.isfinite(out).all()
+        # batching does not change answers
+        assert torch.allclose(torch.cat([m(u[:20], wi[:20], wo[:20]), m(u[20:], wi[20:], wo[20:])]),
+                              out, atol=1e-5)
+        # u wraps: repetitive tiling
+        assert torch.allclose(m(u + 1.0, wi, wo), out, atol=1e-4)
+        models.save(m, tmp_path / "m.pt")
+        assert torch.allclose(models.load(tmp_path / "m.pt")(u, wi, wo), out)
+    if hasattr(m, "values"):  # grid models: the query reproduces grid samples exactly
+        assert torch.allclose(m(u, wi, wo), m.values(t, l, v), atol=1e-5)
+
+
+def test_classical_fits_are_accurate(tiny_btf):
+    t, l, v, y, u, wi, wo = _queries(tiny_btf, 2000)
+
+    def rel(m):
+        return (m(u, wi, wo) - y).abs().mean().item() / y.abs().mean().item()
+
+    err = {"pca": rel(PCA.fit(tiny_btf, 5, 64)), "sh": rel(SH.fit(tiny_btf)),
+           "td": rel(Tucker.fit(tiny_btf, (64, 40, 40))), "td_small": rel(Tucker.fit(tiny_btf, (4, 3, 3)))}
+    mean = (y.mean(0) - y).abs().mean().item() / y.abs().mean().item()
+    assert err["pca"] < 0.25 and err["td"] < 0.35 and err["sh"] < 0.8, err
+    assert max(err["pca"], err["td"]) < mean and err["td"] < 0.7 * err["td_small"], (err, mean)
+    # full-rank PCA (components = texels) reproduces the data
+    full = PCA.fit(tiny_btf, 64, 64)
+    assert torch.allclose(full(u, wi, wo), y, atol=1e-3)
+
+
+def _psnr(a, b):
+    return (10 * torch.log10(b.max() ** 2 / ((a - b) ** 2).mean())).item()
+
+
+def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path):
+    torch.set_num_threads(1)
+    t, l, v, y, u, wi, wo = _queries(tiny_btf, 4000, seed=5)
+    m = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
+    ck = tmp_path / "tp.ckpt"
+    losses = train(m, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=ck, checkpoint_every=300)
+    with torch.no_grad():
+        p_fit = _psnr(m(u, wi, wo), y)
+        p_mean = _psnr(y.mean(0, keepdim=True).expand_as(y), y)
+    assert np.mean(losses[-50:]) < 0.5 * np.mean(losses[:20])
+    assert p_fit > 27 and p_fit > p_mean + 8, (p_fit, p_mean)
+    # resume: a checkpoint at step 300 continues to the same result as the uninterrupted run
+    assert ck.exists()
+    m2 = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
+    rest = train(m2, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=ck, checkpoint_every=300)
+    assert len(rest) == 300 and rest[-1] == pytest.approx(losses[-1], rel=1e-4)
+
+
+def test_lock_file_records_then_verifies(tmp_path):
+    f = tmp_path / "a.btf"
+    f.write_bytes(b"abc")
+    lock = tmp_path / "lock.tsv"
+    d = ubo2014.verify_or_record(f, "wood06", lock)
+    assert d == "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+    assert ubo2014.verify_or_record(f, "wood06", lock) == d
+    f.write_bytes(b"abd")
+    with pytest.raises(ValueError, match=r"a\.btf: sha256 .* recorded for wood06"):
+        ubo2014.verify_or_record(f, "wood06", lock)
+    assert lock.read_text().count("wood06") == 1
+
+
+def test_catalog():
+    cat = ubo2014.load_catalog("config/ubo2014_materials.tsv")
+    assert len(cat) == 84 and cat.groupby("category").size().eq(12).all()
+    assert set(cat["category"]) == set(ubo2014.CATEGORIES)
+    assert cat.set_index("name").at["wood06", "file"] == "wood06_resampled_W400xH400_L151xV151.btf"
+    with pytest.raises(ValueError, match="ubo2014.materials.*wood13"):
+        ubo2014.load_catalog("config/ubo2014_materials.tsv", ["wood13"])

@@ -1,0 +1,113 @@
+"""DFMF reader / writer: round trips, random access, colour models, errors."""
+
+import struct
+
+import numpy as np
+import pytest
+
+from neumat.btf.directions import ubo2014_angles
+from neumat.io import dfmf
+
+ANG = ubo2014_angles()[:7]  # 7 views x 7 lights keep the files tiny
+
+
+def _factors(rng, w, h, k, n=len(ANG)):
+    U = [rng.standard_normal((n * n, k)).astype(np.float32) * 0.3 for _ in range(3)]
+    SV = [rng.standard_normal((w * h, k)).astype(np.float32) * 0.3 for _ in range(3)]
+    return U, SV
+
+
+def _dense(U, SV, model):
+    raw = np.stack([u @ s.T for u, s in zip(U, SV)], -1)          # (rows, texels, 3)
+    return dfmf.to_rgb(raw, model)
+
+
+@pytest.mark.parametrize("scalar,model", [(2, 11), (4, 11), (4, 0), (8, 0)])
+def test_round_trip_random_access(tmp_path, scalar, model):
+    rng = np.random.default_rng(0)
+    w, h, k = 5, 4, 3
+    U, SV = _factors(rng, w, h, k)
+    p = tmp_path / "x.btf"
+    dfmf.write_dfmf(p, U, SV, ANG, ANG, w, h, color_model=model, scalar=scalar)
+    b = dfmf.DFMF(p)
+    assert (b.width, b.height, b.n_lights, b.n_views) == (w, h, 7, 7)
+    np.testing.assert_allclose(b.header.views, ANG)
+    dt = dfmf.SCALARS[scalar]
+    ref = _dense([u.astype(dt) for u in U], [s.astype(dt) for s in SV], model)
+    t = rng.integers(0, w * h, 50)
+    l = rng.integers(0, 7, 50)
+    v = rng.integers(0, 7, 50)
+    got = b.decode(t, l, v)
+    want = ref[v * 7 + l, t]                                      # row = view * L + light
+    np.testing.assert_allclose(got, want, rtol=2e-3 if scalar == 2 else 1e-5, atol=1e-5)
+    # texel index is y * width + x: image() is the reshaped texel row
+    np.testing.assert_allclose(b.image(2, 3), ref[3 * 7 + 2].reshape(h, w, 3), rtol=2e-3, atol=1e-5)
+
+
+def test_colour_model_11_inverse():
+    rgb = np.array([[0.2, 0.5, 0.1], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.03, 0.01, 0.2]])
+    back = dfmf.to_rgb(dfmf.from_rgb(rgb, 11), 11)
+    np.testing.assert_allclose(back, rgb, atol=1e-5)
+    # known answer: luminance channel is log(Y + 1e-5) with Y = 0.299 R + 0.587 G + 0.114 B
+    assert dfmf.from_rgb(rgb[1:2], 11)[0, 0] == pytest.approx(np.log(1.0 + 1e-5), abs=1e-5)
+
+
+def test_roi_maps_texels(tmp_path):
+    rng = np.random.default_rng(1)
+    U, SV = _factors(rng, 6, 5, 2)
+    p = tmp_path / "x.btf"
+    dfmf.write_dfmf(p, U, SV, ANG, ANG, 6, 5, color_model=0, scalar=4)
+    full, crop = dfmf.DFMF(p), dfmf.DFMF(p, roi=(2, 1, 3, 2))
+    np.testing.assert_allclose(crop.image(1, 4), full.image(1, 4)[1:3, 2:5])
+
+
+def _write(tmp_path, **kw):
+    rng = np.random.default_rng(2)
+    U, SV = _factors(rng, 3, 3, 2)
+    p = tmp_path / "x.btf"
+    dfmf.write_dfmf(p, U, SV, ANG, ANG, 3, 3, **kw)
+    return p
+
+
+def test_wrong_magic(tmp_path):
+    p = _write(tmp_path)
+    data = bytearray(p.read_bytes())
+    data[1:5] = b"FMF1"
+    p.write_bytes(bytes(data))
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf.*signature"):
+        dfmf.DFMF(p)
+
+
+def test_truncated(tmp_path):
+    p = _write(tmp_path)
+    p.write_bytes(p.read_bytes()[:-10])
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf.*truncated"):
+        dfmf.DFMF(p)
+    p.write_bytes(p.read_bytes()[:200])
+    with pytest.raises(dfmf.DFMFError, match="truncated"):
+        dfmf.DFMF(p)
+
+
+def test_inconsistent_sizes(tmp_path):
+    p = _write(tmp_path)
+    data = bytearray(p.read_bytes())
+    # width field: after signature, meta block, sampling block
+    meta = struct.unpack_from("<I", data, 10)[0]
+    pos = 10 + meta + 4 + 7 * (8 + 4 + 7 * 8)
+    assert struct.unpack_from("<II", data, pos) == (3, 3)
+    struct.pack_into("<I", data, pos, 4)
+    p.write_bytes(bytes(data))
+    with pytest.raises(dfmf.DFMFError, match="expected 49 .* 12 texels"):
+        dfmf.DFMF(p)
+    with pytest.raises(dfmf.DFMFError, match="trailing"):
+        q = _write(tmp_path)
+        q.write_bytes(q.read_bytes() + b"\0\0")
+        dfmf.DFMF(q)
+
+
+def test_index_errors(tmp_path):
+    b = dfmf.DFMF(_write(tmp_path))
+    with pytest.raises(IndexError, match="light"):
+        b.decode([0], [7], [0])
+    with pytest.raises(dfmf.DFMFError, match="roi"):
+        dfmf.DFMF(b.path, roi=(2, 2, 3, 3))

@@ -1,0 +1,170 @@
+# BTF branch (dynamic BTF synthesis paper, issue 6): UBO2014 or synthetic DFMF files ->
+# Triple Plane and baselines per material -> texture / tiling figures, metrics -> report.
+import re
+
+from neumat.data import ubo2014 as _ubo2014
+
+UBO = config["ubo2014"]
+BTF = config["btf"]
+BTF_SUFFIX = "_resampled_W400xH400_L151xV151.btf"
+
+if UBO["source"] == "synthetic":
+    BTF_NAMES = [f"synthetic_{k}" for k in UBO["synthetic"]["kinds"]]
+else:
+    UBO_CAT = _ubo2014.load_catalog(UBO["catalog"], UBO["materials"]).set_index("name")
+    BTF_NAMES = list(UBO["materials"])
+BTF_NAME_RE = "|".join(map(re.escape, BTF_NAMES)) or "^$"
+
+
+def btf_file(name):
+    """The DFMF file of one material in this run."""
+    if UBO["source"] == "synthetic":
+        return out(f"btf/data/{name}.btf")
+    return f"resources/ubo2014/{name}{BTF_SUFFIX}"
+
+
+def btf_roi(name):
+    """Centre crop (x0, y0, w, h) from config btf.crop, or None for the whole texture."""
+    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+    c = BTF["crop"]
+    if c is None or c >= size:
+        return None
+    o = (size - c) // 2
+    return [o, o, c, c]
+
+
+def btf_seed(name, method):
+    return SEED + 6000 + 100 * BTF_NAMES.index(name) + ["data", *BTF["methods"]].index(method)
+
+
+if UBO["source"] == "synthetic":
+
+    rule synthetic_btf:
+        wildcard_constraints:
+            name=BTF_NAME_RE,
+        output:
+            out("btf/data/{name}.btf"),
+        params:
+            kind=lambda w: w.name.removeprefix("synthetic_"),
+            size=UBO["synthetic"]["size"],
+            components=UBO["synthetic"]["components"],
+            seed=lambda w: btf_seed(w.name, "data"),
+        log:
+            log("synthetic_btf/{name}"),
+        benchmark:
+            bench("synthetic_btf/{name}")
+        threads: 1
+        resources:
+            mem_mb=2000,
+            runtime=10,
+        script:
+            "../scripts/synthetic_btf.py"
+
+else:
+
+    rule ubo2014_fetch:
+        wildcard_constraints:
+            name=BTF_NAME_RE,
+        output:
+            f"resources/ubo2014/{{name}}{BTF_SUFFIX}",
+        params:
+            url=lambda w: UBO["url"].format(name=w.name, **UBO_CAT.loc[w.name]),
+            local_dir=UBO["local_dir"] if UBO["source"] == "local" else None,
+            link=UBO["link"],
+            lock_file=UBO["lock_file"],
+            retries=UBO["retries"],
+        log:
+            log("ubo2014_fetch/{name}"),
+        benchmark:
+            bench("ubo2014_fetch/{name}")
+        threads: 1
+        resources:
+            mem_mb=1000,
+            runtime=120,
+        script:
+            "../scripts/ubo2014_fetch.py"
+
+
+def _btf_fit_rule_params(method):
+    return dict(method=method, roi=lambda w: btf_roi(w.name),
+                seed=lambda w: btf_seed(w.name, method), settings=BTF.get(method, {}))
+
+
+# One rule per representation (same thin script); neural ones checkpoint beside the output.
+for _method, _mem, _time in (("triple_plane", 3000, 600), ("neumip", 3000, 600),
+                             ("pca", 6000, 120), ("sh", 8000, 120), ("td", 8000, 120)):
+
+    rule:
+        name:
+            f"btf_{_method}"
+        wildcard_constraints:
+            name=BTF_NAME_RE,
+        input:
+            lambda w: btf_file(w.name),
+        output:
+            out(f"btf/models/{{name}}/{_method}.pt"),
+        params:
+            **_btf_fit_rule_params(_method),
+        log:
+            log(f"btf_{_method}/{{name}}"),
+        benchmark:
+            bench(f"btf_{_method}/{{name}}")
+        threads: BTF["threads"]
+        resources:
+            mem_mb=_mem,
+            runtime=_time,
+        script:
+            "../scripts/btf_fit.py"
+
+
+rule btf_eval:
+    wildcard_constraints:
+        name=BTF_NAME_RE,
+    input:
+        data=lambda w: btf_file(w.name),
+        models=expand(out("btf/models/{{name}}/{method}.pt"), method=BTF["methods"]),
+    output:
+        metrics=out("btf/eval/{name}/metrics.tsv"),
+        textures=out("report/figures/btf_{name}_textures.png"),
+        tiling=out("report/figures/btf_{name}_tiling.png"),
+    params:
+        methods=BTF["methods"],
+        roi=lambda w: btf_roi(w.name),
+        pairs=BTF["eval_pairs"],
+        tiling=BTF["tiling"],
+    log:
+        log("btf_eval/{name}"),
+    benchmark:
+        bench("btf_eval/{name}")
+    threads: BTF["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=60,
+    script:
+        "../scripts/btf_eval.py"
+
+
+rule btf_section:
+    input:
+        metrics=expand(out("btf/eval/{name}/metrics.tsv"), name=BTF_NAMES),
+        figures=expand(out("report/figures/btf_{name}_{kind}.png"), name=BTF_NAMES,
+                       kind=["textures", "tiling"]),
+    output:
+        md=out("report/sections/60_btf.md"),
+        table=out("btf/quality.tsv"),
+    params:
+        source=UBO["source"],
+        crop=BTF["crop"],
+    log:
+        log("btf_section"),
+    benchmark:
+        bench("btf_section")
+    threads: 1
+    resources:
+        mem_mb=500,
+        runtime=5,
+    script:
+        "../scripts/btf_section.py"
+
+
+REPORT_SECTIONS.append(out("report/sections/60_btf.md"))
