@@ -15,7 +15,7 @@ with script_logging(snakemake) as log:
     ops = man.groupby(["operation", "split"]).size().unstack(fill_value=0)
     types = man[man["type"] != ""].groupby("type").size().sort_values(ascending=False)
     pca = pd.DataFrame({"split": recipe["pca_split"], "PCA dims": recipe["pca_k"],
-                        "explained variance": np.round(recipe["pca_explained"], 4)})
+                        "unexplained variance": 1 - recipe["pca_explained"]})
     md = [
         "## Dataset: AugMERL",
         f"Source: **{snakemake.params.source}** MERL-format tables, "
