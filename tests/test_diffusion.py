@@ -271,3 +271,42 @@ def test_lambertian_albedo_and_passivity():
     neg = _constant_brdf([0.1])
     neg[0, -3:] = -0.5  # exp(-0.5) - 1 < 0 everywhere: clamped to black
     assert plausibility(neg)["negative_share"][0] == 1.0
+
+
+# ----------------------------------------------------------------------------- dataset
+
+
+def _manifest():
+    import pandas as pd
+    return pd.DataFrame({
+        "id": range(8),
+        "name": ["a", "b", "c", "a@grb", "b@grb", "mix0", "mix1", "c@grb"],
+        "operation": ["original"] * 3 + ["permutation"] * 2 + ["interpolation"] * 2 + ["permutation"],
+        "type": ["paint", "metal", "felt", "paint", "metal", "", "", "felt"],
+        "split": ["train", "train", "test", "train", "train", "train", "train", "test"],
+    })
+
+
+def test_model_rows_labels_and_training_subset():
+    from neumat.diffusion import dataset
+    man = _manifest()
+    assert dataset.training_rows(man, "ours").tolist() == [0, 1, 3, 4, 5, 6]
+    assert dataset.training_rows(man, "merl100").tolist() == [0, 1]
+    assert dataset.reference_rows(man).tolist() == [2, 7]
+    names = dataset.class_names(man["type"])
+    assert names == ["felt", "metal", "paint"]
+    assert dataset.labels(man["type"], names).tolist() == [2, 1, 0, 2, 1, -1, -1, 0]
+    with pytest.raises(ValueError, match="not among"):
+        dataset.labels(["wood"], names)
+    with pytest.raises(ValueError, match="unknown diffusion model"):
+        dataset.training_rows(man, "pca")
+    sub = dataset.training_subset(man, seed=0)
+    assert len(sub) == 2 and set(sub) <= {0, 1, 3, 4, 5, 6}
+    assert (dataset.training_subset(man, seed=0) == sub).all()
+
+
+def test_nearest_finds_identical_rows():
+    from neumat.diffusion import dataset
+    b = torch.randn(20, 30)
+    idx, dist = dataset.nearest(b[[3, 17, 5]] + 1e-4, b, chunk=2)
+    assert idx.tolist() == [3, 17, 5] and np.allclose(dist, 1e-4, atol=1e-6)

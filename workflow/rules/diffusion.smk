@@ -17,14 +17,6 @@ DIFF_SETS = ["training", "ours", "merl100", "ours_type"]
 NEAREST_SETS = ["reference", "ours", "merl100", "ours_type"]
 
 
-def diffusion_runtime():
-    """Minutes for a training job: ~0.5 s per step of a width-256, depth-4, batch-128 model
-    on one CPU thread, scaled by width^2 * depth * batch, plus slack."""
-    m, t = DIFF["model"], DIFF["train"]
-    per_step = 0.5 * (m["width"] / 256) ** 2 * m["depth"] / 4 * t["batch_size"] / 128
-    return 10 + math.ceil(t["steps"] * per_step / 60)
-
-
 rule train_diffusion:
     input:
         weights=out("neumerl/weights.npy"),
@@ -33,7 +25,7 @@ rule train_diffusion:
         model=out("diffusion/{model}/model.pt"),
         history=out("diffusion/{model}/history.tsv"),
     params:
-        cfg=DIFF,
+        cfg={k: DIFF[k] for k in ("model", "schedule", "train")},
         class_names=DIFF_CLASSES,
         seed=DIFF_SEED,
         device=config["device"],
@@ -64,7 +56,7 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        cfg=DIFF,
+        cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="uncond",
         seed=DIFF_SEED + 100,
         device=config["device"],
@@ -93,7 +85,7 @@ rule sample_type:
         table=out("samples/ours_type/samples.tsv"),
         timing=out("samples/ours_type/timing.tsv"),
     params:
-        cfg=DIFF,
+        cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="type",
         seed=DIFF_SEED + 200,
         device=config["device"],
@@ -213,11 +205,36 @@ rule export_samples:
         "../scripts/export_samples.py"
 
 
-def diffusion_exports():
-    if DIFF["export_merl"] == 0:
-        return []
-    return expand(out("samples/{set}/merl/sample_{i:03d}.binary"), set=["ours", "merl100"],
-                  i=range(DIFF["export_merl"]))
+rule diffusion_mitsuba:
+    input:
+        ours=out("samples/ours/weights.npy"),
+        ours_nearest=out("samples/ours/nearest.tsv"),
+        types=out("samples/ours_type/weights.npy"),
+        types_nearest=out("samples/ours_type/nearest.tsv"),
+        weights=out("neumerl/weights.npy"),
+    output:
+        ours=report(out("report/figures/diffusion_mitsuba_ours.png"), category="Diffusion"),
+        types=report(out("report/figures/diffusion_mitsuba_types.png"), category="Diffusion"),
+        info=out("render/mitsuba/diffusion.json"),
+    params:
+        cfg=config["render"]["mitsuba"],
+        n_samples=DIFF["gallery_count"],
+        n_types=DIFF["gallery_types"],
+        per_type=DIFF["per_type"],
+        activation=DIFF_ACTIVATION,
+        seed=DIFF_SEED + 600,
+    log:
+        log("diffusion_mitsuba"),
+    benchmark:
+        bench("diffusion_mitsuba")
+    conda:
+        CONDA_ENV
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=120,
+    script:
+        "../scripts/diffusion_mitsuba.py"
 
 
 rule diffusion_section:
@@ -231,6 +248,7 @@ rule diffusion_section:
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
         exports=diffusion_exports(),
+        mitsuba=out("render/mitsuba/diffusion.json"),
     output:
         section=out("report/sections/40_diffusion.md"),
         loss=report(out("report/figures/diffusion_loss.png"), category="Diffusion"),

@@ -15,11 +15,13 @@ with script_logging(snakemake) as log:
     kw = dict(n_angles=p.angles, seed=p.seed, activation=p.activation)
     train = plausibility.plausibility(weights[dataset.training_rows(man, "ours")], **kw)
     ref_max = float(train["max_value"].max())
-    sets = {"NeuMERL train split": weights[dataset.training_rows(man, "ours")]}
+    train["exploding"] = train["max_value"] > p.explode_factor * ref_max
+    sets = {"NeuMERL train split": None}
     sets.update({name: np.load(f) for name, f in zip(p.names, snakemake.input.samples)})
     rows, per = [], []
     for name, w in sets.items():
-        df = plausibility.plausibility(w, reference_max=ref_max, explode_factor=p.explode_factor, **kw)
+        df = train if w is None else plausibility.plausibility(
+            w, reference_max=ref_max, explode_factor=p.explode_factor, **kw)
         rows.append({"set": name, **plausibility.summarize(df)})
         per.append(df.assign(set=name, sample=np.arange(len(df))))
         log.info("%s: %s", name, rows[-1])

@@ -1,6 +1,7 @@
 """Report section: hyperdiffusion settings and training cost, loss curves, sampling speed,
 plausibility, novelty (distance to the nearest training material), galleries of samples next to
 their nearest training materials, type-conditioned gallery and type-match share."""
+import json
 from pathlib import Path
 
 import matplotlib
@@ -94,6 +95,7 @@ with script_logging(snakemake) as log:
                            "samples / s": t["samples_per_second"], "guidance": t["guidance"]}
                           for k, t in timing.items()])
     plaus = pd.read_csv(inp.plausibility, sep="\t")
+    mitsuba = json.loads(Path(inp.mitsuba).read_text())
     m, s = cfg["model"], cfg["schedule"]
     b0 = next(iter(bundles.values()))
     n_params = sum(v.numel() for k, v in b0["ema"].items())
@@ -123,6 +125,12 @@ with script_logging(snakemake) as log:
         "near-copies.",
         report.md_table(novelty),
         "### Unconditional samples",
+        f"Mitsuba 3 ({mitsuba['variant']}, {mitsuba['resolution']} px, {mitsuba['spp']} spp, "
+        f"{mitsuba['images']} images in {mitsuba['seconds']:.0f} s): samples of `ours` (top) and "
+        f"their nearest training materials by BRDF-L1 (bottom).",
+        "![ours: Mitsuba renders of samples and nearest training materials]"
+        "(figures/diffusion_mitsuba_ours.png)",
+        "Metric-renderer view of the same comparison, for ours and MERL100:",
         "![ours: samples and nearest training materials](figures/diffusion_gallery.png)",
         "![MERL100: samples and nearest training materials](figures/diffusion_gallery_merl100.png)",
         "### Type-conditioned samples",
@@ -132,6 +140,7 @@ with script_logging(snakemake) as log:
         f"the test-split materials and their own types: {100 * ref_match.mean():.1f} % "
         f"(test materials come from MERL materials never seen in training, so their exact type "
         f"may be absent there).",
+        "![type-conditioned samples, Mitsuba](figures/diffusion_mitsuba_types.png)",
         "![type-conditioned samples](figures/diffusion_types.png)",
         report.md_table(per_type.reset_index()),
     ]
