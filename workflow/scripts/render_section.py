@@ -23,8 +23,9 @@ with script_logging(snakemake) as log:
     t0 = time.time()
     imgs = sphere.render_fields(weights, p.resolution, p.activation)
     rate = len(weights) / (time.time() - t0)
-    shown = sphere.render_fields(weights[:k], p.figure_resolution, p.activation)
-    gallery.gallery(list(shown.numpy()), list(names[:k]), out.fields, min_cell=96)
+    pick = np.unique(np.linspace(0, len(weights) - 1, k).round().astype(int))  # spread over the set
+    shown = sphere.render_fields(weights[pick], p.figure_resolution, p.activation)
+    gallery.gallery(list(shown.numpy()), list(names[pick]), out.fields, min_cell=96)
     tables = np.stack([merl.read_merl(f).astype(np.float32) for f in snakemake.input.merl])
     gallery.gallery(list(sphere.render_tables(tables, p.figure_resolution).numpy()), p.names,
                     out.tables, min_cell=96)
