@@ -62,8 +62,8 @@ def test_plugin_matches_reference_and_pdf_is_consistent(kind):
     e, pdf = bsdf.eval_pdf(ctx, si, bs.wo)
     ok = np.array(bs.pdf) > 0
     np.testing.assert_allclose(np.array(pdf)[ok], np.array(bs.pdf)[ok], rtol=1e-4)
-    np.testing.assert_allclose(np.array(w).reshape(3, -1).T[ok],
-                               (np.array(e).reshape(3, -1) / np.array(pdf)).T[ok], rtol=1e-3)
+    e, pdf = np.array(e).reshape(3, -1)[:, ok], np.array(pdf)[ok]
+    np.testing.assert_allclose(np.array(w).reshape(3, -1)[:, ok], e / pdf, rtol=1e-3)
     n = 400
     ct, ph = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(2 * n) + 0.5) / (2 * n) * 2 * np.pi)
     st = np.sqrt(1 - ct ** 2)
