@@ -23,6 +23,7 @@ from __future__ import annotations
 import glob
 import logging
 import os
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,8 +48,11 @@ def find_libllvm(min_version: int = 16) -> str | None:
     env = os.environ.get("DRJIT_LIBLLVM_PATH")
     if env and os.path.exists(env):
         return env
+    # a conda env (conda-forge `libllvm19`) or venv prefix first, then system locations
+    prefixes = [p for p in (os.environ.get("CONDA_PREFIX"), sys.prefix) if p]
+    local = [f"{p}/lib/libLLVM-{{v}}.so*" for p in prefixes] + [f"{p}/lib/libLLVM.so.{{v}}*" for p in prefixes]
     for v in range(21, min_version - 1, -1):
-        for pattern in _LLVM_GLOBS:
+        for pattern in local + _LLVM_GLOBS:
             hits = sorted(glob.glob(pattern.format(v=v)))
             if hits:
                 return hits[0]
