@@ -29,7 +29,8 @@ import pandas as pd
 import torch
 import yaml
 
-from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset, train
+from neumat.diffusion import (DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset,
+                              plausibility, train)
 from neumat.metrics import distances
 from neumat.metrics.evaluate import evaluate_fields, table2
 
@@ -119,6 +120,7 @@ def cmd_evaluate(seed, resolution, bins):
         t0 = time.perf_counter()
         sets[model] = sampler.sample(len(ref), seed + 1, None, smp["steps"], smp["eta"])
         dt = time.perf_counter() - t0
+        np.save(OUT / f"{model}_samples.npy", sets[model])
         info[model] = {"train_s": b["train_seconds"], "steps": b["train_cfg"]["steps"],
                        "n_train": b["n_train"], "samples_per_s": len(ref) / dt}
     # type conditioning: 8 samples for each of 6 types, nearest typed training field
@@ -135,8 +137,12 @@ def cmd_evaluate(seed, resolution, bins):
            for k, v in sets.items()}
     tab = table2(res)
     OUT.mkdir(parents=True, exist_ok=True)
-    tab.to_csv(OUT / "table2.csv", index=False)
-    print(tab.to_markdown(index=False))
+    tab.to_csv(OUT / "table2.csv")
+    print(tab.reset_index().to_markdown(index=False))
+    ref_max = float(plausibility.plausibility(weights[tr])["max_value"].max())
+    plaus = pd.DataFrame([{"set": k, **plausibility.summarize(plausibility.plausibility(
+        v, reference_max=ref_max))} for k, v in {"reference": ref, **sets, "ours_type": wt}.items()])
+    print(plaus.to_markdown(index=False))
     print(json.dumps({"models": info, "type_match": match, "types": sorted(set(asked))}, indent=1))
 
 
