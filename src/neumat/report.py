@@ -19,10 +19,11 @@ def md_table(df: pd.DataFrame, floatfmt: str = ".4g") -> str:
     return df.to_markdown(index=False, floatfmt=floatfmt)
 
 
-def stitch(sections: list[str | Path], title: str, header: str = "") -> tuple[str, str]:
+def stitch(sections: list[str | Path], title: str, footer: str = "") -> tuple[str, str]:
     """Concatenate section fragments (in file-name order) -> (markdown, html)."""
-    parts = [f"# {title}", header] if header else [f"# {title}"]
+    parts = [f"# {title}"]
     parts += [Path(s).read_text().strip() for s in sorted(sections, key=lambda p: Path(p).name)]
+    parts += [footer] if footer else []
     md = "\n\n".join(parts) + "\n"
     body = markdown.markdown(md, extensions=["tables", "fenced_code"])
     html = (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{title}</title>"

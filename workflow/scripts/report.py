@@ -8,9 +8,9 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    header = ("Configuration (defaults filled in):\n\n```yaml\n"
+    footer = ("## Configuration of this run (defaults filled in)\n\n```yaml\n"
               + yaml.safe_dump(dict(p.config), sort_keys=False) + "```")
-    md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", header)
+    md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", footer)
     Path(snakemake.output.md).write_text(md)
     Path(snakemake.output.html).write_text(html)
     log.info("report with %d sections", len(snakemake.input.sections))
