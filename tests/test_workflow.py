@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -49,6 +50,23 @@ def test_tiny_config_runs_to_report(tiny_run):
     # every rule logged and benchmarked
     assert list((tiny_run / "results/tiny/logs").rglob("*.log"))
     assert (tiny_run / "results/tiny/benchmarks/augmerl_pca.tsv").exists()
+
+
+def test_tiny_config_runs_every_stage(tiny_run):
+    res = tiny_run / "results/tiny"
+    md = (res / "report/index.md").read_text()
+    for section in ("NeuMERL", "Rendering", "Hyperdiffusion", "Table 2", "Triple Plane"):
+        assert section in md, section
+    w = np.load(res / "neumerl/weights.npy")
+    assert w.shape == (64, 675) and w.dtype == np.float32 and np.isfinite(w).all()
+    fits = pd.read_csv(res / "neumerl/fits.tsv", sep="\t")
+    assert {"id", "name", "train_loss", "val_loss", "render_psnr"} <= set(fits.columns)
+    assert (res / "neumerl/merl/mix0000.binary").stat().st_size == 34_992_012
+    table = pd.read_csv(res / "metrics/table2.csv")
+    assert {"training_set", "ours", "merl100"} <= set(table.columns)
+    assert len(table) == 13  # FID + 3 metrics x 4 distances
+    q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
+    assert len(q) > 0
 
 
 def test_rerun_is_a_no_op(tiny_run):
