@@ -1,41 +1,6 @@
 # BTF branch (dynamic BTF synthesis paper, issue 6): UBO2014 or synthetic DFMF files ->
 # Triple Plane and baselines per material -> texture / tiling figures, metrics -> report.
-import re
-
-from neumat.data import ubo2014 as _ubo2014
-
-UBO = config["ubo2014"]
-BTF = config["btf"]
-BTF_SUFFIX = "_resampled_W400xH400_L151xV151.btf"
-
-if UBO["source"] == "synthetic":
-    BTF_NAMES = [f"synthetic_{k}" for k in UBO["synthetic"]["kinds"]]
-else:
-    UBO_CAT = _ubo2014.load_catalog(UBO["catalog"], UBO["materials"]).set_index("name")
-    BTF_NAMES = list(UBO["materials"])
-BTF_NAME_RE = "|".join(map(re.escape, BTF_NAMES)) or "^$"
-
-
-def btf_file(name):
-    """The DFMF file of one material in this run."""
-    if UBO["source"] == "synthetic":
-        return out(f"btf/data/{name}.btf")
-    return f"resources/ubo2014/{name}{BTF_SUFFIX}"
-
-
-def btf_roi(name):
-    """Centre crop (x0, y0, w, h) from config btf.crop, or None for the whole texture."""
-    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
-    c = BTF["crop"]
-    if c is None or c >= size:
-        return None
-    o = (size - c) // 2
-    return [o, o, c, c]
-
-
-def btf_seed(name, method):
-    return SEED + 6000 + 100 * BTF_NAMES.index(name) + ["data", *BTF["methods"]].index(method)
-
+# Helpers (BTF_NAMES, btf_file, btf_roi, btf_seed) live at the end of common.smk.
 
 if UBO["source"] == "synthetic":
 
@@ -53,6 +18,8 @@ if UBO["source"] == "synthetic":
             log("synthetic_btf/{name}"),
         benchmark:
             bench("synthetic_btf/{name}")
+        conda:
+            CONDA_ENV
         threads: 1
         resources:
             mem_mb=2000,
@@ -77,17 +44,14 @@ else:
             log("ubo2014_fetch/{name}"),
         benchmark:
             bench("ubo2014_fetch/{name}")
+        conda:
+            CONDA_ENV
         threads: 1
         resources:
             mem_mb=1000,
             runtime=120,
         script:
             "../scripts/ubo2014_fetch.py"
-
-
-def _btf_fit_rule_params(method):
-    return dict(method=method, roi=lambda w: btf_roi(w.name),
-                seed=lambda w: btf_seed(w.name, method), settings=BTF.get(method, {}))
 
 
 # One rule per representation (same thin script); neural ones checkpoint beside the output.
@@ -109,6 +73,8 @@ for _method, _mem, _time in (("triple_plane", 3000, 600), ("neumip", 3000, 600),
             log(f"btf_{_method}/{{name}}"),
         benchmark:
             bench(f"btf_{_method}/{{name}}")
+        conda:
+            CONDA_ENV
         threads: BTF["threads"]
         resources:
             mem_mb=_mem,
@@ -136,6 +102,8 @@ rule btf_eval:
         log("btf_eval/{name}"),
     benchmark:
         bench("btf_eval/{name}")
+    conda:
+        CONDA_ENV
     threads: BTF["threads"]
     resources:
         mem_mb=4000,
@@ -159,6 +127,8 @@ rule btf_section:
         log("btf_section"),
     benchmark:
         bench("btf_section")
+    conda:
+        CONDA_ENV
     threads: 1
     resources:
         mem_mb=500,

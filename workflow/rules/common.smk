@@ -147,3 +147,47 @@ def diffusion_exports():
     """MERL .binary exports of the first `diffusion.export_merl` samples of ours and merl100."""
     return expand(out("samples/{set}/merl/sample_{i:03d}.binary"), set=["ours", "merl100"],
                   i=range(config["diffusion"]["export_merl"]))
+
+
+# ----------------------------------------------------------------------------- BTF (btf.smk)
+
+import re as _re
+
+from neumat.data import ubo2014 as _ubo2014
+
+UBO = config["ubo2014"]
+BTF = config["btf"]
+BTF_SUFFIX = "_resampled_W400xH400_L151xV151.btf"
+
+if UBO["source"] == "synthetic":
+    BTF_NAMES = [f"synthetic_{k}" for k in UBO["synthetic"]["kinds"]]
+else:
+    UBO_CAT = _ubo2014.load_catalog(UBO["catalog"], UBO["materials"]).set_index("name")
+    BTF_NAMES = list(UBO["materials"])
+BTF_NAME_RE = "|".join(map(_re.escape, BTF_NAMES)) or "^$"
+
+
+def btf_file(name):
+    """The DFMF file of one material in this run."""
+    if UBO["source"] == "synthetic":
+        return out(f"btf/data/{name}.btf")
+    return f"resources/ubo2014/{name}{BTF_SUFFIX}"
+
+
+def btf_roi(name):
+    """Centre crop (x0, y0, w, h) from config btf.crop, or None for the whole texture."""
+    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+    c = BTF["crop"]
+    if c is None or c >= size:
+        return None
+    o = (size - c) // 2
+    return [o, o, c, c]
+
+
+def btf_seed(name, method):
+    return SEED + 6000 + 100 * BTF_NAMES.index(name) + ["data", *BTF["methods"]].index(method)
+
+
+def _btf_fit_rule_params(method):
+    return dict(method=method, roi=lambda w: btf_roi(w.name),
+                seed=lambda w: btf_seed(w.name, method), settings=BTF.get(method, {}))

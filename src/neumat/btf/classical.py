@@ -45,14 +45,13 @@ class PCA(GridBTF):
         m = cls(data.width, data.height, data.light_dirs, data.view_dirs, components)
         gen = torch.Generator().manual_seed(seed)
         sub = torch.randperm(data.n_texels, generator=gen)[:fit_texels].sort().values
-        X = data.abrdf(sub).reshape(len(sub), -1, 3).permute(2, 0, 1).double()  # (3, n, LV)
+        X = data.abrdf(sub).reshape(len(sub), -1, 3).permute(2, 0, 1)   # (3, n, LV)
         mean = X.mean(1, keepdim=True)
         X = X - mean
-        for c in range(3):  # eigenvectors of the small (n x n) Gram matrix -> basis over LV
-            w, vec = torch.linalg.eigh(X[c] @ X[c].T)
-            top = torch.argsort(w, descending=True)[:components]
-            b = vec[:, top].T @ X[c]
-            m.basis[c] = (b / b.norm(dim=1, keepdim=True).clamp_min(1e-12)).float()
+        torch.manual_seed(seed)
+        for c in range(3):  # randomized SVD: only the top components of the (n x LV) matrix
+            _, _, V = torch.svd_lowrank(X[c], q=min(components + 10, *X[c].shape), niter=4)
+            m.basis[c] = V[:, :components].T
         m.mean.copy_(mean[:, 0].float())
         for t in _chunks(data.n_texels, chunk):
             Y = data.abrdf(t).reshape(len(t), -1, 3).permute(2, 0, 1) - m.mean[:, None]
@@ -126,9 +125,11 @@ class Tucker(GridBTF):
         gl = torch.zeros(3, data.n_lights, data.n_lights, dtype=torch.float64)
         gv = torch.zeros(3, data.n_views, data.n_views, dtype=torch.float64)
         for t in _chunks(data.n_texels, chunk):
-            X = data.abrdf(t).permute(3, 0, 1, 2).double()               # (3, n, V, L)
-            gl += torch.einsum("cnvl,cnvk->clk", X, X)
-            gv += torch.einsum("cnvl,cnwl->cvw", X, X)
+            X = data.abrdf(t).permute(3, 0, 1, 2)                         # (3, n, V, L)
+            XL = X.reshape(3, -1, data.n_lights)                          # mode-light unfolding
+            XV = X.transpose(2, 3).reshape(3, -1, data.n_views)           # mode-view unfolding
+            gl += (XL.transpose(1, 2) @ XL).double()
+            gv += (XV.transpose(1, 2) @ XV).double()
         for c in range(3):
             m.B[c] = torch.linalg.eigh(gl[c])[1][:, -rl:].flip(1).float()
             m.C[c] = torch.linalg.eigh(gv[c])[1][:, -rv:].flip(1).float()

@@ -9,16 +9,20 @@ import torch
 from neumat.btf.grid import GridBTF
 from neumat.io import dfmf
 
-_YUV2RGB = torch.tensor(dfmf.YUV2RGB, dtype=torch.float32)
-
-
 def to_rgb(raw: torch.Tensor, model: int) -> torch.Tensor:
     """Torch twin of `dfmf.to_rgb` for (..., 3) decorrelated values."""
+    return _rgb3(raw[..., 0], raw[..., 1], raw[..., 2], model)
+
+
+def _rgb3(c0, c1, c2, model):
+    # YUV -> RGB written out elementwise: an (N x 3) @ (3 x 3) matmul is slower on CPU
     if model == 0:
-        return raw
-    y = torch.exp(raw[..., :1]) - dfmf.DRR_EPS
-    yuv = torch.cat([y, raw[..., 1:] * (y + dfmf.DRR_EPS)], -1)
-    return yuv @ _YUV2RGB.to(raw.device).T
+        return torch.stack([c0, c1, c2], -1)
+    y = torch.exp(c0) - dfmf.DRR_EPS
+    s = y + dfmf.DRR_EPS
+    u, v = c1 * s, c2 * s
+    (_, _, rv), (_, gu, gv), (_, bu, _) = dfmf.YUV2RGB.tolist()
+    return torch.stack([y + rv * v, y + gu * u + gv * v, y + bu * u], -1)
 
 
 class BTFData(GridBTF):
@@ -41,8 +45,8 @@ class BTFData(GridBTF):
 
     def abrdf(self, texels: torch.Tensor) -> torch.Tensor:
         """Full angular slices of some texels: (n,) -> (n, views, lights, 3)."""
-        raw = torch.stack([s[texels] @ u.T for u, s in zip(self.U, self.SV)], -1)
-        return to_rgb(raw, self.model).reshape(len(texels), self.n_views, self.n_lights, 3)
+        c0, c1, c2 = (s[texels] @ u.T for u, s in zip(self.U, self.SV))  # contiguous planes
+        return _rgb3(c0, c1, c2, self.model).reshape(len(texels), self.n_views, self.n_lights, 3)
 
     def sample(self, n: int, gen: torch.Generator):
         """n random grid samples: texel, light, view indices and RGB targets."""

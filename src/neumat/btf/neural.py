@@ -28,15 +28,17 @@ def fetch(plane: torch.Tensor, xy: torch.Tensor, wrap: bool) -> torch.Tensor:
     if not wrap:
         x, y = x.clamp(0, W - 1), y.clamp(0, H - 1)
     x0, y0 = torch.floor(x), torch.floor(y)
-    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    fx, fy = x - x0, y - y0
     x0, y0 = x0.long(), y0.long()
     if wrap:
         x0, y0, x1, y1 = x0 % W, y0 % H, (x0 + 1) % W, (y0 + 1) % H
     else:
         x1, y1 = (x0 + 1).clamp(max=W - 1), (y0 + 1).clamp(max=H - 1)
-    flat = plane.reshape(H * W, -1)
-    return ((flat[y0 * W + x0] * (1 - fx) + flat[y0 * W + x1] * fx) * (1 - fy)
-            + (flat[y1 * W + x0] * (1 - fx) + flat[y1 * W + x1] * fx) * fy)
+    # one gather of the 4 taps and one batched weighted sum (fewer passes over memory)
+    idx = torch.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], 1)
+    w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
+    taps = plane.reshape(H * W, -1)[idx]                               # (N, 4, C)
+    return torch.bmm(w[:, None, :], taps)[:, 0]
 
 
 def mlp(n_in: int, hidden: int, layers: int) -> nn.Sequential:

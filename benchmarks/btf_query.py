@@ -1,0 +1,118 @@
+"""Triple Plane query throughput for one 1920 x 1080 frame (2,073,600 queries), against
+(a) a plain unbatched torch implementation of the same model (one query per call, timed on a
+subset and extrapolated) and (b) the FLOP bound of this machine (FLOPs per query vs a large
+float32 matmul measured in the same run). Paper anchor: 2.0 ms per frame on an RTX 4090.
+
+    OMP_NUM_THREADS=2 python benchmarks/btf_query.py [--model results/<run>/btf/models/<m>/triple_plane.pt]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import torch
+
+from neumat.btf import models
+from neumat.btf.directions import half_diff
+from neumat.btf.neural import fetch
+
+FRAME = 1920 * 1080
+
+
+def random_queries(n, gen, device):
+    u = torch.rand(n, 2, generator=gen)
+    def hemi():
+        w = torch.randn(n, 3, generator=gen)
+        w[:, 2] = w[:, 2].abs() + 0.05
+        return torch.nn.functional.normalize(w, dim=-1)
+    return u.to(device), hemi().to(device), hemi().to(device)
+
+
+def flops_per_query(m) -> int:
+    """Multiply-adds x 2 of the MLP, the three 4-tap bilinear fetches and the half/diff frame."""
+    lin = [l for l in m.net if isinstance(l, torch.nn.Linear)]
+    mlp = sum(2 * l.in_features * l.out_features + l.out_features for l in lin)
+    relu = sum(l.out_features for l in lin[:-1])
+    fetch = 3 * 4 * 2 * max(m.kwargs["u_channels"], m.kwargs["dir_channels"])
+    return mlp + relu + fetch + 60 + 3  # ~60 for half_diff (normalise, rotations), expm1 + relu
+
+
+def timed(fn, repeat=3, sync=lambda: None):
+    best = float("inf")
+    for _ in range(repeat):
+        sync()
+        t = time.perf_counter()
+        fn()
+        sync()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+@torch.no_grad()
+def batched(m, u, wi, wo, chunk):
+    return torch.cat([m(u[s:s + chunk], wi[s:s + chunk], wo[s:s + chunk])
+                      for s in range(0, len(u), chunk)])
+
+
+@torch.no_grad()
+def unbatched(m, u, wi, wo):
+    """The same model evaluated one query at a time with plain tensor ops (no batching)."""
+    W = [(l.weight, l.bias) for l in m.net if isinstance(l, torch.nn.Linear)]
+    out = []
+    for k in range(len(u)):
+        h, d = half_diff(wi[k:k + 1], wo[k:k + 1])
+        x = torch.cat([m.features_u(u[k:k + 1]),
+                       fetch(m.f_h, (h[:, :2] + 1) / 2, False),
+                       fetch(m.f_d, (d[:, :2] + 1) / 2, False)], -1)
+        for i, (w, b) in enumerate(W):
+            x = x @ w.T + b
+            if i < len(W) - 1:
+                x = torch.relu(x)
+        out.append(torch.relu(torch.expm1(x)))
+    return torch.cat(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", help="trained triple_plane.pt (default: random 400x400 model)")
+    ap.add_argument("--chunk", type=int, default=1 << 18)
+    ap.add_argument("--unbatched", type=int, default=2000, help="queries timed one by one")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    a = ap.parse_args()
+    dev = torch.device(a.device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
+    m = models.load(a.model) if a.model else models.TriplePlane(400, 400)
+    m = m.to(dev).eval()
+    gen = torch.Generator().manual_seed(0)
+    u, wi, wo = random_queries(FRAME, gen, dev)
+    print(f"device {dev}, torch threads {torch.get_num_threads()}, model {m.kwargs}, "
+          f"{m.n_params()} parameters")
+
+    batched(m, u[:4096], wi[:4096], wo[:4096], a.chunk)                 # warm-up
+    t_b = timed(lambda: batched(m, u, wi, wo, a.chunk), sync=sync)
+    n1 = min(a.unbatched, FRAME)
+    ref = batched(m, u[:n1], wi[:n1], wo[:n1], a.chunk)
+    t1 = timed(lambda: unbatched(m, u[:n1], wi[:n1], wo[:n1]), repeat=1, sync=sync)
+    assert torch.allclose(unbatched(m, u[:50], wi[:50], wo[:50]), ref[:50], rtol=1e-4, atol=1e-5)
+    t_u = t1 * FRAME / n1
+
+    fq = flops_per_query(m)
+    n = 4096 if dev.type == "cuda" else 2048
+    A = torch.randn(n, n, device=dev)
+    t_mm = timed(lambda: A @ A, sync=sync)
+    peak = 2 * n ** 3 / t_mm
+    bound = peak / fq
+
+    qps_b, qps_u = FRAME / t_b, FRAME / t_u
+    print(f"batched   : {t_b * 1e3:10.1f} ms/frame  {qps_b:12.4g} queries/s")
+    print(f"unbatched : {t_u * 1e3:10.1f} ms/frame  {qps_u:12.4g} queries/s "
+          f"(extrapolated from {n1} queries)")
+    print(f"FLOP bound: {FRAME / bound * 1e3:10.1f} ms/frame  {bound:12.4g} queries/s "
+          f"({fq} FLOP/query, matmul {peak / 1e9:.1f} GFLOP/s)")
+    print(f"ratios    : batched/unbatched {qps_b / qps_u:.1f}x, batched/bound {qps_b / bound:.3f}, "
+          f"paper anchor (RTX 4090, 2.0 ms/frame) / batched {t_b / 2.0e-3:.1f}x slower")
+
+
+if __name__ == "__main__":
+    main()
