@@ -1,9 +1,10 @@
 """Paper Figs. 3 and 4: six RGB permutations of one material; a PCA interpolation strip."""
 import numpy as np
 
-from neumat import augment, figures
+from neumat import augment
 from neumat.logs import script_logging
 from neumat.render import sphere
+from neumat.render.gallery import gallery
 
 with script_logging(snakemake) as log:
     p = snakemake.params
@@ -28,8 +29,8 @@ with script_logging(snakemake) as log:
     tables = aug.tables_from_coefs(np.eye(P)[perm_rows])
     imgs = sphere.tonemap(sphere.render_tables(tables, resolution=p.resolution))
     labels = [augment.PERMS[aug.row_perm[r]] for r in perm_rows]
-    figures.save_strip(imgs, labels, snakemake.output.permutations,
-                       title=f"RGB permutations of {p.material}")
+    gallery(imgs, labels, snakemake.output.permutations, ncols=len(imgs), min_cell=96,
+            title=f"RGB permutations of {p.material}")
 
     # The figure interpolates in a PCA of all rows of both materials' splits together.
     weights = np.linspace(1, 0, 5)
@@ -38,7 +39,6 @@ with script_logging(snakemake) as log:
     coefs = augment.interpolation_coefs(aug.logs, aug.row_src, aug.row_perm, a, b, weights, k)
     imgs = sphere.tonemap(sphere.render_tables(aug.tables_from_coefs(coefs),
                                                resolution=p.resolution))
-    figures.save_strip(imgs, [f"{w:.2f} / {1 - w:.2f}" for w in weights],
-                       snakemake.output.interpolation,
-                       title=f"PCA interpolation {p.pair[0]} -> {p.pair[1]} (k = {k})")
+    gallery(imgs, [f"{w:.2f} / {1 - w:.2f}" for w in weights], snakemake.output.interpolation,
+            ncols=len(imgs), min_cell=96, title=f"PCA interpolation {p.pair[0]} -> {p.pair[1]} (k = {k})")
     log.info("figures written")

@@ -12,10 +12,11 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from neumat import figures, report  # noqa: E402
+from neumat import report  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 from neumat.render import sphere  # noqa: E402
+from neumat.render.gallery import gallery as image_grid  # noqa: E402
 
 
 def sets_by_name(paths, kind):
@@ -36,7 +37,7 @@ def gallery(samples, near, weights, n, p, path, title):
     top, bottom = render(samples[pick], p), render(weights[rows["nearest_id"].to_numpy()], p)
     labels = [f"sample {i}" for i in pick] + \
              [f"{r.nearest_name}\nL1 {r.brdf_l1:.3g}" for r in rows.itertuples()]
-    figures.save_grid(np.concatenate([top, bottom]), labels, path, ncols=k, title=title)
+    image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, title=title)
 
 
 with script_logging(snakemake) as log:
@@ -74,9 +75,9 @@ with script_logging(snakemake) as log:
     per_row = min(cfg["per_type"], 6)
     pick = np.concatenate([np.flatnonzero(nt["type"] == t)[:per_row] for t in shown])
     labels = [f"{r.type}\n(nn: {r.nearest_typed_type})" for r in nt.iloc[pick].itertuples()]
-    figures.save_grid(render(samples["ours_type"][pick], p), labels, out.types, ncols=per_row,
-                      title="type-conditioned samples (label: requested type, and the type "
-                            "of the nearest typed training material)")
+    image_grid(render(samples["ours_type"][pick], p), labels, out.types, ncols=per_row,
+               title="type-conditioned samples (label: requested type, and the type "
+                     "of the nearest typed training material)")
 
     # numbers
     match = (nt["type"] == nt["nearest_typed_type"])

@@ -5,9 +5,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from neumat import augment, figures, fit, report
+from neumat import augment, fit, report
 from neumat.logs import script_logging
 from neumat.render import sphere
+from neumat.render.gallery import gallery
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
@@ -35,9 +36,8 @@ with script_logging(snakemake) as log:
                                                      cfg["activation"], dev))
         labels = [f"{n}\nground truth" for n in rows["name"]] + \
                  [f"fit {q:.1f} dB" for q in rows["render_psnr"]]
-        figures.save_grid(np.concatenate([gt, fitted]), labels, path, ncols=k,
-                          title=f"NeuMERL: the {k} {what} fits (top: AugMERL table, "
-                                f"bottom: fitted field)")
+        gallery(np.concatenate([gt, fitted]), labels, path, ncols=k,
+                title=f"NeuMERL: the {k} {what} fits (top: AugMERL table, bottom: fitted field)")
 
     seconds = template["seconds"] + sum(float(s["seconds"]) for s in shards)
     q = fits["render_psnr"]

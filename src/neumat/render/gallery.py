@@ -13,10 +13,11 @@ from neumat.render.sphere import tonemap
 
 def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 8,
             pad: int = 4, label_height: int = 14, background: int = 255,
-            min_cell: int = 0) -> np.ndarray:
+            min_cell: int = 0, title: str | None = None) -> np.ndarray:
     """Lay out images (each (H, W, 3): uint8 sRGB, or float linear HDR, tone-mapped) in a grid
     with a label under each; cells are as large as the largest image (at least `min_cell`
-    pixels wide, so labels of small images stay readable). Saves a PNG if `path`.
+    pixels wide, so labels of small images stay readable) and an optional `title` line on top.
+    Saves a PNG if `path`.
     Returns the grid as uint8 (rows, cols, 3)."""
     images = [np.asarray(i) for i in images]
     if len(images) != len(labels):
@@ -43,6 +44,13 @@ def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 
         r, c = divmod(k, ncols)
         y, x = pad + r * (h + lab_h + pad) + h + 1, pad + c * (w + pad)
         draw.text((x, y), "\n".join(text), fill=(0, 0, 0), font=font)
+    if title:
+        top = Image.new("RGB", (pil.width, label_height + pad), (background,) * 3)
+        ImageDraw.Draw(top).text((pad, pad // 2), title, fill=(0, 0, 0), font=font)
+        framed = Image.new("RGB", (pil.width, pil.height + top.height))
+        framed.paste(top, (0, 0))
+        framed.paste(pil, (0, top.height))
+        pil = framed
     out = np.asarray(pil)
     if path is not None:
         pil.save(path)
