@@ -121,6 +121,7 @@ class Tucker(GridBTF):
     @torch.no_grad()
     def fit(cls, data, ranks=(32, 13, 13), chunk=128):
         rt, rl, rv = (min(r, n) for r, n in zip(ranks, (data.n_texels, data.n_lights, data.n_views)))
+        rt = min(rt, rl * rv)                                          # texel rank <= core size
         m = cls(data.width, data.height, data.light_dirs, data.view_dirs, (rt, rl, rv))
         gl = torch.zeros(3, data.n_lights, data.n_lights, dtype=torch.float64)
         gv = torch.zeros(3, data.n_views, data.n_views, dtype=torch.float64)

@@ -62,9 +62,9 @@ def texture(model, width: int, height: int, wi, wo) -> np.ndarray:
 
 def plane_queries(width: int, height: int, tiles: float, light, fov_deg: float = 40.0):
     """Queries of a pinhole view of the plane z = 0, x, y in [-1, 1], with u = tiles * (x, y)
-    / 2 (repetitive tiling) lit by a point light at `light` (3,). Returns u, wi, wo (N, .),
-    the pixel mask of plane hits and the 1/r^2 * cos(light) irradiance factor... folded into
-    the BTF, which already contains the cosine, so only 1/r^2 is returned."""
+    / 2 wrapped (repetitive tiling), lit by a point light at `light` (3,). Returns u, wi, wo
+    (N, .) of the pixels that hit the plane, their mask, and the 1 / r^2 light falloff (the
+    cosine is already part of BTF values)."""
     cam = np.array([0.0, -2.4, 1.9])
     fwd = -cam / np.linalg.norm(cam)
     right = np.cross(fwd, [0, 0, 1.0])

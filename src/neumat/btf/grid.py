@@ -84,8 +84,8 @@ class GridBTF(torch.nn.Module):
                             DirectionInterp(self.view_dirs.numpy()))
         return self._interp
 
-    def values(self, t, l, v):
-        raise NotImplementedError
+    def values(self, t, l, v):  # abstract: every representation defines its grid lookup
+        raise NotImplementedError(f"{type(self).__name__} must define values(t, l, v)")
 
     @torch.no_grad()
     def forward(self, u, wi, wo, chunk: int = 1 << 14):
