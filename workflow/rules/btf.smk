@@ -28,6 +28,9 @@ if UBO["source"] == "synthetic":
             "../scripts/synthetic_btf.py"
 
 else:
+    if UBO["source"] == "local" and not UBO["local_dir"]:
+        raise ValueError("config ubo2014.local_dir must name the directory of the .btf files "
+                         "when ubo2014.source is local")
 
     rule ubo2014_fetch:
         wildcard_constraints:
