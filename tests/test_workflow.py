@@ -33,7 +33,7 @@ def _snakemake(cwd, *args, check=True):
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     wd = _copy_workflow(tmp_path_factory.mktemp("tiny"))
-    _snakemake(wd, "--configfile", "config/tiny.yaml", "report")
+    _snakemake(wd, "report", "--configfile", "config/tiny.yaml")
     return wd
 
 
@@ -70,7 +70,7 @@ def test_tiny_config_runs_every_stage(tiny_run):
 
 
 def test_rerun_is_a_no_op(tiny_run):
-    res = _snakemake(tiny_run, "--configfile", "config/tiny.yaml", "report", "--dry-run")
+    res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr
 
 
