@@ -80,15 +80,6 @@ class FitSettings:
         return self.lr_final + (self.lr - self.lr_final) * c
 
 
-def resolve_device(device: str) -> torch.device:
-    """`auto` -> cuda when present, else cpu (config key `device`)."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("config device: cuda, but torch sees no CUDA device")
-    return torch.device(device)
-
-
 # ----------------------------------------------------------------------------- data
 
 

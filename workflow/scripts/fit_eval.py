@@ -3,6 +3,7 @@ import numpy as np
 import pandas as pd
 
 from neumat import augment, fit
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
@@ -12,7 +13,7 @@ with script_logging(snakemake) as log:
     aug = augment.AugMERL(snakemake.input.recipe, paths)
     psnr = np.concatenate([
         fit.render_psnr(fits["weights"][s:s + 8], aug.tables_from_coefs(aug.coef[fits["ids"][s:s + 8]]),
-                        p.resolution, p.activation, str(fit.resolve_device(p.device)))
+                        p.resolution, p.activation, str(resolve_device(p.device)))
         for s in range(0, len(fits["ids"]), 8)])
     pd.DataFrame({"id": fits["ids"], "render_psnr": psnr}).to_csv(
         snakemake.output[0], sep="\t", index=False, float_format="%.4f")

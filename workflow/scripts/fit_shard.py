@@ -5,6 +5,7 @@ import numpy as np
 import torch
 
 from neumat import augment, fit
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
@@ -15,7 +16,7 @@ with script_logging(snakemake) as log:
     settings = fit.FitSettings.from_config(p.cfg)
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     res = fit.fit_many(shard["values"], shard["bins"], shard["ids"], template, settings, p.seed,
-                       fit.resolve_device(p.device), checkpoint=p.checkpoint)
+                       resolve_device(p.device), checkpoint=p.checkpoint)
     fit.save_fits(snakemake.output[0], res)
     Path(p.checkpoint).unlink(missing_ok=True)
     log.info("shard %s: %d materials, median val loss %.4g (max %.4g), %.1f s",

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from neumat import augment, fit, nbrdf
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
@@ -20,7 +21,7 @@ with script_logging(snakemake) as log:
     init = nbrdf.init_weights(1, torch.Generator().manual_seed(p.seed)).numpy()
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     res = fit.fit_many(shard["values"][k], shard["bins"], shard["ids"][k], init, settings,
-                       p.seed, fit.resolve_device(p.device), checkpoint=p.checkpoint)
+                       p.seed, resolve_device(p.device), checkpoint=p.checkpoint)
     fit.save_fits(snakemake.output[0], res)
     Path(p.checkpoint).unlink(missing_ok=True)
     log.info("template (id 0): train loss %.4g, val loss %.4g, %d steps in %.1f s",

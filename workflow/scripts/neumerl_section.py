@@ -6,13 +6,14 @@ import numpy as np
 import pandas as pd
 
 from neumat import augment, fit, report
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 from neumat.render import sphere
 from neumat.render.gallery import gallery
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
-    cfg, dev = p.cfg, str(fit.resolve_device(p.device))
+    cfg, dev = p.cfg, str(resolve_device(p.device))
     fits = pd.read_csv(inp.fits, sep="\t", keep_default_na=False)
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     fits = fits.merge(man[["id", "operation", "split"]], on="id")

@@ -88,7 +88,7 @@ def write_section(metric_files, md_out, table_out, source, crop):
            [["psnr", "dssim", "flip", "params"]].mean().reset_index())
     q.to_csv(table_out, sep="\t", index=False, float_format="%.5g")
     mats = list(dict.fromkeys(df["material"]))
-    lines = ["# BTF representation (Triple Plane and baselines)", "",
+    lines = ["## BTF representation (Triple Plane and baselines)", "",
              f"Data: {'synthetic procedural BTFs (DFMF, 151 x 151 UBO2014 directions)' if source == 'synthetic' else 'UBO2014'}"
              + (f", centre crop {crop} x {crop} texels" if crop else "") + ". "
              "Metrics on display images (reference exposure, clipped, sRGB): PSNR (dB, higher is "
@@ -99,7 +99,7 @@ def write_section(metric_files, md_out, table_out, source, crop):
         sub = q[q["figure"] == fig]
         if sub.empty:
             continue
-        lines += [f"## {title}", "", "| material | method | PSNR | DSSIM | FLIP | params |",
+        lines += [f"### {title}", "", "| material | method | PSNR | DSSIM | FLIP | params |",
                   "| --- | --- | --- | --- | --- | --- |"]
         lines += [f"| {r.material} | {models.LABELS.get(r.method, r.method)} | {r.psnr:.2f} | "
                   f"{r.dssim:.4f} | {r.flip:.4f} | {int(r.params)} |" for r in sub.itertuples()]

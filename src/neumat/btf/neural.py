@@ -55,7 +55,21 @@ def _disc(w: torch.Tensor) -> torch.Tensor:
     return (w[:, :2] + 1) / 2
 
 
-class TriplePlane(nn.Module):
+class _PlaneModel(nn.Module):
+    """Shared by the plane models: a positional feature plane f_u read by `features_u`, and a
+    `decode` MLP giving log(1 + RGB); synthesis swaps the positional features."""
+
+    def raw(self, u, wi, wo):
+        return self.decode(self.features_u(u), wi, wo)
+
+    def forward(self, u, wi, wo):
+        return torch.relu(torch.expm1(self.raw(u, wi, wo)))
+
+    def n_params(self) -> int:
+        return sum(p.numel() for p in self.parameters())
+
+
+class TriplePlane(_PlaneModel):
     """BTF(u, h, d) = MLP(f_U(u), f_H(h), f_D(d)); f_U tiles (u wraps), f_H, f_D clamp."""
 
     method = "triple_plane"
@@ -81,17 +95,8 @@ class TriplePlane(nn.Module):
         x = torch.cat([feat_u, fetch(self.f_h, _disc(h), False), fetch(self.f_d, _disc(d), False)], -1)
         return self.net(x)
 
-    def raw(self, u, wi, wo):
-        return self.decode(self.features_u(u), wi, wo)
 
-    def forward(self, u, wi, wo):
-        return torch.relu(torch.expm1(self.raw(u, wi, wo)))
-
-    def n_params(self) -> int:
-        return sum(p.numel() for p in self.parameters())
-
-
-class NeuMIP(nn.Module):
+class NeuMIP(_PlaneModel):
     """Positional neural texture + MLP conditioned on (wi.xy, wo.xy) (no offset, no pyramid)."""
 
     method = "neumip"
@@ -109,15 +114,6 @@ class NeuMIP(nn.Module):
 
     def decode(self, feat_u, wi, wo):
         return self.net(torch.cat([feat_u, wi[:, :2], wo[:, :2]], -1))
-
-    def raw(self, u, wi, wo):
-        return self.decode(self.features_u(u), wi, wo)
-
-    def forward(self, u, wi, wo):
-        return torch.relu(torch.expm1(self.raw(u, wi, wo)))
-
-    def n_params(self) -> int:
-        return sum(p.numel() for p in self.parameters())
 
 
 def _reset(model: nn.Module, seed: int, init_std: float):

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from neumat import nbrdf
+from neumat.device import resolve_device
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
 
@@ -42,14 +43,6 @@ class TrainConfig:
     grad_clip: float = 1.0
     checkpoint_every: int = 1000
     log_every: int = 100
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise RuntimeError("config device: cuda requested but no CUDA device is available")
-    return torch.device(name)
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
