@@ -46,6 +46,7 @@ def merl_catalog():
 
 MERL = merl_catalog()
 MERL_NAMES = list(MERL["name"])
+_MERL_SHA256 = dict(zip(MERL["name"], MERL["sha256"]))
 
 
 def merl_table(name):
@@ -58,7 +59,7 @@ def merl_table(name):
 
 
 def merl_sha256(name):
-    return MERL.set_index("name").at[name, "sha256"]
+    return _MERL_SHA256[name]
 
 
 # ----------------------------------------------------------------------------- AugMERL
