@@ -49,12 +49,12 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
             for p, v in zip(net.parameters(), nbrdf.unflatten(torch.as_tensor(init)[None])):
                 p.copy_(v[0])
         opt = torch.optim.Adam(net.parameters(), lr=s.lr)
-        train, va = fit.split_bins(len(bins), int(i), seed, s.val_fraction)
+        train, va = fit.split_bins(len(bins), seed, s.val_fraction)
         spe = len(train) // s.batch
         for step in range(s.steps):
             epoch, k = divmod(step, spe)
             if k == 0:
-                order, mirror = fit.epoch_order(len(train), int(i), seed, epoch)
+                order, mirror = fit.epoch_order(len(train), seed, epoch)
             sl = slice(k * s.batch, (k + 1) * s.batch)
             idx = train[order[sl]]
             x, t, c = x_all[idx], target_all[m, idx], cos_all[idx, None]
@@ -68,8 +68,7 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
             opt.step()
         w = nbrdf.flatten([p.detach()[None] for p in net.parameters()])
         weights.append(w[0])
-        val.append(fit.field_loss(w, x_all[va][None], target_all[m, va][None],
-                                  cos_all[va][None, :, None]).item())
+        val.append(fit.field_loss(w, x_all[va], target_all[m, va][None], cos_all[va, None]).item())
     return torch.stack(weights).numpy(), np.array(val)
 
 
@@ -95,10 +94,13 @@ def main():
     w_loop, val_loop = loop_fit(values, bins, ids, init, s, seed=0)
     t_loop, c_loop = time.perf_counter() - t0, time.process_time() - c0
     t0, c0 = time.perf_counter(), time.process_time()
-    res = fit.fit_many(values, bins, ids, init, s, seed=0)  # includes the final evaluation
+    x, cos = fit.bin_inputs(bins)
+    f = fit.BatchFitter(x, cos, fit.log_target(values, cos), ids,
+                        torch.as_tensor(init).expand(len(ids), -1), s, seed=0).train()
+    val_batch, w_batch = f.eval_loss("val"), f.w.numpy()  # the loop also evaluates val only
     t_batch, c_batch = time.perf_counter() - t0, time.process_time() - c0
 
-    vl, vb = val_loop.mean(), res["val_loss"].mean()
+    vl, vb = val_loop.mean(), val_batch.mean()
     print(f"{args.materials} materials x {args.steps} steps x batch {s.batch}, {len(bins)} bins, "
           f"{args.threads} threads, data: {args.tables or 'random NBRDF fields'}")
     for what, t, c, v in (("per-material loop", t_loop, c_loop, vl),
@@ -107,7 +109,7 @@ def main():
               f"CPU {c:8.2f} s ({samples / c:10.4g} material-samples/CPU-s), final val loss {v:.5f}")
     print(f"speed-up: wall {t_loop / t_batch:.1f}x, CPU {c_loop / c_batch:.1f}x; "
           f"val loss batched/loop {vb / vl:.4f}; "
-          f"max |w_batched - w_loop| {np.abs(res['weights'] - w_loop).max():.2e}")
+          f"max |w_batched - w_loop| {np.abs(w_batch - w_loop).max():.2e}")
 
 
 if __name__ == "__main__":

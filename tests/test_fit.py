@@ -30,10 +30,10 @@ def data():
 def test_hand_written_gradient_matches_autograd(activation):
     g = torch.Generator().manual_seed(0)
     w = nbrdf.init_weights(3, g).double() * 3
-    x = torch.randn(3, 200, 6, generator=g, dtype=torch.float64)
-    cos = torch.rand(3, 200, 1, generator=g, dtype=torch.float64)
+    x = torch.randn(200, 6, generator=g, dtype=torch.float64)  # inputs shared by the materials
+    cos = torch.rand(200, 1, generator=g, dtype=torch.float64)
     target = torch.rand(3, 200, 3, generator=g, dtype=torch.float64)
-    loss, grad = fit.loss_and_grad(w, x, target, cos, activation)
+    loss, grad = fit.loss_and_grad(w, x.T, target.transpose(1, 2), cos.T, activation)  # feature-major
     wr = w.clone().requires_grad_(True)
     raw = nbrdf.forward_raw(wr, x, activation)  # training uses exp(y) - 1 without the clamp
     ref = (torch.log1p(torch.expm1(raw) * cos) - target).abs().mean((1, 2))
@@ -41,6 +41,14 @@ def test_hand_written_gradient_matches_autograd(activation):
     torch.testing.assert_close(loss, ref)
     torch.testing.assert_close(grad, ref_grad)
     assert grad.abs().max() > 1e-3
+    # float32 through a reused workspace: the second call must not see the first one's buffers
+    ws = fit.Workspace(3, 200)
+    fit.loss_and_grad(w.float() * 0.5, x.T.float(), target.transpose(1, 2).float(), cos.T.float(),
+                      activation, ws)
+    loss32, grad32 = fit.loss_and_grad(w.float(), x.T.float(), target.transpose(1, 2).float(),
+                                       cos.T.float(), activation, ws)
+    torch.testing.assert_close(loss32, ref.float(), rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(grad32, ref_grad.float(), rtol=1e-3, atol=1e-6)
 
 
 def test_bin_inputs_match_merl_geometry():
@@ -54,14 +62,16 @@ def test_bin_inputs_match_merl_geometry():
         fit.bin_inputs(np.array([merl.N_BINS]))
 
 
-def test_split_is_80_20_disjoint_and_per_material():
-    tr, va = fit.split_bins(1000, 5, 0, 0.2)
+def test_split_and_order_are_80_20_disjoint_and_seeded():
+    tr, va = fit.split_bins(1000, 0, 0.2)
     assert len(va) == 200 and len(tr) == 800
     assert set(tr.tolist()) | set(va.tolist()) == set(range(1000))
-    tr2, va2 = fit.split_bins(1000, 5, 0, 0.2)
-    assert torch.equal(va, va2)  # deterministic
-    assert not torch.equal(va, fit.split_bins(1000, 6, 0, 0.2)[1])  # another material
-    assert not torch.equal(va, fit.split_bins(1000, 5, 1, 0.2)[1])  # another seed
+    assert torch.equal(va, fit.split_bins(1000, 0, 0.2)[1])  # deterministic
+    assert not torch.equal(va, fit.split_bins(1000, 1, 0.2)[1])  # another seed
+    order, mirror = fit.epoch_order(800, 0, 3)
+    assert sorted(order.tolist()) == list(range(800)) and 300 < int(mirror.sum()) < 500
+    assert torch.equal(order, fit.epoch_order(800, 0, 3)[0])
+    assert not torch.equal(order, fit.epoch_order(800, 0, 4)[0])  # a fresh order every epoch
 
 
 def test_batch_of_three_equals_three_single_fits(data):
@@ -81,8 +91,8 @@ def test_fitting_recovers_a_known_field(data):
     bins, values, init, teach = data
     s = dataclasses.replace(SMALL, steps=600, lr=1e-2, lr_final=1e-4, eval_every=600)
     x, cos = fit.bin_inputs(bins)
-    start = fit.field_loss(torch.as_tensor(init)[None], x[None], fit.log_target(values[:1], cos),
-                           cos[None, :, None]).item()
+    start = fit.field_loss(torch.as_tensor(init)[None], x, fit.log_target(values[:1], cos),
+                           cos[:, None]).item()
     res = fit.fit_many(values[:1], bins, [0], init, s, seed=0)
     assert res["val_loss"][0] < 0.2 * start
     assert res["train_loss"][0] < 0.2 * start

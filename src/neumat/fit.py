@@ -8,17 +8,20 @@ Objective (paper eq. 2, Sztrajman et al. 2021), per material, mean over samples 
 
     L = |log(1 + f cos(theta_i)) - log(1 + f_hat cos(theta_i))|,  cos at the bin centre.
 
-Data: the shard's MERL bins (shared by all materials) and physical BRDF values. Each material
-splits the bins 80/20 (train/val) with its own seed; minibatches walk through a fresh random
-permutation of its training bins every epoch. MERL stores phi_d folded to [0, pi) (reciprocity:
+Data: the shard's MERL bins (shared by all materials) and physical BRDF values. The bins are
+split 80/20 (train/val) and minibatches walk through a fresh random permutation of the training
+bins every epoch; split and order are functions of the seed alone, the same for every material.
+Each material still sees a uniformly random minibatch sequence, and sharing it lets a step
+gather one set of inputs for all materials and run layer 1 as one matmul. MERL stores phi_d folded to [0, pi) (reciprocity:
 f(phi_d) = f(phi_d + pi)), but renderers query the field at any phi_d; with `mirror_phi_d` each
 training sample is shown at phi_d or phi_d + pi (d -> (-dx, -dy, dz)) at random, so the field
-learns the symmetric BRDF instead of extrapolating to half of its input domain. All randomness of material `id` is a pure
-function of (seed, id, epoch), so results do not depend on which materials share a batch, and a
+learns the symmetric BRDF instead of extrapolating to half of its input domain. As all randomness
+is a function of (seed, epoch), results do not depend on which materials share a batch, and a
 run resumed from a checkpoint (weights, Adam moments, step) continues bit-identically.
 
-Forward and backward are written out by hand (`loss_and_grad`): one fused pass per layer instead
-of autograd's graph, ~1.5x faster on CPU; `tests/test_fit.py` checks it against autograd.
+Forward and backward are written out by hand (`loss_and_grad`): one pass per layer instead of
+autograd's graph, feature-major (samples on the contiguous axis) and into buffers reused every
+step; `tests/test_fit.py` checks it against autograd, `benchmarks/fit_throughput.py` measures it.
 """
 
 from __future__ import annotations
@@ -41,6 +44,8 @@ from neumat.io import merl
 log = logging.getLogger(__name__)
 BETAS, EPS = (0.9, 0.999), 1e-8  # Adam, torch.optim.Adam defaults
 LEAKY_SLOPE = 0.01  # as neumat.nbrdf
+# bump when the sampling of splits/minibatches changes: checkpoints of older code are not resumed
+SAMPLING_VERSION = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,19 +114,19 @@ def _generator(seed: int, *keys: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(state[0]) << 31 ^ int(state[1]))
 
 
-def split_bins(n_bins: int, material_id: int, seed: int, val_fraction: float):
-    """Per-material train/val split of positions 0..n_bins-1 -> (train, val) int64 tensors."""
+def split_bins(n_bins: int, seed: int, val_fraction: float):
+    """Train/val split of positions 0..n_bins-1 -> (train, val) sorted int64 tensors."""
     n_val = int(round(val_fraction * n_bins))
     if n_val < 1 or n_val >= n_bins:
         raise ValueError(f"{n_bins} bins cannot be split with val_fraction {val_fraction}")
-    perm = torch.randperm(n_bins, generator=_generator(seed, 0, material_id))
+    perm = torch.randperm(n_bins, generator=_generator(seed, 0))
     return perm[n_val:].sort().values, perm[:n_val].sort().values
 
 
-def epoch_order(n_train: int, material_id: int, seed: int, epoch: int):
-    """The order in which material `material_id` visits its training bins in `epoch`, and
-    which visits see the bin mirrored to phi_d + pi -> (order (n,) int64, mirror (n,) bool)."""
-    g = _generator(seed, 1, material_id, epoch)
+def epoch_order(n_train: int, seed: int, epoch: int):
+    """The order in which the training bins are visited in `epoch`, and which visits see the
+    bin mirrored to phi_d + pi -> (order (n,) int64, mirror (n,) bool)."""
+    g = _generator(seed, 1, epoch)
     return torch.randperm(n_train, generator=g), torch.randint(0, 2, (n_train,), generator=g) > 0
 
 
@@ -139,53 +144,74 @@ def _act_(z, activation):
     return z.relu_() if activation == "relu" else torch.nn.functional.leaky_relu_(z, LEAKY_SLOPE)
 
 
-def _act_backward(grad, a, activation):
-    # a = act(z) > 0 exactly where z > 0, so the mask comes from the saved activation
+def _act_backward_(grad, a, activation):
+    """grad * act'(z), in place; a = act(z) > 0 exactly where z > 0, so the mask comes from
+    the saved activation."""
     if activation == "relu":
-        return torch.ops.aten.threshold_backward(grad, a, 0)
-    return torch.ops.aten.leaky_relu_backward(grad, a, LEAKY_SLOPE, True)
+        return torch.ops.aten.threshold_backward.grad_input(grad, a, 0, grad_input=grad)
+    return torch.ops.aten.leaky_relu_backward.grad_input(grad, a, LEAKY_SLOPE, True,
+                                                         grad_input=grad)
+
+
+class Workspace:
+    """Buffers of one batched step, reused every step. Fresh multi-MB activations each step
+    cost ~1000 page faults (glibc hands large blocks back to the OS): half of the step time."""
+
+    def __init__(self, M: int, n: int, device="cpu", dtype=torch.float32):
+        e = dict(device=device, dtype=dtype)
+        self.a1, self.a2, self.d = (torch.empty(M, 21, n, **e) for _ in range(3))
+        self.e, self.fc, self.r = (torch.empty(M, 3, n, **e) for _ in range(3))
+        self.loss, self.g = torch.empty(M, **e), torch.empty(M, nbrdf.N_PARAMS, **e)
+        self.gw1 = torch.empty(M * 21, 6, **e)
+        self.xc = torch.empty(7, n, **e)  # the minibatch's inputs (6 rows) and cos (1 row)
+        self.t = torch.empty(M, 3, n, **e)  # its targets
 
 
 def loss_and_grad(w: torch.Tensor, x: torch.Tensor, target: torch.Tensor, cos: torch.Tensor,
-                  activation: str = "relu") -> tuple[torch.Tensor, torch.Tensor]:
+                  activation: str = "relu", ws: Workspace | None = None):
     """Eq. 2 loss per material and its gradient, by hand.
 
-    w (M, 675); x (M, n, 6) inputs; target (M, n, 3) = log(1 + f cos); cos (M, n, 1).
-    Returns loss (M,) and d loss_m / d w_m (M, 675) in the flatten order of `neumat.nbrdf`."""
+    Feature-major, samples on the contiguous axis: x (6, n) inputs and cos (1, n), shared by
+    all materials; target (M, 3, n) = log(1 + f cos). Returns loss (M,) and d loss_m / d w_m
+    (M, 675) in the flatten order of `neumat.nbrdf`; both live in `ws` (copy them to keep them
+    past the next call)."""
+    M, n = w.shape[0], x.shape[1]
+    ws = ws or Workspace(M, n, x.device, x.dtype)
     W1, b1, W2, b2, W3, b3 = nbrdf.unflatten(w)
-    n = x.shape[1]
-    a1 = _act_(torch.baddbmm(b1[:, None], x, W1.transpose(1, 2)), activation)
-    a2 = _act_(torch.baddbmm(b2[:, None], a1, W2.transpose(1, 2)), activation)
-    e = torch.baddbmm(b3[:, None], a2, W3.transpose(1, 2)).exp_()
-    fc = (e - 1).mul_(cos)  # (exp(y) - 1) cos > -1: no clamp while training (see docstring)
-    r = torch.log1p(fc) - target
-    loss = r.abs().mean((1, 2))
-    dy = r.sign_().mul_(cos).mul_(e).div_(fc.add_(1)).div_(n * 3)  # d|r|/dy
-    g = torch.empty_like(w)
-    gW1, gb1, gW2, gb2, gW3, gb3 = nbrdf.unflatten(g)
-    torch.bmm(dy.transpose(1, 2), a2, out=gW3)
-    torch.sum(dy, 1, out=gb3)
-    d2 = _act_backward(torch.bmm(dy, W3), a2, activation)
-    torch.bmm(d2.transpose(1, 2), a1, out=gW2)
-    torch.sum(d2, 1, out=gb2)
-    d1 = _act_backward(torch.bmm(d2, W2), a1, activation)
-    torch.bmm(d1.transpose(1, 2), x, out=gW1)
-    torch.sum(d1, 1, out=gb1)
-    return loss, g
+    # shared inputs: layer 1 of all materials is one (M*21, 6) x (6, n) matmul
+    torch.addmm(b1.reshape(-1, 1), W1.reshape(-1, 6), x, out=ws.a1.view(-1, n))
+    a1 = _act_(ws.a1, activation)
+    a2 = _act_(torch.baddbmm(b2[..., None], W2, a1, out=ws.a2), activation)
+    e = torch.baddbmm(b3[..., None], W3, a2, out=ws.e).exp_()
+    fc = torch.sub(e, 1, out=ws.fc).mul_(cos)  # > -1: no clamp in training (see docstring)
+    r = torch.log1p(fc, out=ws.r).sub_(target)
+    loss = torch.mean(r.abs(), (1, 2), out=ws.loss)
+    dy = r.sign_().mul_(cos).mul_(e).div_(fc.add_(1)).div_(n * 3)  # d|r|/dy, (M, 3, n)
+    gW1, gb1, gW2, gb2, gW3, gb3 = nbrdf.unflatten(ws.g)
+    torch.bmm(dy, a2.transpose(1, 2), out=gW3)
+    torch.sum(dy, 2, out=gb3)
+    d2 = _act_backward_(torch.bmm(W3.transpose(1, 2), dy, out=ws.d), a2, activation)
+    torch.bmm(d2, a1.transpose(1, 2), out=gW2)
+    torch.sum(d2, 2, out=gb2)
+    d1 = _act_backward_(torch.bmm(W2.transpose(1, 2), d2, out=ws.a2), a1, activation)
+    gW1.copy_(torch.mm(d1.view(-1, n), x.t(), out=ws.gw1).view(M, 21, 6))
+    torch.sum(d1, 2, out=gb1)
+    return loss, ws.g
 
 
 def field_loss(w: torch.Tensor, x: torch.Tensor, target: torch.Tensor, cos: torch.Tensor,
                activation: str = "relu", chunk: int = 1 << 15) -> torch.Tensor:
     """Eq. 2 loss per material over all given points, no gradient (chunked to bound memory).
 
-    x (M, n, 6), target (M, n, 3), cos (M, n, 1) -> (M,) float64."""
+    x (n, 6) shared or (M, n, 6), target (M, n, 3), cos (n, 1) or (M, n, 1) -> (M,) float64."""
     total = torch.zeros(w.shape[0], dtype=torch.float64, device=w.device)
+    n = x.shape[-2]
     with torch.no_grad():
-        for s in range(0, x.shape[1], chunk):
-            f = nbrdf.forward(w, x[:, s:s + chunk], activation)
-            r = torch.log1p(f * cos[:, s:s + chunk]) - target[:, s:s + chunk]
+        for s in range(0, n, chunk):
+            f = nbrdf.forward(w, x[..., s:s + chunk, :], activation)
+            r = torch.log1p(f * cos[..., s:s + chunk, :]) - target[:, s:s + chunk]
             total += r.abs().sum((1, 2)).double()
-    return total / (x.shape[1] * 3)
+    return total / (n * 3)
 
 
 def adam_step(w, g, m, v, step: int, lr: float):
@@ -203,7 +229,7 @@ class BatchFitter:
     """Fits M materials at once. Data on `device`; state = (w, m, v, step, history).
 
     x (B, 6), cos (B,): the shared bins; target (M, B, 3) = `log_target`; ids (M,) material
-    ids (they seed the splits and minibatch orders); init (M, 675) initial weights."""
+    ids (bookkeeping); init (M, 675) initial weights."""
 
     def __init__(self, x, cos, target, ids, init, settings: FitSettings, seed: int,
                  device="cpu"):
@@ -213,50 +239,50 @@ class BatchFitter:
         if init.shape != (M, nbrdf.N_PARAMS) or len(self.ids) != M or x.shape[0] != B:
             raise ValueError(f"inconsistent fit inputs: target {tuple(target.shape)}, "
                              f"init {tuple(init.shape)}, {len(self.ids)} ids, {x.shape[0]} bins")
-        splits = [split_bins(B, i, seed, settings.val_fraction) for i in self.ids]
-        self.train_idx = torch.stack([t for t, _ in splits]).to(self.dev)  # (M, n_train)
-        self.val_idx = torch.stack([v for _, v in splits]).to(self.dev)
-        self.n_train = self.train_idx.shape[1]
+        self.train_idx, self.val_idx = (i.to(self.dev) for i in
+                                        split_bins(B, seed, settings.val_fraction))
+        self.n_train = len(self.train_idx)
         if self.n_train < settings.batch:
             raise ValueError(f"{self.n_train} training bins per material < config fit.batch "
                              f"{settings.batch}; store more bins (augmerl.bins) or lower the batch")
         self.steps_per_epoch = self.n_train // settings.batch
         self.x, self.cos = x.to(self.dev), cos.to(self.dev)
-        self.target = target.to(self.dev)
+        # bin-major (B, M * 3): a minibatch gathers n rows of contiguous values, not M * n
+        self.target = target.to(self.dev).permute(1, 0, 2).reshape(B, M * 3).contiguous()
         self.w = init.detach().to(self.dev, torch.float32).clone()
         self.m, self.v = torch.zeros_like(self.w), torch.zeros_like(self.w)
         self.step, self.history = 0, []  # history: (step, val loss on eval bins (M,))
-        self._epoch, self._order = -1, None
+        self._epoch = -1
         self._xc = torch.cat([self.x, self.cos[:, None]], 1)  # (B, 7): one gather for both
-        self._row_offset = torch.arange(M, device=self.dev)[:, None] * B
+        self._ws = Workspace(M, settings.batch, self.dev)
 
     def _points(self, idx):
-        """Per-material bin positions (M, k) -> inputs (M, k, 6), targets (M, k, 3), cos
-        (M, k, 1). index_select on flat views: several times faster than fancy indexing."""
-        xc = self._xc.index_select(0, idx.reshape(-1)).view(*idx.shape, 7)
-        t = self.target.view(-1, 3).index_select(0, (idx + self._row_offset).reshape(-1))
-        return xc[..., :6], t.view(*idx.shape, 3), xc[..., 6:]
+        """Bin positions (k,) -> inputs (k, 6), targets (M, k, 3), cos (k, 1)."""
+        t = self.target.index_select(0, idx).view(len(idx), -1, 3).transpose(0, 1)
+        return self.x.index_select(0, idx), t, self.cos.index_select(0, idx)[:, None]
 
-    def _batch_positions(self, step):
+    def _minibatch(self, step):
+        """Training minibatch of `step`, feature-major in the workspace (see `loss_and_grad`)."""
         epoch, k = divmod(step, self.steps_per_epoch)
         if epoch != self._epoch:
-            orders = [epoch_order(self.n_train, i, self.seed, epoch) for i in self.ids]
-            self._order = torch.stack([o for o, _ in orders]).to(self.dev)
-            self._mirror = torch.stack([m for _, m in orders]).to(self.dev)
+            order, mirror = epoch_order(self.n_train, self.seed, epoch)
+            self._bins = self.train_idx[order.to(self.dev)]  # positions in visiting order
+            self._sign = 1 - 2 * mirror.to(self.dev, torch.float32) * self.s.mirror_phi_d
             self._epoch = epoch
-        sl = slice(k * self.s.batch, (k + 1) * self.s.batch)
-        return torch.gather(self.train_idx, 1, self._order[:, sl]), self._mirror[:, sl]
+        ws, sl = self._ws, slice(k * self.s.batch, (k + 1) * self.s.batch)
+        idx = self._bins[sl]
+        ws.xc.copy_(self._xc.index_select(0, idx).t())
+        ws.t.view(-1, len(idx)).copy_(self.target.index_select(0, idx).t())
+        ws.xc[3:5].mul_(self._sign[sl])  # d -> (-dx, -dy, dz): phi_d + pi
+        return ws.xc[:6], ws.t, ws.xc[6:]
 
     def train(self, until: int | None = None, on_checkpoint=None):
         """Run steps up to `until` (default: settings.steps); `on_checkpoint(self)` every
         `checkpoint_every` steps."""
         until = self.s.steps if until is None else until
         while self.step < until:
-            idx, mirror = self._batch_positions(self.step)
-            x, t, c = self._points(idx)
-            if self.s.mirror_phi_d:
-                x = mirror_phi_d(x, mirror)
-            loss, g = loss_and_grad(self.w, x, t, c, self.s.activation)
+            loss, g = loss_and_grad(self.w, *self._minibatch(self.step), self.s.activation,
+                                    self._ws)
             self.step += 1
             adam_step(self.w, g, self.m, self.v, self.step, self.s.lr_at(self.step - 1))
             if self.step % self.s.eval_every == 0 or self.step == self.s.steps:
@@ -269,7 +295,7 @@ class BatchFitter:
 
     def eval_loss(self, split: str, limit: int | None = None) -> np.ndarray:
         """Eq. 2 loss (M,) on the train or val bins (the first `limit` of them)."""
-        idx = {"train": self.train_idx, "val": self.val_idx}[split][:, :limit]
+        idx = {"train": self.train_idx, "val": self.val_idx}[split][:limit]
         return field_loss(self.w, *self._points(idx), self.s.activation).cpu().numpy()
 
     def state(self) -> dict[str, np.ndarray]:
@@ -312,7 +338,7 @@ def _save_npz(path: Path, **arrays):
 
 def fingerprint(settings: FitSettings, seed: int, ids, init) -> str:
     """Identifies a fitting job; a checkpoint with another fingerprint is not resumed."""
-    h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed]).encode())
+    h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed, SAMPLING_VERSION]).encode())
     h.update(np.asarray(ids, dtype=np.int64).tobytes())
     h.update(np.ascontiguousarray(init, dtype=np.float32).tobytes())
     return h.hexdigest()[:16]
