@@ -1,4 +1,5 @@
 import numpy as np
+import torch
 import pandas as pd
 import pytest
 
@@ -137,6 +138,13 @@ def test_augmerl_materialises_rows_and_interpolations(tmp_path):
                                _lambert_table(albedo["red-plastic"]).reshape(3, -1)[:, valid],
                                rtol=1e-5)
     assert (full.reshape(3, -1)[:, ~merl.valid_mask()] < 0).all()
+    # fit_eval's cheap path: view-bin values render exactly like the full tables
+    from neumat.render import sphere
+    ids = man["id"].to_numpy()[:5]
+    view_bins = sphere.sphere_view(32).bins.numpy()
+    torch.testing.assert_close(
+        sphere.render_view_values(aug.values_or_zero(ids, view_bins), 32),
+        sphere.render_tables(aug.tables_from_coefs(aug.coef[ids]), 32), rtol=1e-5, atol=1e-7)
 
 
 def test_choose_bins_errors():

@@ -244,6 +244,15 @@ class AugMERL:
         return mix_values(self.logs, self.row_src, self.row_perm, self.coef[np.asarray(ids)],
                           cols, chunk)
 
+    def values_or_zero(self, ids, bins) -> np.ndarray:
+        """As `values`, but 0 at bins outside the common valid region (where a full table is
+        negative, i.e. counts as 0 in renders). For renders that need only a view's bins."""
+        bins = np.asarray(bins)
+        ok = self._pos[bins] >= 0
+        out = np.zeros((len(np.atleast_1d(ids)), 3, len(bins)), dtype=np.float32)
+        out[:, :, ok] = self.values(ids, bins[ok])
+        return out
+
     def tables_from_coefs(self, coefs: np.ndarray) -> np.ndarray:
         """Full physical MERL tables (n, 3, 90, 90, 180) of row mixtures; invalid bins negative
         as in MERL files."""

@@ -439,13 +439,16 @@ def display(img) -> np.ndarray:
     return sphere.srgb_encode(x * 2.0 ** sphere.EXPOSURE)
 
 
-def render_psnr(weights, tables, resolution: int = 128, activation: str = "relu",
-                device: str = "cpu") -> np.ndarray:
-    """Render PSNR of fitted fields (B, 675) against their tabulated materials (B, 3, 90, 90, 180)
-    in the fixed metric view (`neumat.render.sphere`): sRGB display values, sphere pixels only."""
+def render_psnr(weights, tables=None, resolution: int = 128, activation: str = "relu",
+                device: str = "cpu", view_values=None) -> np.ndarray:
+    """Render PSNR of fitted fields (B, 675) against their tabulated materials in the fixed
+    metric view (`neumat.render.sphere`): sRGB display values, sphere pixels only. The
+    materials are full tables (B, 3, 90, 90, 180) or, cheaper, `view_values` (B, 3, N): their
+    values at `sphere.sphere_view(resolution).bins`."""
     from neumat.render import sphere
     fit_img = display(sphere.render_fields(weights, resolution, activation, device))
-    ref_img = display(sphere.render_tables(tables, resolution, device))
+    ref_img = display(sphere.render_tables(tables, resolution, device) if view_values is None
+                      else sphere.render_view_values(view_values, resolution, device))
     mask = sphere.sphere_view(resolution, str(device)).mask.cpu().numpy()
     return psnr(fit_img, ref_img, mask)
 

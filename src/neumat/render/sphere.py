@@ -185,9 +185,17 @@ def render_tables(tables, resolution: int = 128, device: str = "cpu",
     out = torch.empty(len(t), resolution, resolution, 3)
     for s in _chunks(len(t), chunk):
         flat = t[s].reshape(-1, 3, merl.N_BINS).to(view.device, torch.float32)
-        f = flat[:, :, view.bins].clamp_min(0).transpose(1, 2)
-        out[s] = view.composite(f).cpu()
+        out[s] = render_view_values(flat[:, :, view.bins], resolution, device)
     return out
+
+
+def render_view_values(values, resolution: int = 128, device: str = "cpu") -> torch.Tensor:
+    """Physical BRDF at the view's bins, (B, 3, N) for `sphere_view(resolution).bins`, ->
+    linear HDR renders (B, H, W, 3); negative values count as 0. A table render needs only
+    these ~10^4 bins, not the 4.4 M of a full table."""
+    view = sphere_view(resolution, str(device))
+    f = torch.as_tensor(values, device=view.device, dtype=torch.float32)
+    return view.composite(f.clamp_min(0).transpose(1, 2)).cpu()
 
 
 def srgb_encode(x):

@@ -1,0 +1,24 @@
+"""Script logging: messages and crashes land in the rule's log; scripts keep to `threads:`."""
+import types
+
+import pytest
+import torch
+
+from neumat.logs import script_logging
+
+
+def test_log_file_gets_messages_and_the_traceback(tmp_path, monkeypatch):
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    before = torch.get_num_threads()
+    smk = types.SimpleNamespace(log=[str(tmp_path / "job.log")], threads=1, rule="demo")
+    try:
+        with pytest.raises(ValueError, match="bad input"):
+            with script_logging(smk) as log:
+                assert torch.get_num_threads() == 1
+                log.info("working on shard 007")
+                raise ValueError("bad input")
+    finally:
+        torch.set_num_threads(before)
+    text = (tmp_path / "job.log").read_text()
+    assert "neumat.demo INFO: working on shard 007" in text
+    assert "failed:" in text and "ValueError: bad input" in text
