@@ -8,7 +8,8 @@ from neumat.logs import script_logging
 
 
 def test_log_file_gets_messages_and_the_traceback(tmp_path, monkeypatch):
-    monkeypatch.setenv("OMP_NUM_THREADS", "2")
+    monkeypatch.setenv("OMP_NUM_THREADS", "2")  # restored afterwards, as MKL_NUM_THREADS
+    monkeypatch.setenv("MKL_NUM_THREADS", "2")
     before = torch.get_num_threads()
     smk = types.SimpleNamespace(log=[str(tmp_path / "job.log")], threads=1, rule="demo")
     try:
