@@ -137,8 +137,9 @@ def fit_runtime(materials, steps):
 
 
 def diffusion_runtime():
-    """Minutes for a train_diffusion job: ~0.5 s per step of a width-256, depth-4, batch-128
-    model on one CPU thread, scaled by width^2 * depth * batch (a GPU: assumed 50x faster)."""
+    """Minutes for a train_diffusion job: 0.5 s per step of a width-256, depth-4, batch-128
+    model (measured 0.135 s with 2 threads on a 2-core Xeon; the margin is for slower cluster
+    cores), scaled by width^2 * depth * batch (a GPU: assumed 50x faster)."""
     m, t = config["diffusion"]["model"], config["diffusion"]["train"]
     per_step = 0.5 * (m["width"] / 256) ** 2 * m["depth"] / 4 * t["batch_size"] / 128
     per_step /= 50 if config["device"] == "cuda" else 1
