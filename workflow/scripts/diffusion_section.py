@@ -13,6 +13,7 @@ import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
 from neumat import report  # noqa: E402
+from neumat.device import resolve_device  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 from neumat.render import sphere  # noqa: E402
@@ -26,7 +27,7 @@ def sets_by_name(paths, kind):
 
 def render(w, p):
     return sphere.tonemap(sphere.render_fields(np.nan_to_num(w), p.resolution, p.activation,
-                                               p.device))
+                                               str(resolve_device(p.device))))
 
 
 def gallery(samples, near, weights, n, p, path, title):

@@ -4,6 +4,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 from neumat.metrics import distances, evaluate
 from neumat.metrics.inception import load_fid_inception
@@ -22,8 +23,7 @@ def inception(path, device, log):
 with script_logging(snakemake) as log:
     p = snakemake.params
     torch.set_num_threads(snakemake.threads)
-    device = "cuda" if p.device == "auto" and torch.cuda.is_available() else \
-        ("cpu" if p.device == "auto" else p.device)
+    device = str(resolve_device(p.device))
     ref, smp = (np.load(f) for f in (snakemake.input.reference, snakemake.input.samples))
     log.info("%s: %d samples vs %d references", snakemake.wildcards.model, len(smp), len(ref))
     model, reason = inception(p.inception_weights, device, log)
