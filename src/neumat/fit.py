@@ -12,12 +12,14 @@ Data: the shard's MERL bins (shared by all materials) and physical BRDF values. 
 split 80/20 (train/val) and minibatches walk through a fresh random permutation of the training
 bins every epoch; split and order are functions of the seed alone, the same for every material.
 Each material still sees a uniformly random minibatch sequence, and sharing it lets a step
-gather one set of inputs for all materials and run layer 1 as one matmul. MERL stores phi_d folded to [0, pi) (reciprocity:
-f(phi_d) = f(phi_d + pi)), but renderers query the field at any phi_d; with `mirror_phi_d` each
-training sample is shown at phi_d or phi_d + pi (d -> (-dx, -dy, dz)) at random, so the field
-learns the symmetric BRDF instead of extrapolating to half of its input domain. As all randomness
-is a function of (seed, epoch), results do not depend on which materials share a batch, and a
-run resumed from a checkpoint (weights, Adam moments, step) continues bit-identically.
+gather one set of inputs for all materials and run layer 1 as one matmul.
+
+MERL stores phi_d folded to [0, pi) (reciprocity: f(phi_d) = f(phi_d + pi)), but renderers
+query the field at any phi_d; with `mirror_phi_d` each training sample is shown at phi_d or
+phi_d + pi (d -> (-dx, -dy, dz)) at random, so the field learns the symmetric BRDF instead of
+extrapolating to half of its input domain. As all randomness is a function of (seed, epoch),
+results do not depend on which materials share a batch, and a run resumed from a checkpoint
+(weights, Adam moments, step) continues bit-identically.
 
 Forward and backward are written out by hand (`loss_and_grad`): one pass per layer instead of
 autograd's graph, feature-major (samples on the contiguous axis) and into buffers reused every
