@@ -4,7 +4,6 @@ each sample set: novelty (distance to the nearest of all training materials) and
 type; for the reference set, the material's own type)."""
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat.diffusion import dataset
 from neumat.logs import script_logging
@@ -12,7 +11,6 @@ from neumat.metrics import distances
 
 with script_logging(snakemake) as log:
     p, inp = snakemake.params, snakemake.input
-    torch.set_num_threads(snakemake.threads)
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
     train = dataset.training_rows(man, "ours")

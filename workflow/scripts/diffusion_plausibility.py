@@ -2,14 +2,12 @@
 shares of NaN/inf, clamped-negative, exploding and energy-passivity-violating materials."""
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat.diffusion import dataset, plausibility
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    torch.set_num_threads(snakemake.threads)
     weights = np.load(snakemake.input.weights)
     man = dataset.read_manifest(snakemake.input.manifest, len(weights))
     kw = dict(n_angles=p.angles, seed=p.seed, activation=p.activation)

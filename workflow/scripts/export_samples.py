@@ -9,7 +9,6 @@ from neumat.io import merl
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
-    torch.set_num_threads(snakemake.threads)
     w = np.load(snakemake.input[0])
     for path in snakemake.output:
         i = int(re.search(r"sample_(\d+)\.binary$", path).group(1))

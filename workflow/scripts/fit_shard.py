@@ -2,7 +2,6 @@
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from neumat import augment, fit
 from neumat.device import resolve_device
@@ -10,7 +9,6 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    torch.set_num_threads(snakemake.threads)
     shard = augment.load_shard(snakemake.input.shard)
     template = fit.load_fits(snakemake.input.template)["weights"][0]
     settings = fit.FitSettings.from_config(p.cfg)

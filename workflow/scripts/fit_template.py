@@ -11,7 +11,6 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    torch.set_num_threads(snakemake.threads)
     shard = augment.load_shard(snakemake.input.shard)
     hit = np.flatnonzero(shard["ids"] == 0)
     if not len(hit):

@@ -2,7 +2,6 @@
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from neumat.device import resolve_device
 from neumat.logs import script_logging
@@ -22,7 +21,6 @@ def inception(path, device, log):
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    torch.set_num_threads(snakemake.threads)
     device = str(resolve_device(p.device))
     ref, smp = (np.load(f) for f in (snakemake.input.reference, snakemake.input.samples))
     log.info("%s: %d samples vs %d references", snakemake.wildcards.model, len(smp), len(ref))

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 from PIL import Image
 
 from neumat.io import merl
@@ -15,7 +14,6 @@ from neumat.render import gallery, sphere
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
-    torch.set_num_threads(snakemake.threads)
     weights = np.load(snakemake.input.weights)
     names = pd.read_csv(snakemake.input.table, sep="\t", keep_default_na=False)["name"]
     k = min(p.n_gallery, len(weights))

@@ -4,7 +4,6 @@ import time
 
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat.diffusion import Sampler, dataset
 from neumat.fit import save_npy
@@ -12,7 +11,6 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
-    torch.set_num_threads(snakemake.threads)
     s = p.cfg["sample"]
     sampler = Sampler(snakemake.input.model, p.device)
     man = dataset.read_manifest(snakemake.input.manifest)

@@ -4,14 +4,12 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat.diffusion import DenoiserConfig, ScheduleConfig, TrainConfig, dataset, train
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p, model = snakemake.params, snakemake.wildcards.model
-    torch.set_num_threads(snakemake.threads)
     weights = np.load(snakemake.input.weights)
     man = dataset.read_manifest(snakemake.input.manifest, len(weights))
     rows = dataset.training_rows(man, model)
