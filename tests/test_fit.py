@@ -7,8 +7,13 @@ import pandas as pd
 import pytest
 import torch
 
-from neumat import fit, nbrdf
+from neumat import fit, fit_kernel, nbrdf
 from neumat.io import merl
+
+# both step implementations: the C kernel (where a compiler is) and torch's batched matmuls
+KERNELS = [pytest.param("c", marks=pytest.mark.skipif(not fit_kernel.available(),
+                                                      reason="the C kernel cannot be built")),
+           "torch"]
 
 SMALL = fit.FitSettings(steps=40, lr=5e-3, lr_final=5e-4, batch=64, materials_per_batch=2,
                         eval_every=20, eval_bins=256, checkpoint_every=10)
@@ -74,9 +79,10 @@ def test_split_and_order_are_80_20_disjoint_and_seeded():
     assert not torch.equal(order, fit.epoch_order(800, 0, 4)[0])  # a fresh order every epoch
 
 
-def test_batch_of_three_equals_three_single_fits(data):
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_batch_of_three_equals_three_single_fits(data, kernel):
     bins, values, init, _ = data
-    s = dataclasses.replace(SMALL, materials_per_batch=3)
+    s = dataclasses.replace(SMALL, materials_per_batch=3, kernel=kernel)
     batched = fit.fit_many(values, bins, [10, 11, 12], init, s, seed=3)
     for k, i in enumerate([10, 11, 12]):
         single = fit.fit_many(values[k:k + 1], bins, [i], init, s, seed=3)
@@ -99,10 +105,12 @@ def test_fitting_recovers_a_known_field(data):
     assert res["val_history"].shape == (1, 1) and res["history_steps"].tolist() == [600]
 
 
-def test_killed_run_resumes_to_the_same_result(data, tmp_path, monkeypatch):
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_killed_run_resumes_to_the_same_result(data, tmp_path, monkeypatch, kernel):
     bins, values, init, _ = data
     ids = [0, 1, 2]  # groups of 2: a finished group and a running one get checkpointed
-    ref = fit.fit_many(values, bins, ids, init, SMALL, seed=0)
+    s = dataclasses.replace(SMALL, kernel=kernel)
+    ref = fit.fit_many(values, bins, ids, init, s, seed=0)
     ck = tmp_path / "ck.npz"
     real_save, calls = fit._save_npz, []
 
@@ -114,11 +122,11 @@ def test_killed_run_resumes_to_the_same_result(data, tmp_path, monkeypatch):
 
     monkeypatch.setattr(fit, "_save_npz", crash_after_fifth)
     with pytest.raises(KeyboardInterrupt):
-        fit.fit_many(values, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+        fit.fit_many(values, bins, ids, init, s, seed=0, checkpoint=ck)
     monkeypatch.setattr(fit, "_save_npz", real_save)
     with np.load(ck) as z:
         assert len(z["weights"]) == 2 and "run_w" not in z.files
-    res = fit.fit_many(values, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+    res = fit.fit_many(values, bins, ids, init, s, seed=0, checkpoint=ck)
     np.testing.assert_array_equal(res["weights"], ref["weights"])
     np.testing.assert_array_equal(res["val_history"], ref["val_history"])
     # a mid-group checkpoint resumes bit-identically too
@@ -126,12 +134,12 @@ def test_killed_run_resumes_to_the_same_result(data, tmp_path, monkeypatch):
     calls.clear()
     calls.extend([1, 1, 1])  # crash at the 2nd save: group 0 at step 20
     with pytest.raises(KeyboardInterrupt):
-        fit.fit_many(values, bins, ids, init, SMALL, seed=1, checkpoint=ck)
+        fit.fit_many(values, bins, ids, init, s, seed=1, checkpoint=ck)
     monkeypatch.setattr(fit, "_save_npz", real_save)
     with np.load(ck) as z:
         assert int(z["run_step"]) == 20 and len(z["weights"]) == 0
-    res = fit.fit_many(values, bins, ids, init, SMALL, seed=1, checkpoint=ck)
-    ref1 = fit.fit_many(values, bins, ids, init, SMALL, seed=1)
+    res = fit.fit_many(values, bins, ids, init, s, seed=1, checkpoint=ck)
+    ref1 = fit.fit_many(values, bins, ids, init, s, seed=1)
     np.testing.assert_array_equal(res["weights"], ref1["weights"])
 
 

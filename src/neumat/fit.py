@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neumat import nbrdf
+from neumat import fit_kernel, nbrdf
 from neumat.io import merl
 
 log = logging.getLogger(__name__)
@@ -48,6 +48,7 @@ BETAS, EPS = (0.9, 0.999), 1e-8  # Adam, torch.optim.Adam defaults
 LEAKY_SLOPE = 0.01  # as neumat.nbrdf
 # bump when the sampling of splits/minibatches changes: checkpoints of older code are not resumed
 SAMPLING_VERSION = 2
+KERNELS = ("auto", "c", "torch")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,11 +65,14 @@ class FitSettings:
     eval_every: int = 500  # validation-loss history (on `eval_bins` val bins per material)
     eval_bins: int = 4096
     checkpoint_every: int = 500
+    kernel: str = "auto"  # step on the CPU: "c" (fit_step.c), "torch", or "auto" (c if it builds)
 
     def __post_init__(self):
         if self.activation not in nbrdf.ACTIVATIONS:
             raise ValueError(f"config fit.activation must be one of {nbrdf.ACTIVATIONS}, "
                              f"got {self.activation!r}")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"config fit.kernel must be one of {KERNELS}, got {self.kernel!r}")
         if not 0 < self.val_fraction < 1:
             raise ValueError(f"config fit.val_fraction must be in (0, 1), got {self.val_fraction}")
         for k in ("steps", "batch", "materials_per_batch", "eval_every", "eval_bins",
@@ -227,6 +231,24 @@ def adam_step(w, g, m, v, step: int, lr: float):
 # ----------------------------------------------------------------------------- the fitter
 
 
+def resolve_kernel(settings: FitSettings, device) -> str:
+    """The step implementation a fit uses: "c" (CPU, minibatch a multiple of 16, a C compiler)
+    or "torch" (any device). Results of the two agree to float32 rounding, not bit for bit,
+    so the resolved kernel is part of a checkpoint's fingerprint."""
+    if settings.kernel == "torch":
+        return "torch"
+    why = ("the device is not the CPU" if torch.device(device).type != "cpu" else
+           f"fit.batch {settings.batch} is not a multiple of {fit_kernel.VECTOR}"
+           if settings.batch % fit_kernel.VECTOR else
+           None if fit_kernel.available() else "it could not be compiled (see the log)")
+    if why is None:
+        return "c"
+    if settings.kernel == "c":
+        raise ValueError(f"config fit.kernel: c, but the C kernel cannot be used: {why}")
+    log.info("fit kernel: torch (the C kernel is not used: %s)", why)
+    return "torch"
+
+
 class BatchFitter:
     """Fits M materials at once. Data on `device`; state = (w, m, v, step, history).
 
@@ -257,36 +279,67 @@ class BatchFitter:
         self._epoch = -1
         self._xc = torch.cat([self.x, self.cos[:, None]], 1)  # (B, 7): one gather for both
         self._ws = Workspace(M, settings.batch, self.dev)
+        self.kernel = resolve_kernel(settings, self.dev)
+        self._c = (fit_kernel.Stepper(self._xc, self.target, settings.batch,
+                                      torch.get_num_threads()) if self.kernel == "c" else None)
+        self._slope = 0.0 if settings.activation == "relu" else LEAKY_SLOPE
 
     def _points(self, idx):
         """Bin positions (k,) -> inputs (k, 6), targets (M, k, 3), cos (k, 1)."""
         t = self.target.index_select(0, idx).view(len(idx), -1, 3).transpose(0, 1)
         return self.x.index_select(0, idx), t, self.cos.index_select(0, idx)[:, None]
 
-    def _minibatch(self, step):
-        """Training minibatch of `step`, feature-major in the workspace (see `loss_and_grad`)."""
-        epoch, k = divmod(step, self.steps_per_epoch)
+    def _epoch_bins(self, epoch):
+        """Training-bin positions in visiting order (n_train,) and the phi_d signs of `epoch`."""
         if epoch != self._epoch:
             order, mirror = epoch_order(self.n_train, self.seed, epoch)
-            self._bins = self.train_idx[order.to(self.dev)]  # positions in visiting order
+            self._bins = self.train_idx[order.to(self.dev)]
             self._sign = 1 - 2 * mirror.to(self.dev, torch.float32) * self.s.mirror_phi_d
             self._epoch = epoch
-        ws, sl = self._ws, slice(k * self.s.batch, (k + 1) * self.s.batch)
-        idx = self._bins[sl]
+        return self._bins, self._sign
+
+    def _schedule(self, step, k):
+        """Bin positions (k, batch) and phi_d signs (k, batch) of steps step ... step + k - 1."""
+        idx, sign, b = [], [], self.s.batch
+        for epoch, i in (divmod(s, self.steps_per_epoch) for s in range(step, step + k)):
+            bins, sg = self._epoch_bins(epoch)
+            idx.append(bins[i * b:(i + 1) * b])
+            sign.append(sg[i * b:(i + 1) * b])
+        return torch.stack(idx), torch.stack(sign)
+
+    def _minibatch(self, step):
+        """Training minibatch of `step`, feature-major in the workspace (see `loss_and_grad`)."""
+        (idx,), (sign,) = self._schedule(step, 1)
+        ws = self._ws
         ws.xc.copy_(self._xc.index_select(0, idx).t())
         ws.t.view(-1, len(idx)).copy_(self.target.index_select(0, idx).t())
-        ws.xc[3:5].mul_(self._sign[sl])  # d -> (-dx, -dy, dz): phi_d + pi
+        ws.xc[3:5].mul_(sign)  # d -> (-dx, -dy, dz): phi_d + pi
         return ws.xc[:6], ws.t, ws.xc[6:]
+
+    def _run(self, k):
+        """k training steps; returns the last step's minibatch loss (M,)."""
+        lrs = [self.s.lr_at(s) for s in range(self.step, self.step + k)]
+        if self._c:  # minibatches, loss, gradient and Adam of all k steps in one call
+            idx, sign = self._schedule(self.step, k)
+            loss, _ = self._c.run(self.w, self.m, self.v, idx, sign,
+                                  torch.tensor(lrs, dtype=torch.float32), self.step, self._slope)
+            self.step += k
+            return loss
+        for lr in lrs:
+            loss, g = loss_and_grad(self.w, *self._minibatch(self.step), self.s.activation,
+                                    self._ws)
+            self.step += 1
+            adam_step(self.w, g, self.m, self.v, self.step, lr)
+        return loss
 
     def train(self, until: int | None = None, on_checkpoint=None):
         """Run steps up to `until` (default: settings.steps); `on_checkpoint(self)` every
         `checkpoint_every` steps."""
         until = self.s.steps if until is None else until
         while self.step < until:
-            loss, g = loss_and_grad(self.w, *self._minibatch(self.step), self.s.activation,
-                                    self._ws)
-            self.step += 1
-            adam_step(self.w, g, self.m, self.v, self.step, self.s.lr_at(self.step - 1))
+            nxt = [until] + [(self.step // e + 1) * e for e in (self.s.eval_every,
+                                                                self.s.checkpoint_every)]
+            loss = self._run(min(nxt + [self.s.steps] * (self.step < self.s.steps)) - self.step)
             if self.step % self.s.eval_every == 0 or self.step == self.s.steps:
                 self.history.append((self.step, self.eval_loss("val", self.s.eval_bins)))
                 log.info("step %d/%d: train batch loss %.4g, val loss median %.4g", self.step,
@@ -338,9 +391,10 @@ def _save_npz(path: Path, **arrays):
     os.replace(tmp, path)
 
 
-def fingerprint(settings: FitSettings, seed: int, ids, init) -> str:
+def fingerprint(settings: FitSettings, seed: int, ids, init, kernel: str) -> str:
     """Identifies a fitting job; a checkpoint with another fingerprint is not resumed."""
-    h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed, SAMPLING_VERSION]).encode())
+    h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed, SAMPLING_VERSION,
+                                   kernel]).encode())
     h.update(np.asarray(ids, dtype=np.int64).tobytes())
     h.update(np.ascontiguousarray(init, dtype=np.float32).tobytes())
     return h.hexdigest()[:16]
@@ -358,7 +412,7 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
     init = np.asarray(init, dtype=np.float32)
     init = np.broadcast_to(init, (len(ids), nbrdf.N_PARAMS)).copy()
     ck = Path(checkpoint) if checkpoint else None
-    fp = fingerprint(settings, seed, ids, init)
+    fp = fingerprint(settings, seed, ids, init, resolve_kernel(settings, device))
     done = dict(weights=[], train_loss=[], val_loss=[], val_history=[])
     running, t_prev = None, 0.0
     if ck and ck.exists():

@@ -1,0 +1,238 @@
+/* K Adam steps of M independent NBRDF fits (6 -> 21 -> 21 -> 3) on shared minibatches.
+ *
+ * The CPU fast path of neumat.fit (see neumat/fit_kernel.py, which compiles and loads this
+ * file). It computes exactly what neumat.fit.loss_and_grad + adam_step compute, material by
+ * material: one material's activations (21 x n floats per layer) stay in L1/L2 cache, and the
+ * small matmuls are register-blocked over 16-float vectors (GCC vector extensions: AVX-512,
+ * AVX2 or SSE, whatever -march gives). torch's batched matmuls spend most of a step on
+ * per-matrix overhead at these sizes; tests/test_fit_kernel.py checks this file against them.
+ *
+ * Layouts (float32 unless said, row-major):
+ *   xc_all     (B, 7)   all bins' inputs [h, d] and cos(theta_i)
+ *   target_all (B, ld)  log(1 + f cos); material i's channel c in column 3 i + c
+ *   idx (K, n) int64    bins of each step's minibatch; sign (K, n) -1 where d is mirrored
+ *   lr (K)              learning rate of each step (no Adam update where <= 0)
+ *   w, m, v (M, 675)    weights in neumat.nbrdf's flatten order, Adam moments (updated)
+ *   grad (M, 675), loss (M,)  gradient and eq. 2 loss of the last step (written)
+ *   work                (73 + 3 M) (n + 16) floats of scratch
+ * n must be a multiple of 16. step0 = Adam steps already taken (bias correction).
+ */
+#include <math.h>
+#include <stddef.h>
+#include <stdint.h>
+#include <string.h>
+#ifdef __SSE__
+#include <xmmintrin.h>
+#endif
+
+typedef float vf __attribute__((vector_size(64), aligned(4)));  /* 16 floats, any alignment */
+typedef int vi __attribute__((vector_size(64), aligned(4)));
+#define VL 16
+#define H 21
+enum { OW1 = 0, OB1 = 126, OW2 = 147, OB2 = 588, OW3 = 609, OB3 = 672, NP = 675 };
+
+static inline vf vload(const float *p) { return *(const vf *)p; }
+static inline void st(float *p, vf v) { *(vf *)p = v; }
+static inline vf splat(float a) { return (vf){0} + a; }
+/* where mask: a, else b (C has no vector ?:) */
+static inline vf sel(vi mask, vf a, vf b) { return (vf)(((vi)a & mask) | ((vi)b & ~mask)); }
+static inline vf act(vf z, float slope) { return sel(z > 0, z, z * slope); }
+
+/* Scratch arrays are J x n with rows `ld` = n + 16 floats apart: rows exactly 2 KiB apart
+ * (n = 512) would all fall in the same few L1 cache sets and evict each other. */
+
+/* Y (J x n) = act(A X + b), A (J x K) with element (j, k) at A[j * sj + k * sk], X (K x n).
+ * Blocks of JB rows x 2 vectors of samples; JB is a constant after inlining. */
+static inline __attribute__((always_inline)) void
+affine_block(int JB, int j0, int K, int n, int ld, const float *A, int sj, int sk,
+             const float *b, const float *X, float *Y, int use_act, float slope)
+{
+    for (int s = 0; s < n; s += 2 * VL) {
+        int two = s + VL < n;
+        vf acc[7][2];
+        for (int j = 0; j < JB; j++)
+            acc[j][0] = acc[j][1] = splat(b ? b[j0 + j] : 0.f);
+        for (int k = 0; k < K; k++) {
+            vf x0 = vload(X + (size_t)k * ld + s), x1 = two ? vload(X + (size_t)k * ld + s + VL) : x0;
+            for (int j = 0; j < JB; j++) {
+                float a = A[(j0 + j) * sj + k * sk];
+                acc[j][0] += a * x0;
+                acc[j][1] += a * x1;
+            }
+        }
+        for (int j = 0; j < JB; j++) {
+            float *y = Y + (size_t)(j0 + j) * ld + s;
+            st(y, use_act ? act(acc[j][0], slope) : acc[j][0]);
+            if (two)
+                st(y + VL, use_act ? act(acc[j][1], slope) : acc[j][1]);
+        }
+    }
+}
+
+static void affine(int J, int K, int n, int ld, const float *A, int sj, int sk, const float *b,
+                   const float *X, float *Y, int use_act, float slope)
+{
+    int j0 = 0;
+    for (; j0 + 7 <= J; j0 += 7)
+        affine_block(7, j0, K, n, ld, A, sj, sk, b, X, Y, use_act, slope);
+    for (; j0 < J; j0++)
+        affine_block(1, j0, K, n, ld, A, sj, sk, b, X, Y, use_act, slope);
+}
+
+static inline float hsum(vf v)
+{
+    float s = 0;
+    for (int i = 0; i < VL; i++)
+        s += v[i];
+    return s;
+}
+
+/* G (J x K) = D X^T, D (J x n), X (K x n); gb (J) = row sums of D (if not NULL).
+ * Blocks of 3 rows of D x KB rows of X, accumulated over all samples. */
+static inline __attribute__((always_inline)) void
+outer_block(int j0, int KB, int k0, int K, int n, int ld, const float *D, const float *X,
+            float *G)
+{
+    vf acc[3][7] = {{{0}}};
+    for (int s = 0; s < n; s += VL) {
+        vf d0 = vload(D + (size_t)j0 * ld + s), d1 = vload(D + (size_t)(j0 + 1) * ld + s),
+           d2 = vload(D + (size_t)(j0 + 2) * ld + s);
+        for (int k = 0; k < KB; k++) {
+            vf x = vload(X + (size_t)(k0 + k) * ld + s);
+            acc[0][k] += d0 * x;
+            acc[1][k] += d1 * x;
+            acc[2][k] += d2 * x;
+        }
+    }
+    for (int j = 0; j < 3; j++)
+        for (int k = 0; k < KB; k++)
+            G[(j0 + j) * K + k0 + k] = hsum(acc[j][k]);
+}
+
+static void outer(int J, int K, int n, int ld, const float *D, const float *X, float *G,
+                  float *gb)
+{
+    for (int j0 = 0; j0 < J; j0 += 3) {  /* J is 21 or 3 */
+        int k0 = 0;
+        for (; k0 + 7 <= K; k0 += 7)
+            outer_block(j0, 7, k0, K, n, ld, D, X, G);
+        if (K - k0 == 6)
+            outer_block(j0, 6, k0, K, n, ld, D, X, G);
+    }
+    if (gb)
+        for (int j = 0; j < J; j++) {
+            vf a = {0};
+            for (int s = 0; s < n; s += VL)
+                a += vload(D + (size_t)j * ld + s);
+            gb[j] = hsum(a);
+        }
+}
+
+/* grad *= act'(z), where a = act(z) > 0 exactly where z > 0 */
+static void act_backward(int J, int n, int ld, float *D, const float *A, float slope)
+{
+    for (int j = 0; j < J; j++)
+        for (size_t i = (size_t)j * ld; i < (size_t)j * ld + n; i += VL) {
+            vf d = vload(D + i);
+            st(D + i, sel(vload(A + i) > 0, d, d * slope));
+        }
+}
+
+/* eq. 2 on the raw outputs Y (3 x n): loss, and dY = d loss / d Y written over Y */
+static float loss_backward(int n, int ld, float *Y, const float *t, const float *cos)
+{
+    float loss = 0, scale = 1.0f / (3 * n);
+    for (int c = 0; c < 3; c++) {
+        float *y = Y + (size_t)c * ld;
+        const float *tc = t + (size_t)c * ld;
+        for (int s = 0; s < n; s++) {  /* vectorised with libmvec's expf / log1pf */
+            float e = expf(y[s]), fc = (e - 1) * cos[s], r = log1pf(fc) - tc[s];
+            float sg = (r > 0) - (r < 0);
+            loss += fabsf(r);
+            y[s] = sg * cos[s] * e / (fc + 1) * scale;
+        }
+    }
+    return loss * scale;
+}
+
+static void adam(float *w, const float *g, float *m, float *v, float lr, float bc1, float bc2)
+{
+    const float b1 = 0.9f, b2 = 0.999f, eps = 1e-8f;
+    for (int i = 0; i < NP; i++) {
+        m[i] += (1 - b1) * (g[i] - m[i]);
+        v[i] = b2 * v[i] + (1 - b2) * g[i] * g[i];
+        w[i] -= lr / bc1 * m[i] / (sqrtf(v[i] / bc2) + eps);
+    }
+}
+
+/* Gather one step's minibatch into feature-major rows `ld` apart: inputs + cos (7 x n) and
+ * the targets of materials 0..M-1, tb (M * 3 x n). The table rows are read once per step for
+ * all materials (3 M contiguous floats each), 16 rows at a time so that every store fills a
+ * whole vector. */
+static void gather(int M, int n, int ld, const float *xc_all, const float *target_all, int ldt,
+                   const int64_t *idx, const float *sign, float *xc, float *tb)
+{
+    for (int s0 = 0; s0 < n; s0 += VL) {
+        const float *row[VL];
+        vf sg = vload(sign + s0);
+        for (int u = 0; u < VL; u++)
+            row[u] = xc_all + 7 * idx[s0 + u];
+        for (int f = 0; f < 7; f++) {
+            vf x;
+            for (int u = 0; u < VL; u++)
+                x[u] = row[u][f];
+            st(xc + (size_t)f * ld + s0, f == 3 || f == 4 ? x * sg : x);  /* phi_d + pi */
+        }
+        for (int u = 0; u < VL; u++)
+            row[u] = target_all + idx[s0 + u] * ldt;
+        for (int j = 0; j < 3 * M; j++) {
+            vf x;
+            for (int u = 0; u < VL; u++)
+                x[u] = row[u][j];
+            st(tb + (size_t)j * ld + s0, x);
+        }
+    }
+}
+
+void nbrdf_fit_steps(int M, int n, int K, int step0, const float *xc_all,
+                     const float *target_all, int ldt, const int64_t *idx, const float *sign,
+                     const float *lr, float *w, float *m, float *v, float *grad, float *loss,
+                     float *work, float slope)
+{
+#ifdef __SSE__
+    /* flush denormals to zero here only: Adam's second moments of near-zero gradients fall
+     * below 1e-38, where every operation takes a ~100-cycle microcode assist */
+    unsigned csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040);  /* FTZ | DAZ */
+#endif
+    int ld = n + VL;
+    float *xc = work, *a1 = xc + 7 * ld, *a2 = a1 + H * ld, *d = a2 + H * ld, *y = d + H * ld,
+          *tb = y + 3 * ld;  /* y: 3 x n, tb: M * 3 x n */
+    const float *cos = xc + 6 * (size_t)ld;
+    for (int k = 0; k < K; k++) {
+        gather(M, n, ld, xc_all, target_all, ldt, idx + (size_t)k * n, sign + (size_t)k * n, xc,
+               tb);
+        int step = step0 + k + 1;  /* Adam's step count, from 1 */
+        float bc1 = (float)(1 - pow(0.9, step)), bc2 = (float)(1 - pow(0.999, step));
+        for (int i = 0; i < M; i++) {
+            float *wi = w + (size_t)i * NP, *g = grad + (size_t)i * NP;
+            const float *t = tb + (size_t)i * 3 * ld;
+            affine(H, 6, n, ld, wi + OW1, 6, 1, wi + OB1, xc, a1, 1, slope);
+            affine(H, H, n, ld, wi + OW2, H, 1, wi + OB2, a1, a2, 1, slope);
+            affine(3, H, n, ld, wi + OW3, H, 1, wi + OB3, a2, y, 0, 0);
+            loss[i] = loss_backward(n, ld, y, t, cos);
+            outer(3, H, n, ld, y, a2, g + OW3, g + OB3);
+            affine(H, 3, n, ld, wi + OW3, 1, H, NULL, y, d, 0, 0);      /* W3^T dy */
+            act_backward(H, n, ld, d, a2, slope);
+            outer(H, H, n, ld, d, a1, g + OW2, g + OB2);
+            affine(H, H, n, ld, wi + OW2, 1, H, NULL, d, a2, 0, 0);     /* W2^T d2, over a2 */
+            act_backward(H, n, ld, a2, a1, slope);
+            outer(H, 6, n, ld, a2, xc, g + OW1, g + OB1);
+            if (lr[k] > 0)
+                adam(wi, g, m + (size_t)i * NP, v + (size_t)i * NP, lr[k], bc1, bc2);
+        }
+    }
+#ifdef __SSE__
+    _mm_setcsr(csr);
+#endif
+}
