@@ -8,7 +8,8 @@ final validation losses (mean over materials, all validation bins).
     OMP_NUM_THREADS=2 python benchmarks/fit_throughput.py [--tables DIR] [--materials 50]
 
 --tables DIR fits MERL .binary tables from DIR (e.g. decoded real materials); without it the
-materials are random NBRDF fields (deterministic).
+materials are random NBRDF fields (deterministic). --kernel torch times the batched fitter's
+torch path instead of the C kernel (`neumat.fit_kernel`), e.g. to see what the kernel adds.
 """
 import argparse
 import dataclasses
@@ -18,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from neumat import fit, nbrdf
+from neumat import fit, fit_kernel, nbrdf
 from neumat.io import merl
 
 
@@ -79,14 +80,16 @@ def main():
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--bins", type=int, default=65536, help="stored bins per material")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--kernel", choices=fit.KERNELS, default="auto", help="batched fitter's step")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     bins, values = load_data(args)
     ids = np.arange(args.materials)
     init = nbrdf.init_weights(1, torch.Generator().manual_seed(0))[0].numpy()
     s = dataclasses.replace(fit.FitSettings(), steps=args.steps, materials_per_batch=args.materials,
-                            eval_every=10 ** 9)
+                            eval_every=10 ** 9, kernel=args.kernel)
     samples = args.materials * args.steps * s.batch
+    fit_kernel.available()  # compiles fit_step.c on a machine's first use: not part of a fit
 
     # wall and CPU time of the process: on a shared machine, CPU time (one thread) is the
     # load-independent measure; wall time is what a user waits
@@ -102,7 +105,7 @@ def main():
 
     vl, vb = val_loop.mean(), val_batch.mean()
     print(f"{args.materials} materials x {args.steps} steps x batch {s.batch}, {len(bins)} bins, "
-          f"{args.threads} threads, data: {args.tables or 'random NBRDF fields'}")
+          f"{args.threads} threads, kernel {f.kernel}, data: {args.tables or 'random NBRDF fields'}")
     for what, t, c, v in (("per-material loop", t_loop, c_loop, vl),
                           ("batched fitter   ", t_batch, c_batch, vb)):
         print(f"{what}: wall {t:8.2f} s ({samples / t:10.4g} material-samples/s), "

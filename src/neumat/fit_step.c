@@ -41,11 +41,23 @@ static inline vf act(vf z, float slope) { return sel(z > 0, z, z * slope); }
 /* Scratch arrays are J x n with rows `ld` = n + 16 floats apart: rows exactly 2 KiB apart
  * (n = 512) would all fall in the same few L1 cache sets and evict each other. */
 
-/* Y (J x n) = act(A X + b), A (J x K) with element (j, k) at A[j * sj + k * sk], X (K x n).
- * Blocks of JB rows x 2 vectors of samples; JB is a constant after inlining. */
+enum { RAW, ACT, GATE };  /* what affine does to A X + b: nothing, act(.), . * act'(G) */
+
+static inline vf finish(vf z, int mode, const float *g, float slope)
+{
+    if (mode == ACT)
+        return act(z, slope);
+    if (mode == GATE)  /* G = act(z') > 0 exactly where z' > 0 */
+        return sel(vload(g) > 0, z, z * slope);
+    return z;
+}
+
+/* Y (J x n) = f(A X + b), A (J x K) with element (j, k) at A[j * sj + k * sk], X (K x n),
+ * f by `mode` (G: J x n, for GATE). Blocks of JB rows x 2 vectors of samples; JB and mode
+ * are constants after inlining. */
 static inline __attribute__((always_inline)) void
 affine_block(int JB, int j0, int K, int n, int ld, const float *A, int sj, int sk,
-             const float *b, const float *X, float *Y, int use_act, float slope)
+             const float *b, const float *X, float *Y, int mode, const float *G, float slope)
 {
     for (int s = 0; s < n; s += 2 * VL) {
         int two = s + VL < n;
@@ -61,22 +73,23 @@ affine_block(int JB, int j0, int K, int n, int ld, const float *A, int sj, int s
             }
         }
         for (int j = 0; j < JB; j++) {
-            float *y = Y + (size_t)(j0 + j) * ld + s;
-            st(y, use_act ? act(acc[j][0], slope) : acc[j][0]);
+            size_t o = (size_t)(j0 + j) * ld + s;
+            st(Y + o, finish(acc[j][0], mode, G + o, slope));
             if (two)
-                st(y + VL, use_act ? act(acc[j][1], slope) : acc[j][1]);
+                st(Y + o + VL, finish(acc[j][1], mode, G + o + VL, slope));
         }
     }
 }
 
-static void affine(int J, int K, int n, int ld, const float *A, int sj, int sk, const float *b,
-                   const float *X, float *Y, int use_act, float slope)
+static inline __attribute__((always_inline)) void
+affine(int J, int K, int n, int ld, const float *A, int sj, int sk, const float *b,
+       const float *X, float *Y, int mode, const float *G, float slope)
 {
     int j0 = 0;
     for (; j0 + 7 <= J; j0 += 7)
-        affine_block(7, j0, K, n, ld, A, sj, sk, b, X, Y, use_act, slope);
+        affine_block(7, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
     for (; j0 < J; j0++)
-        affine_block(1, j0, K, n, ld, A, sj, sk, b, X, Y, use_act, slope);
+        affine_block(1, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
 }
 
 static inline float hsum(vf v)
@@ -128,16 +141,6 @@ static void outer(int J, int K, int n, int ld, const float *D, const float *X, f
         }
 }
 
-/* grad *= act'(z), where a = act(z) > 0 exactly where z > 0 */
-static void act_backward(int J, int n, int ld, float *D, const float *A, float slope)
-{
-    for (int j = 0; j < J; j++)
-        for (size_t i = (size_t)j * ld; i < (size_t)j * ld + n; i += VL) {
-            vf d = vload(D + i);
-            st(D + i, sel(vload(A + i) > 0, d, d * slope));
-        }
-}
-
 /* eq. 2 on the raw outputs Y (3 x n): loss, and dY = d loss / d Y written over Y */
 static float loss_backward(int n, int ld, float *Y, const float *t, const float *cos)
 {
@@ -173,6 +176,13 @@ static void gather(int M, int n, int ld, const float *xc_all, const float *targe
                    const int64_t *idx, const float *sign, float *xc, float *tb)
 {
     for (int s0 = 0; s0 < n; s0 += VL) {
+        if (s0 + VL < n)  /* the next block's rows: random rows of a table larger than L2 */
+            for (int u = 0; u < VL; u++) {
+                const char *p = (const char *)(target_all + idx[s0 + VL + u] * ldt);
+                for (int off = 0; off < 12 * M; off += 64)
+                    __builtin_prefetch(p + off);
+                __builtin_prefetch(xc_all + 7 * idx[s0 + VL + u]);
+            }
         const float *row[VL];
         vf sg = vload(sign + s0);
         for (int u = 0; u < VL; u++)
@@ -217,16 +227,15 @@ void nbrdf_fit_steps(int M, int n, int K, int step0, const float *xc_all,
         for (int i = 0; i < M; i++) {
             float *wi = w + (size_t)i * NP, *g = grad + (size_t)i * NP;
             const float *t = tb + (size_t)i * 3 * ld;
-            affine(H, 6, n, ld, wi + OW1, 6, 1, wi + OB1, xc, a1, 1, slope);
-            affine(H, H, n, ld, wi + OW2, H, 1, wi + OB2, a1, a2, 1, slope);
-            affine(3, H, n, ld, wi + OW3, H, 1, wi + OB3, a2, y, 0, 0);
-            loss[i] = loss_backward(n, ld, y, t, cos);
+            affine(H, 6, n, ld, wi + OW1, 6, 1, wi + OB1, xc, a1, ACT, NULL, slope);
+            affine(H, H, n, ld, wi + OW2, H, 1, wi + OB2, a1, a2, ACT, NULL, slope);
+            affine(3, H, n, ld, wi + OW3, H, 1, wi + OB3, a2, y, RAW, NULL, 0);
+            loss[i] = loss_backward(n, ld, y, t, cos);  /* y := d loss / d y */
             outer(3, H, n, ld, y, a2, g + OW3, g + OB3);
-            affine(H, 3, n, ld, wi + OW3, 1, H, NULL, y, d, 0, 0);      /* W3^T dy */
-            act_backward(H, n, ld, d, a2, slope);
+            /* d2 = W3^T dy * act'(z2), then d1 = W2^T d2 * act'(z1) over a2 (no longer needed) */
+            affine(H, 3, n, ld, wi + OW3, 1, H, NULL, y, d, GATE, a2, slope);
             outer(H, H, n, ld, d, a1, g + OW2, g + OB2);
-            affine(H, H, n, ld, wi + OW2, 1, H, NULL, d, a2, 0, 0);     /* W2^T d2, over a2 */
-            act_backward(H, n, ld, a2, a1, slope);
+            affine(H, H, n, ld, wi + OW2, 1, H, NULL, d, a2, GATE, a1, slope);
             outer(H, 6, n, ld, a2, xc, g + OW1, g + OB1);
             if (lr[k] > 0)
                 adam(wi, g, m + (size_t)i * NP, v + (size_t)i * NP, lr[k], bc1, bc2);
