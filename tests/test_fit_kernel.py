@@ -36,9 +36,9 @@ def reference_minibatch(xc_all, target, idx, sign):
 def test_loss_and_gradient_match_the_torch_step(activation):
     xc_all, target, w, idx, sign = problem()
     slope = 0.0 if activation == "relu" else fit.LEAKY_SLOPE
-    st = fit_kernel.Stepper(xc_all, target, N)
+    st = fit_kernel.Stepper(xc_all, target, N, slope=slope)
     w0, m, v = w.clone(), torch.zeros_like(w), torch.zeros_like(w)
-    loss, grad = st.run(w, m, v, idx, sign, torch.zeros(1), 0, slope)  # lr 0: no update
+    loss, grad = st.run(w, m, v, idx, sign, torch.zeros(1), 0)  # lr 0: no update
     ref_loss, ref_grad = fit.loss_and_grad(w0, *reference_minibatch(xc_all, target, idx, sign),
                                            activation)
     assert torch.equal(w, w0) and not m.any()
@@ -53,7 +53,7 @@ def test_adam_steps_match_the_torch_step():
     lr = torch.tensor([1e-2, 5e-3, 2e-3])
     st = fit_kernel.Stepper(xc_all, target, N)
     wc, mc, vc = w.clone(), torch.zeros_like(w), torch.zeros_like(w)
-    st.run(wc, mc, vc, idx, sign, lr, 0, 0.0)
+    st.run(wc, mc, vc, idx, sign, lr, 0)
     wt, mt, vt = w.clone(), torch.zeros_like(w), torch.zeros_like(w)
     for k in range(3):
         _, g = fit.loss_and_grad(wt, *reference_minibatch(xc_all, target, idx[k:k + 1],
@@ -64,13 +64,26 @@ def test_adam_steps_match_the_torch_step():
     torch.testing.assert_close(wc, wt, rtol=1e-4, atol=1e-5)
 
 
+@pytest.mark.parametrize("activation", nbrdf.ACTIVATIONS)
+def test_evaluation_loss_matches_field_loss(activation):
+    """Over 203 bins: 3 chunks of 64 and a tail that is no whole vector; f clamped at 0."""
+    xc_all, target, w, _, _ = problem(3)
+    slope = 0.0 if activation == "relu" else fit.LEAKY_SLOPE
+    idx = torch.randperm(B, generator=torch.Generator().manual_seed(4))[:203]
+    got = fit_kernel.Stepper(xc_all, target, N, threads=2, slope=slope).losses(w, idx)
+    t = target[idx].view(len(idx), M, 3).transpose(0, 1)
+    ref = fit.field_loss(w, xc_all[idx, :6], t, xc_all[idx, 6:], activation)
+    assert (nbrdf.forward_raw(w, xc_all[idx, :6], activation) < 0).any()  # the clamp matters
+    torch.testing.assert_close(got, ref, rtol=2e-6, atol=0)
+
+
 def test_threads_do_not_change_the_result():
     xc_all, target, w, idx, sign = problem(2)
     idx, sign, lr = idx.repeat(4, 1), sign.repeat(4, 1), torch.full((4,), 1e-2)
     out = []
     for threads in (1, 3):
         wk, m, v = w.clone(), torch.zeros_like(w), torch.zeros_like(w)
-        fit_kernel.Stepper(xc_all, target, N, threads).run(wk, m, v, idx, sign, lr, 0, 0.0)
+        fit_kernel.Stepper(xc_all, target, N, threads).run(wk, m, v, idx, sign, lr, 0)
         out.append(wk)
     assert torch.equal(*out)
 
@@ -79,7 +92,7 @@ def test_denormal_mode_is_restored():
     """The kernel flushes denormals inside the call only; torch must still see them after."""
     xc_all, target, w, idx, sign = problem()
     fit_kernel.Stepper(xc_all, target, N).run(w, torch.zeros_like(w), torch.zeros_like(w), idx,
-                                              sign, torch.full((1,), 1e-3), 0, 0.0)
+                                              sign, torch.full((1,), 1e-3), 0)
     tiny = torch.tensor([1e-39]) * torch.tensor([1.0])  # a float32 denormal
     assert tiny.item() != 0
 
@@ -91,9 +104,9 @@ def test_bad_shapes_and_minibatch_sizes_are_refused():
     st = fit_kernel.Stepper(xc_all, target, N)
     z = torch.zeros_like(w)
     with pytest.raises(ValueError, match="out of range"):
-        st.run(w, z, z.clone(), idx + B, sign, torch.zeros(1), 0, 0.0)
+        st.run(w, z, z.clone(), idx + B, sign, torch.zeros(1), 0)
     with pytest.raises(ValueError, match="float32"):
-        st.run(w.double(), z, z.clone(), idx, sign, torch.zeros(1), 0, 0.0)
+        st.run(w.double(), z, z.clone(), idx, sign, torch.zeros(1), 0)
 
 
 def test_kernel_setting_resolves_and_errors_name_the_key():

@@ -280,9 +280,10 @@ class BatchFitter:
         self._xc = torch.cat([self.x, self.cos[:, None]], 1)  # (B, 7): one gather for both
         self._ws = Workspace(M, settings.batch, self.dev)
         self.kernel = resolve_kernel(settings, self.dev)
+        slope = 0.0 if settings.activation == "relu" else LEAKY_SLOPE
         self._c = (fit_kernel.Stepper(self._xc, self.target, settings.batch,
-                                      torch.get_num_threads()) if self.kernel == "c" else None)
-        self._slope = 0.0 if settings.activation == "relu" else LEAKY_SLOPE
+                                      torch.get_num_threads(), slope)
+                   if self.kernel == "c" else None)
 
     def _points(self, idx):
         """Bin positions (k,) -> inputs (k, 6), targets (M, k, 3), cos (k, 1)."""
@@ -322,7 +323,7 @@ class BatchFitter:
         if self._c:  # minibatches, loss, gradient and Adam of all k steps in one call
             idx, sign = self._schedule(self.step, k)
             loss, _ = self._c.run(self.w, self.m, self.v, idx, sign,
-                                  torch.tensor(lrs, dtype=torch.float32), self.step, self._slope)
+                                  torch.tensor(lrs, dtype=torch.float32), self.step)
             self.step += k
             return loss
         for lr in lrs:
@@ -351,6 +352,8 @@ class BatchFitter:
     def eval_loss(self, split: str, limit: int | None = None) -> np.ndarray:
         """Eq. 2 loss (M,) on the train or val bins (the first `limit` of them)."""
         idx = {"train": self.train_idx, "val": self.val_idx}[split][:limit]
+        if self._c:
+            return self._c.losses(self.w, idx).numpy()
         return field_loss(self.w, *self._points(idx), self.s.activation).cpu().numpy()
 
     def state(self) -> dict[str, np.ndarray]:

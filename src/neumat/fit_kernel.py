@@ -96,6 +96,8 @@ def _library():
     p, f, i = ctypes.c_void_p, ctypes.c_float, ctypes.c_int
     lib.nbrdf_fit_steps.argtypes = [i, i, i, i, p, p, i, p, p, p, p, p, p, p, p, p, f]
     lib.nbrdf_fit_steps.restype = None
+    lib.nbrdf_loss_sums.argtypes = [i, i, i, i, p, p, i, p, p, p, p, f]
+    lib.nbrdf_loss_sums.restype = None
     return lib
 
 
@@ -111,7 +113,8 @@ class Stepper:
     not once per step (waking a thread costs ~100 us on these VMs, a step of 25 materials ~600).
     xc_all (B, 7) inputs + cos and target (B, M * 3) of all bins are fixed at construction."""
 
-    def __init__(self, xc_all: torch.Tensor, target: torch.Tensor, n: int, threads: int = 1):
+    def __init__(self, xc_all: torch.Tensor, target: torch.Tensor, n: int, threads: int = 1,
+                 slope: float = 0.0):
         if n % VECTOR:
             raise ValueError(f"the C fit kernel needs a minibatch that is a multiple of {VECTOR}, "
                              f"got {n}")
@@ -122,6 +125,7 @@ class Stepper:
         _check(xc_all, (B, 7))
         _check(target, (B, 3 * self.M))
         self.xc_all, self.target, self.n = xc_all, target, n
+        self.slope = slope  # of the hidden activation: 0 relu, fit.LEAKY_SLOPE leaky relu
         threads = max(1, min(threads, self.M))
         bounds = [self.M * k // threads for k in range(threads + 1)]
         self.parts = list(zip(bounds, bounds[1:]))
@@ -129,7 +133,7 @@ class Stepper:
         self.loss, self.grad = torch.zeros(self.M), torch.zeros(self.M, nbrdf.N_PARAMS)
         self.pool = _pool(threads - 1) if threads > 1 else None
 
-    def run(self, w, m, v, idx, sign, lr, step0: int, slope: float):
+    def run(self, w, m, v, idx, sign, lr, step0: int):
         """Steps step0 + 1 ... step0 + K in place on w, m, v (M, 675); returns the last step's
         loss (M,) and gradient (M, 675). idx (K, n) int64 bin positions, sign (K, n) float32
         (-1: mirror phi_d), lr (K,) float32 (<= 0: gradient only, no Adam update)."""
@@ -150,13 +154,39 @@ class Stepper:
                 self.target.data_ptr() + 3 * f4 * a, 3 * self.M, idx.data_ptr(),
                 sign.data_ptr(), lr.data_ptr(), w.data_ptr() + row * a, m.data_ptr() + row * a,
                 v.data_ptr() + row * a, self.grad.data_ptr() + row * a,
-                self.loss.data_ptr() + f4 * a, self.work[k].data_ptr(), slope)
+                self.loss.data_ptr() + f4 * a, self.work[k].data_ptr(), self.slope)
 
+        self._parallel(part)
+        return self.loss, self.grad
+
+    def losses(self, w, idx) -> torch.Tensor:
+        """Eq. 2 loss (M,) float64 of the fields w (M, 675) over the bin positions idx (N,), as
+        evaluated (f = max(exp(y) - 1, 0)) and not mirrored: `fit.field_loss`, in C."""
+        _check(w, (self.M, nbrdf.N_PARAMS))
+        nv = len(idx)
+        if nv == 0 or idx.min() < 0 or idx.max() >= self.xc_all.shape[0]:
+            raise ValueError("fit kernel: evaluation bin positions empty or out of range")
+        pad = -nv % VECTOR  # repeat the last bin up to whole vectors; they are not summed
+        idx = torch.cat([idx, idx[-1:].expand(pad)]).to(torch.int64).contiguous()
+        out = torch.zeros(self.M, dtype=torch.float64)
+        f4, row = 4, 4 * nbrdf.N_PARAMS
+
+        def part(k):
+            a, b = self.parts[k]
+            self.lib.nbrdf_loss_sums(b - a, self.n, len(idx), nv, self.xc_all.data_ptr(),
+                                     self.target.data_ptr() + 3 * f4 * a, 3 * self.M,
+                                     idx.data_ptr(), w.data_ptr() + row * a,
+                                     out.data_ptr() + 8 * a, self.work[k].data_ptr(), self.slope)
+
+        self._parallel(part)
+        return out / (3 * nv)
+
+    def _parallel(self, part):
+        """part(k) for every thread's share k, share 0 in this thread while the others run."""
         others = [self.pool.submit(part, k) for k in range(1, len(self.parts))] if self.pool else []
-        part(0)  # in this thread, while the others run
+        part(0)
         for f in others:
             f.result()
-        return self.loss, self.grad
 
 
 def _check(t: torch.Tensor, shape):

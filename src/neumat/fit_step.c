@@ -168,6 +168,29 @@ static void adam(float *w, const float *g, float *m, float *v, float lr, float b
     }
 }
 
+/* Flush denormals to zero inside the kernel only (and restore the caller's mode): Adam's
+ * second moments of near-zero gradients fall below 1e-38, where every operation takes a
+ * ~100-cycle microcode assist. */
+static unsigned flush_denormals(void)
+{
+#ifdef __SSE__
+    unsigned csr = _mm_getcsr();
+    _mm_setcsr(csr | 0x8040);  /* FTZ | DAZ */
+    return csr;
+#else
+    return 0;
+#endif
+}
+
+static void restore_denormals(unsigned csr)
+{
+#ifdef __SSE__
+    _mm_setcsr(csr);
+#else
+    (void)csr;
+#endif
+}
+
 /* Gather one step's minibatch into feature-major rows `ld` apart: inputs + cos (7 x n) and
  * the targets of materials 0..M-1, tb (M * 3 x n). The table rows are read once per step for
  * all materials (3 M contiguous floats each), 16 rows at a time so that every store fills a
@@ -184,7 +207,9 @@ static void gather(int M, int n, int ld, const float *xc_all, const float *targe
                 __builtin_prefetch(xc_all + 7 * idx[s0 + VL + u]);
             }
         const float *row[VL];
-        vf sg = vload(sign + s0);
+        vf sg = splat(1.f);
+        if (sign)
+            sg = vload(sign + s0);
         for (int u = 0; u < VL; u++)
             row[u] = xc_all + 7 * idx[s0 + u];
         for (int f = 0; f < 7; f++) {
@@ -209,12 +234,7 @@ void nbrdf_fit_steps(int M, int n, int K, int step0, const float *xc_all,
                      const float *lr, float *w, float *m, float *v, float *grad, float *loss,
                      float *work, float slope)
 {
-#ifdef __SSE__
-    /* flush denormals to zero here only: Adam's second moments of near-zero gradients fall
-     * below 1e-38, where every operation takes a ~100-cycle microcode assist */
-    unsigned csr = _mm_getcsr();
-    _mm_setcsr(csr | 0x8040);  /* FTZ | DAZ */
-#endif
+    unsigned csr = flush_denormals();
     int ld = n + VL;
     float *xc = work, *a1 = xc + 7 * ld, *a2 = a1 + H * ld, *d = a2 + H * ld, *y = d + H * ld,
           *tb = y + 3 * ld;  /* y: 3 x n, tb: M * 3 x n */
@@ -241,7 +261,40 @@ void nbrdf_fit_steps(int M, int n, int K, int step0, const float *xc_all,
                 adam(wi, g, m + (size_t)i * NP, v + (size_t)i * NP, lr[k], bc1, bc2);
         }
     }
-#ifdef __SSE__
-    _mm_setcsr(csr);
-#endif
+    restore_denormals(csr);
+}
+
+/* Eq. 2 loss of the fields as evaluated (f = max(exp(y) - 1, 0), as neumat.fit.field_loss),
+ * summed over the bins idx (N,) of the table, no mirroring: out (M,) = sum over bins and
+ * channels of |r|, in float64. N must be a multiple of 16 (pad idx) of which the first nv
+ * count; chunks of n bins. */
+void nbrdf_loss_sums(int M, int n, int N, int nv, const float *xc_all, const float *target_all,
+                     int ldt, const int64_t *idx, const float *w, double *out, float *work,
+                     float slope)
+{
+    unsigned csr = flush_denormals();
+    int ld = n + VL;
+    float *xc = work, *a1 = xc + 7 * ld, *a2 = a1 + H * ld, *y = a2 + 2 * H * ld,
+          *tb = y + 3 * ld;
+    const float *cos = xc + 6 * (size_t)ld;
+    for (int i = 0; i < M; i++)
+        out[i] = 0;
+    for (int s0 = 0; s0 < N; s0 += n) {
+        int c = N - s0 < n ? N - s0 : n, cv = nv - s0 < c ? nv - s0 : c;
+        gather(M, c, ld, xc_all, target_all, ldt, idx + s0, NULL, xc, tb);
+        for (int i = 0; i < M; i++) {
+            const float *wi = w + (size_t)i * NP, *t = tb + (size_t)i * 3 * ld;
+            affine(H, 6, c, ld, wi + OW1, 6, 1, wi + OB1, xc, a1, ACT, NULL, slope);
+            affine(H, H, c, ld, wi + OW2, H, 1, wi + OB2, a1, a2, ACT, NULL, slope);
+            affine(3, H, c, ld, wi + OW3, H, 1, wi + OB3, a2, y, RAW, NULL, 0);
+            float sum = 0;
+            for (int ch = 0; ch < 3; ch++)
+                for (int s = 0; s < cv; s++) {
+                    float e = expf(y[(size_t)ch * ld + s]), f = e > 1 ? e - 1 : 0;
+                    sum += fabsf(log1pf(f * cos[s]) - t[(size_t)ch * ld + s]);
+                }
+            out[i] += sum;
+        }
+    }
+    restore_denormals(csr);
 }
