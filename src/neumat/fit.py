@@ -280,12 +280,13 @@ class BatchFitter:
         self.step, self.history = 0, []  # history: (step, val loss on eval bins (M,))
         self._epoch = -1
         self._xc = torch.cat([self.x, self.cos[:, None]], 1)  # (B, 7): one gather for both
-        self._ws = Workspace(M, settings.batch, self.dev)
         self.kernel = resolve_kernel(settings, self.dev)
         slope = 0.0 if settings.activation == "relu" else LEAKY_SLOPE
+        # C kernel: the job's threads split the materials; torch path: buffers of one step
         self._c = (fit_kernel.Stepper(self._xc, self.target, settings.batch,
                                       torch.get_num_threads(), slope)
                    if self.kernel == "c" else None)
+        self._ws = None if self._c else Workspace(M, settings.batch, self.dev)
 
     def _points(self, idx):
         """Bin positions (k,) -> inputs (k, 6), targets (M, k, 3), cos (k, 1)."""
@@ -340,9 +341,12 @@ class BatchFitter:
         `checkpoint_every` steps."""
         until = self.s.steps if until is None else until
         while self.step < until:
-            nxt = [until] + [(self.step // e + 1) * e for e in (self.s.eval_every,
-                                                                self.s.checkpoint_every)]
-            loss = self._run(min(nxt + [self.s.steps] * (self.step < self.s.steps)) - self.step)
+            # run up to the next evaluation, checkpoint, last step or `until`
+            stop = min(until, *((self.step // e + 1) * e for e in (self.s.eval_every,
+                                                                   self.s.checkpoint_every)))
+            if self.step < self.s.steps:
+                stop = min(stop, self.s.steps)
+            loss = self._run(stop - self.step)
             if self.step % self.s.eval_every == 0 or self.step == self.s.steps:
                 self.history.append((self.step, self.eval_loss("val", self.s.eval_bins)))
                 log.info("step %d/%d: train batch loss %.4g, val loss median %.4g", self.step,
