@@ -1,26 +1,26 @@
 /* K Adam steps of M independent NBRDF fits (6 -> 21 -> 21 -> 3) on shared minibatches.
  *
  * The CPU fast path of neumat.fit (see neumat/fit_kernel.py, which compiles and loads this
- * file). It computes exactly what neumat.fit.loss_and_grad + adam_step compute, material by
- * material: one material's activations (21 x n floats per layer) stay in L1/L2 cache, and the
+ * file). It computes what neumat.fit.loss_and_grad + adam_step compute (equal to float32
+ * rounding; -ffast-math may reorder sums), material by material: one material's activations (21 x n floats per layer) stay in L1/L2 cache, and the
  * small matmuls are register-blocked over 16-float vectors (GCC vector extensions: AVX-512,
  * AVX2 or SSE, whatever -march gives). torch's batched matmuls spend most of a step on
  * per-matrix overhead at these sizes; tests/test_fit_kernel.py checks this file against them.
  *
  * Layouts (float32 unless said, row-major):
  *   xc_all     (B, 7)   all bins' inputs [h, d] and cos(theta_i)
- *   target_all (B, ld)  log(1 + f cos); material i's channel c in column 3 i + c
+ *   target_all (B, ldt) log(1 + f cos); material i's channel c in column 3 i + c
  *   idx (K, n) int64    bins of each step's minibatch; sign (K, n) -1 where d is mirrored
  *   lr (K)              learning rate of each step (no Adam update where <= 0)
  *   w, m, v (M, 675)    weights in neumat.nbrdf's flatten order, Adam moments (updated)
  *   grad (M, 675), loss (M,)  gradient and eq. 2 loss of the last step (written)
  *   work                (73 + 3 M) (n + 16) floats of scratch
  * n must be a multiple of 16. step0 = Adam steps already taken (bias correction).
+ * nbrdf_loss_sums (at the end) evaluates the loss of fitted fields on any set of bins.
  */
 #include <math.h>
 #include <stddef.h>
 #include <stdint.h>
-#include <string.h>
 #ifdef __SSE__
 #include <xmmintrin.h>
 #endif
