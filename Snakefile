@@ -1,6 +1,7 @@
 # neumat: measured-material synthesis workflow.
-# Entry points: `snakemake --cores 2 report` (default config) or
-# `snakemake --cores 2 --configfile config/tiny.yaml report`.
+# Entry points (targets before --configfile: it takes every following word as a file):
+#   snakemake --cores 2 report
+#   snakemake --cores 2 report --configfile config/tiny.yaml
 from snakemake.utils import min_version, validate
 
 min_version("9.0")

@@ -37,6 +37,7 @@ def tiny_run(tmp_path_factory):
     return wd
 
 
+@pytest.mark.slow
 def test_tiny_config_runs_to_report(tiny_run):
     rep = tiny_run / "results/tiny/report"
     html = (rep / "index.html").read_text()
@@ -52,6 +53,7 @@ def test_tiny_config_runs_to_report(tiny_run):
     assert (tiny_run / "results/tiny/benchmarks/augmerl_pca.tsv").exists()
 
 
+@pytest.mark.slow
 def test_tiny_config_runs_every_stage(tiny_run):
     res = tiny_run / "results/tiny"
     md = (res / "report/index.md").read_text()
@@ -69,9 +71,17 @@ def test_tiny_config_runs_every_stage(tiny_run):
     assert len(q) > 0
 
 
+@pytest.mark.slow
 def test_rerun_is_a_no_op(tiny_run):
     res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr
+
+
+@pytest.mark.slow
+def test_snakemake_report(tiny_run):
+    """README's `snakemake --report report.html`, on the finished tiny run."""
+    _snakemake(tiny_run, "--report", "report.html", "--configfile", "config/tiny.yaml")
+    assert (tiny_run / "report.html").stat().st_size > 10_000
 
 
 def test_unknown_config_key_fails_before_any_job(tmp_path):
