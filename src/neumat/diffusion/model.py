@@ -29,7 +29,7 @@ TENSOR_SIZES = [int(np.prod(s)) for s in nbrdf.PARAM_SHAPES]  # [126, 21, 441, 2
 @dataclass
 class DenoiserConfig:
     width: int = 256
-    depth: int = 6
+    depth: int = 4
     heads: int = 8
     mlp_ratio: float = 4.0
     dropout: float = 0.0

@@ -33,16 +33,16 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class TrainConfig:
-    steps: int = 20000
+    steps: int = 5000
     batch_size: int = 128
     lr: float = 3e-4
     weight_decay: float = 0.0
-    warmup_steps: int = 500
+    warmup_steps: int = 250
     ema_decay: float = 0.999
     cond_drop: float = 0.1  # classifier-free guidance: share of labels replaced by null
     grad_clip: float = 1.0
-    checkpoint_every: int = 1000
-    log_every: int = 100
+    checkpoint_every: int = 250
+    log_every: int = 50
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -190,8 +190,8 @@ class Sampler:
         return torch.tensor([self.class_names.index(t) for t in types])
 
     @torch.no_grad()
-    def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 50,
-               eta: float = 0.0, guidance: float = 1.0, batch_size: int = 256,
+    def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
+               eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally."""

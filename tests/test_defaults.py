@@ -1,0 +1,64 @@
+"""One source of truth for defaults: every library default that has a config key equals that
+key's default in config/schema.yaml, so a library user gets the workflow's model."""
+
+import dataclasses
+import inspect
+from pathlib import Path
+
+import pytest
+import yaml
+
+from neumat.diffusion.model import DenoiserConfig
+from neumat.diffusion.plausibility import plausibility
+from neumat.diffusion.schedule import ScheduleConfig
+from neumat.diffusion.train import Sampler, TrainConfig
+from neumat.fit import FitSettings
+
+SCHEMA = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/schema.yaml").read_text())
+
+
+def schema_defaults(*path: str) -> dict:
+    """{key: default} of the schema section at `path` (e.g. 'diffusion', 'model')."""
+    node = SCHEMA
+    for p in path:
+        node = node["properties"][p]
+    return {k: v["default"] for k, v in node["properties"].items() if "default" in v}
+
+
+def _dataclass_defaults(cls) -> dict:
+    return {f.name: f.default for f in dataclasses.fields(cls)
+            if f.default is not dataclasses.MISSING}
+
+
+def _signature_defaults(fn) -> dict:
+    return {k: p.default for k, p in inspect.signature(fn).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+# (library defaults, schema section, library names without a config key: why)
+CASES = {
+    "FitSettings": (_dataclass_defaults(FitSettings), ("fit",), {}),
+    "DenoiserConfig": (_dataclass_defaults(DenoiserConfig), ("diffusion", "model"),
+                       {"n_classes": "set by the workflow from the catalogue's types"}),
+    "ScheduleConfig": (_dataclass_defaults(ScheduleConfig), ("diffusion", "schedule"), {}),
+    "TrainConfig": (_dataclass_defaults(TrainConfig), ("diffusion", "train"), {}),
+    "Sampler.sample": (_signature_defaults(Sampler.sample), ("diffusion", "sample"),
+                       {"types": "None = unconditional; the workflow lists them"}),
+    "plausibility": (
+        {"angles": _signature_defaults(plausibility)["n_angles"],
+         "explode_factor": _signature_defaults(plausibility)["explode_factor"]},
+        ("diffusion",), {}),
+}
+
+
+@pytest.mark.parametrize("name", CASES)
+def test_library_defaults_equal_schema_defaults(name):
+    lib, path, exempt = CASES[name]
+    schema = schema_defaults(*path)
+    if name == "plausibility":
+        schema = {"angles": schema["plausibility_angles"], "explode_factor": schema["explode_factor"]}
+    shared = {k for k in lib if k in schema}
+    unmatched = set(lib) - shared - set(exempt)
+    assert not unmatched, f"{name}: library defaults with no key in schema {'.'.join(path)}: {unmatched}"
+    diff = {k: (lib[k], schema[k]) for k in shared if lib[k] != schema[k]}
+    assert not diff, f"{name} vs schema {'.'.join(path)} (library, schema): {diff}"
