@@ -10,7 +10,7 @@ rule augmerl_pca:
     params:
         catalog=MERL.to_dict("records"),
         cfg=config["augmerl"],
-        seed=SEED,
+        seed=seed_for("augmerl"),
     log:
         log("augmerl_pca"),
     benchmark:

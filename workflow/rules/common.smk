@@ -14,10 +14,21 @@ os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONP
 CONDA_ENV = "../envs/neumat.yaml"
 
 from neumat.data import catalog as _catalog  # noqa: E402
+from neumat import seeds as _seeds  # noqa: E402
 
 RUN = config["run"]
 OUT = f"results/{RUN}"
 SEED = config["seed"]
+
+
+def seed_for(stage, *items):
+    """Seed of the named random stream `stage` (for `items`, e.g. a material) of this run; see
+    neumat.seeds. Every stochastic rule takes its seed from here, never from SEED + offset."""
+    seed = _seeds.seed_for(SEED, stage, *items)
+    if os.environ.get("NEUMAT_SEED_LOG"):  # tests/test_seeds.py lists the streams of a DAG
+        with open(os.environ["NEUMAT_SEED_LOG"], "a") as f:
+            f.write("\t".join(map(str, (stage, *items, seed))) + "\n")
+    return seed
 
 
 def out(path):
@@ -40,7 +51,7 @@ def merl_catalog():
     """DataFrame of the MERL materials this run uses (name, type, description, colours, sha256)."""
     m = config["merl"]
     if m["source"] == "synthetic":
-        return _catalog.synthetic_catalog(m["synthetic"]["count"], SEED)
+        return _catalog.synthetic_catalog(m["synthetic"]["count"], seed_for("synthetic_merl"))
     return _catalog.load_catalog(m["materials"], m["subset"], m["sha256_override"])
 
 
@@ -188,7 +199,8 @@ def btf_roi(name):
 
 
 def btf_seed(name, method):
-    return SEED + 6000 + 100 * BTF_NAMES.index(name) + ["data", *BTF["methods"]].index(method)
+    """Seed of one BTF material's data ('data') or of one method's fit on it."""
+    return seed_for("btf", name, method)
 
 
 def _btf_fit_rule_params(method):

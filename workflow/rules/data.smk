@@ -70,7 +70,7 @@ else:
             out("merl/{name}.binary"),
         params:
             n_materials=MERL_CFG["synthetic"]["count"],
-            seed=SEED,
+            seed=seed_for("synthetic_merl"),  # as merl_catalog()
         log:
             log("synthetic_merl/{name}"),
         benchmark:

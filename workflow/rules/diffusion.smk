@@ -6,7 +6,6 @@
 #   diffusion_plausibility, export_samples -> diffusion_section
 
 DIFF = config["diffusion"]
-DIFF_SEED = SEED + 5000  # stage index 5
 DIFF_MODELS = ["ours", "merl100"]
 # Class names of the type condition: every type of this run's MERL catalogue (48 for MERL).
 DIFF_CLASSES = sorted(set(MERL["type"]))
@@ -27,7 +26,7 @@ rule train_diffusion:
     params:
         cfg={k: DIFF[k] for k in ("model", "schedule", "train")},
         class_names=DIFF_CLASSES,
-        seed=DIFF_SEED,
+        seed=seed_for("train_diffusion"),
         device=config["device"],
         checkpoint=out("diffusion/{model}/checkpoint.pt"),
     wildcard_constraints:
@@ -58,7 +57,7 @@ rule sample_uncond:
     params:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="uncond",
-        seed=DIFF_SEED + 100,
+        seed=seed_for("sample_uncond"),
         device=config["device"],
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
@@ -87,7 +86,7 @@ rule sample_type:
     params:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="type",
-        seed=DIFF_SEED + 200,
+        seed=seed_for("sample_type"),
         device=config["device"],
     log:
         log("sample_type"),
@@ -113,7 +112,7 @@ rule diffusion_training_set:
         ref_weights=out("samples/reference/weights.npy"),
         ref_table=out("samples/reference/samples.tsv"),
     params:
-        seed=DIFF_SEED + 300,
+        seed=seed_for("diffusion_training_set"),
     log:
         log("diffusion_training_set"),
     benchmark:
@@ -138,7 +137,7 @@ rule diffusion_nearest:
         expand(out("samples/{set}/nearest.tsv"), set=NEAREST_SETS),
     params:
         bins=DIFF["nn_bins"],
-        seed=DIFF_SEED + 400,
+        seed=seed_for("diffusion_nearest"),
         activation=DIFF_ACTIVATION,
     log:
         log("diffusion_nearest"),
@@ -166,7 +165,7 @@ rule diffusion_plausibility:
         names=DIFF_SETS,
         angles=DIFF["plausibility_angles"],
         explode_factor=DIFF["explode_factor"],
-        seed=DIFF_SEED + 500,
+        seed=seed_for("diffusion_plausibility"),
         activation=DIFF_ACTIVATION,
     log:
         log("diffusion_plausibility"),
@@ -222,7 +221,7 @@ rule diffusion_mitsuba:
         n_types=DIFF["gallery_types"],
         per_type=DIFF["per_type"],
         activation=DIFF_ACTIVATION,
-        seed=DIFF_SEED + 600,
+        seed=seed_for("diffusion_mitsuba"),
     log:
         log("diffusion_mitsuba"),
     benchmark:

@@ -3,7 +3,7 @@
 #   (render PSNR per shard) -> neumerl (merge) -> neumerl_section; neumerl_export -> .binary
 
 FIT = config["fit"]
-FIT_SEED = SEED + 3000  # stage index 3
+FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch order
 
 
 rule fit_template:

@@ -20,7 +20,7 @@ rule mitsuba_figure:
     params:
         cfg=RENDER["mitsuba"],
         activation=config["fit"]["activation"],
-        seed=SEED + 6000,  # stage index 6
+        seed=seed_for("mitsuba_figure"),
     log:
         log("mitsuba_figure/{scene}"),
     benchmark:
