@@ -99,6 +99,3 @@ rule dataset_section:
         runtime=10,
     script:
         "../scripts/dataset_section.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/10_dataset.md"))

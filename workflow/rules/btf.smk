@@ -5,19 +5,17 @@
 if UBO["source"] == "synthetic":
 
     rule synthetic_btf:
-        wildcard_constraints:
-            name=BTF_NAME_RE,
         output:
-            out("btf/data/{name}.btf"),
+            out("btf/data/{material}.btf"),
         params:
-            kind=lambda w: w.name.removeprefix("synthetic_"),
+            kind=lambda w: w.material.removeprefix("synthetic_"),
             size=UBO["synthetic"]["size"],
             components=UBO["synthetic"]["components"],
-            seed=lambda w: btf_seed(w.name, "data"),
+            seed=lambda w: btf_seed(w.material, "data"),
         log:
-            log("synthetic_btf/{name}"),
+            log("synthetic_btf/{material}"),
         benchmark:
-            bench("synthetic_btf/{name}")
+            bench("synthetic_btf/{material}")
         conda:
             CONDA_ENV
         threads: 1
@@ -33,20 +31,18 @@ else:
                          "when ubo2014.source is local")
 
     rule ubo2014_fetch:
-        wildcard_constraints:
-            name=BTF_NAME_RE,
         output:
-            f"resources/ubo2014/{{name}}{BTF_SUFFIX}",
+            f"resources/ubo2014/{{material}}{BTF_SUFFIX}",
         params:
-            url=lambda w: UBO["url"].format(name=w.name, **UBO_CAT.loc[w.name]),
+            url=lambda w: UBO["url"].format(name=w.material, **UBO_CAT.loc[w.material]),
             local_dir=UBO["local_dir"] if UBO["source"] == "local" else None,
             link=UBO["link"],
             lock_file=UBO["lock_file"],
             retries=UBO["retries"],
         log:
-            log("ubo2014_fetch/{name}"),
+            log("ubo2014_fetch/{material}"),
         benchmark:
-            bench("ubo2014_fetch/{name}")
+            bench("ubo2014_fetch/{material}")
         conda:
             CONDA_ENV
         threads: 1
@@ -64,18 +60,16 @@ for _method, _mem, _time in (("triple_plane", 3000, 600), ("neumip", 3000, 600),
     rule:
         name:
             f"btf_{_method}"
-        wildcard_constraints:
-            name=BTF_NAME_RE,
         input:
-            lambda w: btf_file(w.name),
+            lambda w: btf_file(w.material),
         output:
-            out(f"btf/models/{{name}}/{_method}.pt"),
+            out(f"btf/models/{{material}}/{_method}.pt"),
         params:
             **_btf_fit_rule_params(_method),
         log:
-            log(f"btf_{_method}/{{name}}"),
+            log(f"btf_{_method}/{{material}}"),
         benchmark:
-            bench(f"btf_{_method}/{{name}}")
+            bench(f"btf_{_method}/{{material}}")
         conda:
             CONDA_ENV
         threads: BTF["threads"]
@@ -87,24 +81,22 @@ for _method, _mem, _time in (("triple_plane", 3000, 600), ("neumip", 3000, 600),
 
 
 rule btf_eval:
-    wildcard_constraints:
-        name=BTF_NAME_RE,
     input:
-        data=lambda w: btf_file(w.name),
-        models=expand(out("btf/models/{{name}}/{method}.pt"), method=BTF["methods"]),
+        data=lambda w: btf_file(w.material),
+        models=expand(out("btf/models/{{material}}/{method}.pt"), method=BTF["methods"]),
     output:
-        metrics=out("btf/eval/{name}/metrics.tsv"),
-        textures=out("report/figures/btf_{name}_textures.png"),
-        tiling=out("report/figures/btf_{name}_tiling.png"),
+        metrics=out("btf/eval/{material}/metrics.tsv"),
+        textures=out("report/figures/btf_{material}_textures.png"),
+        tiling=out("report/figures/btf_{material}_tiling.png"),
     params:
         methods=BTF["methods"],
-        roi=lambda w: btf_roi(w.name),
+        roi=lambda w: btf_roi(w.material),
         pairs=BTF["eval_pairs"],
         tiling=BTF["tiling"],
     log:
-        log("btf_eval/{name}"),
+        log("btf_eval/{material}"),
     benchmark:
-        bench("btf_eval/{name}")
+        bench("btf_eval/{material}")
     conda:
         CONDA_ENV
     threads: BTF["threads"]
@@ -117,8 +109,8 @@ rule btf_eval:
 
 rule btf_section:
     input:
-        metrics=expand(out("btf/eval/{name}/metrics.tsv"), name=BTF_NAMES),
-        figures=expand(out("report/figures/btf_{name}_{kind}.png"), name=BTF_NAMES,
+        metrics=expand(out("btf/eval/{material}/metrics.tsv"), material=BTF_NAMES),
+        figures=expand(out("report/figures/btf_{material}_{kind}.png"), material=BTF_NAMES,
                        kind=["textures", "tiling"]),
     output:
         md=out("report/sections/60_btf.md"),
@@ -138,6 +130,3 @@ rule btf_section:
         runtime=5,
     script:
         "../scripts/btf_section.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/60_btf.md"))

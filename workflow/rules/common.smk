@@ -91,9 +91,16 @@ def augmerl_shards():
 
 # ----------------------------------------------------------------------------- report
 
-# Every stage appends its Markdown fragment(s) (out("report/sections/NN_stage.md")) here;
-# the `report` rule stitches them, in file-name order, into index.md and index.html.
-REPORT_SECTIONS = []
+# Every stage's Markdown fragment, listed here (not filled by `include` order): the `report`
+# rule stitches them, in this order, into index.md and index.html. A new stage adds its line.
+REPORT_SECTIONS = [
+    out("report/sections/10_dataset.md"),  # augment.smk: dataset_section
+    out("report/sections/20_neumerl.md"),  # fit.smk: neumerl_section
+    out("report/sections/30_rendering.md"),  # render.smk: render_section
+    out("report/sections/40_diffusion.md"),  # diffusion.smk: diffusion_section
+    out("report/sections/50_table2.md"),  # metrics.smk: metrics_table
+    out("report/sections/60_btf.md"),  # btf.smk: btf_section
+]
 
 
 def report_inputs():
@@ -106,20 +113,20 @@ def report_inputs():
 def merl_checked(path):
     """`path` flagged with the material's pinned sha256, unless merl.verify_sha256 is false."""
     if config["merl"]["verify_sha256"]:
-        return ensure(path, sha256=lambda w: merl_sha256(w.name))
+        return ensure(path, sha256=lambda w: merl_sha256(w.merl))
     return path
 
 
 def merl_expected_sha256(wildcards):
     """The sha256 a data rule's script checks ('' = size/header only)."""
-    return merl_sha256(wildcards.name) if config["merl"]["verify_sha256"] else ""
+    return merl_sha256(wildcards.merl) if config["merl"]["verify_sha256"] else ""
 
 
 # ----------------------------------------------------------------------------- metrics
 
-# Table 2: model name -> its set of neural-field weights (N, 675). Stages that produce a model
-# add it here (e.g. MODEL_WEIGHTS["pca_a"] = out("samples/pca_a/weights.npy")); the reference
-# set every model is scored against is the NeuMERL test split.
+# Table 2: model name -> its set of neural-field weights (N, 675). A stage that produces a model
+# lists it in this dict (e.g. "pca_a": out("samples/pca_a/weights.npy")); the reference set
+# every model is scored against is the NeuMERL test split.
 MODEL_WEIGHTS = {
     "training_set": out("samples/training/weights.npy"),
     "ours": out("samples/ours/weights.npy"),
@@ -165,7 +172,6 @@ def diffusion_exports():
 
 # ----------------------------------------------------------------------------- BTF (btf.smk)
 
-import re as _re
 
 from neumat.data import ubo2014 as _ubo2014
 
@@ -178,7 +184,6 @@ if UBO["source"] == "synthetic":
 else:
     UBO_CAT = _ubo2014.load_catalog(UBO["catalog"], UBO["materials"]).set_index("name")
     BTF_NAMES = list(UBO["materials"])
-BTF_NAME_RE = "|".join(map(_re.escape, BTF_NAMES)) or "^$"
 
 
 def btf_file(name):
@@ -204,5 +209,5 @@ def btf_seed(name, method):
 
 
 def _btf_fit_rule_params(method):
-    return dict(method=method, roi=lambda w: btf_roi(w.name),
-                seed=lambda w: btf_seed(w.name, method), settings=BTF.get(method, {}))
+    return dict(method=method, roi=lambda w: btf_roi(w.material),
+                seed=lambda w: btf_seed(w.material, method), settings=BTF.get(method, {}))

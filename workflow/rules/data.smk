@@ -1,29 +1,24 @@
 # MERL tables, one file per material: downloaded (sha256-pinned), taken from a local directory,
 # or synthesised (analytic BRDFs, offline). Only the configured source's rule is defined, so
 # every table has exactly one producer; downstream rules ask merl_table(name) (common.smk).
-import re
-
 from neumat.data import merl_files as _merl_files
 
 MERL_CFG = config["merl"]
-MERL_NAME_RE = "|".join(map(re.escape, MERL_NAMES))  # per rule: {name} means other things elsewhere
 
 
 if MERL_CFG["source"] == "download":
 
     rule download_merl:
-        wildcard_constraints:
-            name=MERL_NAME_RE,
         output:
-            merl_checked("resources/merl/{name}.binary"),
+            merl_checked("resources/merl/{merl}.binary"),
         params:
-            url=lambda w: MERL_CFG["url"].format(name=w.name),
+            url=lambda w: MERL_CFG["url"].format(name=w.merl),
             sha256=merl_expected_sha256,
             retries=MERL_CFG["retries"],
         log:
-            log("download_merl/{name}"),
+            log("download_merl/{merl}"),
         benchmark:
-            bench("download_merl/{name}")
+            bench("download_merl/{merl}")
         conda:
             CONDA_ENV
         threads: 1
@@ -38,20 +33,18 @@ elif MERL_CFG["source"] == "local":
     _merl_files.check_local_dir(MERL_CFG["local_dir"], MERL_NAMES)
 
     rule local_merl:
-        wildcard_constraints:
-            name=MERL_NAME_RE,
         input:
-            lambda w: f"{MERL_CFG['local_dir']}/{w.name}.binary",
+            lambda w: f"{MERL_CFG['local_dir']}/{w.merl}.binary",
         output:
-            merl_checked("resources/merl_local/{name}.binary"),
+            merl_checked("resources/merl_local/{merl}.binary"),
         params:
             local_dir=MERL_CFG["local_dir"],
             link=MERL_CFG["link"],
             sha256=merl_expected_sha256,
         log:
-            log("local_merl/{name}"),
+            log("local_merl/{merl}"),
         benchmark:
-            bench("local_merl/{name}")
+            bench("local_merl/{merl}")
         conda:
             CONDA_ENV
         threads: 1
@@ -64,17 +57,15 @@ elif MERL_CFG["source"] == "local":
 else:
 
     rule synthetic_merl:
-        wildcard_constraints:
-            name=MERL_NAME_RE,
         output:
-            out("merl/{name}.binary"),
+            out("merl/{merl}.binary"),
         params:
             n_materials=MERL_CFG["synthetic"]["count"],
             seed=seed_for("synthetic_merl"),  # as merl_catalog()
         log:
-            log("synthetic_merl/{name}"),
+            log("synthetic_merl/{merl}"),
         benchmark:
-            bench("synthetic_merl/{name}")
+            bench("synthetic_merl/{merl}")
         conda:
             CONDA_ENV
         threads: 1

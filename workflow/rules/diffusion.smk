@@ -272,6 +272,3 @@ rule diffusion_section:
         runtime=20,
     script:
         "../scripts/diffusion_section.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/40_diffusion.md"))

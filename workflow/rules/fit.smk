@@ -114,13 +114,13 @@ rule neumerl_export:
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
     output:
-        out("neumerl/merl/{name}.binary"),
+        out("neumerl/merl/{augmerl}.binary"),
     params:
         activation=FIT["activation"],
     log:
-        log("neumerl_export/{name}"),
+        log("neumerl_export/{augmerl}"),
     benchmark:
-        bench("neumerl_export/{name}")
+        bench("neumerl_export/{augmerl}")
     conda:
         CONDA_ENV
     threads: 1
@@ -140,7 +140,7 @@ rule neumerl_section:
         template=out("neumerl/template.npz"),
         recipe=out("augmerl/recipe.npz"),
         tables=[merl_table(n) for n in MERL_NAMES],
-        exports=expand(out("neumerl/merl/{name}.binary"), name=FIT["export"]),
+        exports=expand(out("neumerl/merl/{augmerl}.binary"), augmerl=FIT["export"]),
     output:
         section=out("report/sections/20_neumerl.md"),
         quality=report(out("report/figures/neumerl_quality.png"), category="NeuMERL"),
@@ -162,6 +162,3 @@ rule neumerl_section:
         runtime=20,
     script:
         "../scripts/neumerl_section.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/20_neumerl.md"))

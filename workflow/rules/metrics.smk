@@ -61,6 +61,3 @@ rule metrics_table:
         runtime=5,
     script:
         "../scripts/metrics_table.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/50_table2.md"))

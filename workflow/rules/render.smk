@@ -66,6 +66,3 @@ rule render_section:
         runtime=15,
     script:
         "../scripts/render_section.py"
-
-
-REPORT_SECTIONS.append(out("report/sections/30_rendering.md"))

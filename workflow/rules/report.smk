@@ -3,7 +3,7 @@
 
 rule report:
     input:
-        sections=sorted(REPORT_SECTIONS),
+        sections=REPORT_SECTIONS,
     output:
         md=out("report/index.md"),
         html=out("report/index.html"),

@@ -3,7 +3,7 @@ from neumat.data import merl_files
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
-    p, name = snakemake.params, snakemake.wildcards.name
+    p, name = snakemake.params, snakemake.wildcards.merl
     log.info("%s/%s.binary -> %s (%s, sha256 %s)", p.local_dir, name, snakemake.output[0],
              "link" if p.link else "copy", p.sha256 or "not checked")
     merl_files.copy_local(p.local_dir, name, snakemake.output[0], p.sha256 or None, p.link)

@@ -6,7 +6,7 @@ from neumat import fit
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
-    name = snakemake.wildcards.name
+    name = snakemake.wildcards.augmerl
     man = pd.read_csv(snakemake.input.manifest, sep="\t", keep_default_na=False)
     hit = np.flatnonzero(man["name"].to_numpy() == name)
     if not len(hit):
