@@ -1,51 +1,18 @@
-"""Material catalogue: MERL names -> type, text description, colour words.
-
-The type is the name without colour words and numeric suffixes ("blue-metallic-paint2" ->
-"metallic-paint"), with three merges that bring the 51 raw stems to the 48 types the M3ashy
-paper uses: neoprene-rubber and pure-rubber -> rubber, ss440 (stainless steel) -> steel.
-The description is the name in words ("blue metallic paint"); colour words are kept separately
-so RGB-permuted copies can drop them (paper §4.4).
-"""
+"""Material catalogue of a run: name, sha256, type, text description and colour words, read from
+config/merl_materials.tsv or made for the synthetic materials. How a name becomes a type and a
+description is in neumat.data.names."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import pandas as pd
 
-COLOUR_WORDS = {
-    "beige", "black", "blue", "brown", "dark", "light", "gold", "green", "gray", "maroon",
-    "orange", "pink", "purple", "red", "silver", "violet", "white", "yellow",
-}
-TYPE_MERGES = {"neoprene-rubber": "rubber", "pure-rubber": "rubber", "ss440": "steel"}
+from neumat.data import synthetic_merl
+from neumat.data.names import (COLOUR_WORDS, TYPE_MERGES, colour_words, description,  # noqa: F401
+                               drop_colours, material_type)
+
 COLUMNS = ["name", "sha256", "type", "description", "colours"]
-
-
-def material_type(name: str) -> str:
-    """'blue-metallic-paint2' -> 'metallic-paint'; 'cherry-235' -> 'cherry'."""
-    if name in TYPE_MERGES:
-        return TYPE_MERGES[name]
-    words = [w for w in name.split("-") if w not in COLOUR_WORDS and not w.isdigit()]
-    stem = "-".join(words)
-    return TYPE_MERGES.get(stem, re.sub(r"(?<=[a-z])\d+$", "", stem))
-
-
-def colour_words(name: str) -> list[str]:
-    return [w for w in name.split("-") if w in COLOUR_WORDS]
-
-
-def description(name: str) -> str:
-    """'blue-metallic-paint2' -> 'blue metallic paint' (numbers dropped)."""
-    words = [re.sub(r"\d+$", "", w) for w in name.split("-")]
-    return " ".join(w for w in words if w)
-
-
-def drop_colours(text: str, colours: list[str] | str) -> str:
-    """Remove colour words from a description ('red metallic paint' -> 'metallic paint')."""
-    if isinstance(colours, str):
-        colours = colours.split() if colours else []
-    return " ".join(w for w in text.split() if w not in set(colours))
 
 
 def build_catalog(checksums_tsv: str | Path) -> pd.DataFrame:
@@ -82,8 +49,6 @@ def load_catalog(path: str | Path, subset=(), sha256_override=None) -> pd.DataFr
 
 def synthetic_catalog(count: int, seed: int) -> pd.DataFrame:
     """Catalogue of the analytic stand-in materials (merl.source = synthetic)."""
-    from neumat.data import synthetic_merl
-
     specs = synthetic_merl.make_specs(count, seed)
     return pd.DataFrame({
         "name": [s.name for s in specs],

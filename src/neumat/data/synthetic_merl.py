@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from neumat.data.catalog import COLOUR_WORDS, material_type
+from neumat.data.names import COLOUR_WORDS, material_type
 from neumat.io import merl
 
 RGB = tuple[float, float, float]
