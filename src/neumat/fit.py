@@ -35,7 +35,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
 
@@ -44,6 +43,7 @@ import torch
 
 from neumat import fit_kernel, nbrdf
 from neumat.io import merl
+from neumat.io.atomic import save_npz as _save_npz  # module attribute: tests patch it
 
 log = logging.getLogger(__name__)
 BETAS, EPS = (0.9, 0.999), 1e-8  # Adam, torch.optim.Adam defaults
@@ -393,13 +393,6 @@ def fit(values, bins, ids, init, settings: FitSettings, seed: int, device="cpu",
 # ----------------------------------------------------------------------------- shards
 
 
-def _save_npz(path: Path, **arrays):
-    """Atomic np.savez: a temporary name, then rename."""
-    tmp = path.with_name(path.name + ".part.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, path)
-
-
 def fingerprint(settings: FitSettings, seed: int, ids, init, kernel: str) -> str:
     """Identifies a fitting job; a checkpoint with another fingerprint is not resumed."""
     h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed, SAMPLING_VERSION,
@@ -467,113 +460,9 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
                 seconds=np.float64(t_prev + time.perf_counter() - t0))
 
 
-def save_fits(path: str | Path, result: dict) -> None:
-    """Write a `fit_many` result atomically (`neumerl/shards/NNN.npz`, `neumerl/template.npz`)."""
-    _save_npz(Path(path), **result)
-
-
-def load_fits(path: str | Path) -> dict[str, np.ndarray]:
-    with np.load(path) as z:
-        d = {k: z[k] for k in z.files}
-    missing = {"ids", "weights", "train_loss", "val_loss"} - set(d)
-    if missing or d["weights"].shape != (len(d["ids"]), nbrdf.N_PARAMS):
-        raise ValueError(f"{path}: not a fit result (missing {sorted(missing)} or bad weights shape)")
-    return d
-
-
-# ----------------------------------------------------------------------------- evaluation / export
-
-
-def export_merl(weights, path: str | Path, activation: str = "relu") -> None:
-    """One fitted field (675,) -> MERL .binary (evaluated at the 90x90x180 bin centres)."""
-    w = torch.as_tensor(np.asarray(weights, dtype=np.float32)).reshape(1, nbrdf.N_PARAMS)
-    merl.write_merl(path, nbrdf.evaluate_grid(w, activation)[0])
-
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """PSNR (dB, peak 1) per image of two batches (B, H, W, C) of values in [0, 1]."""
-    d2 = (np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2
-    mse = d2[:, mask].mean((1, 2)) if mask is not None else d2.mean((1, 2, 3))
-    return 10 * np.log10(1.0 / np.maximum(mse, 1e-20))
-
-
-def display(img) -> np.ndarray:
-    """Linear HDR renders -> display values in [0, 1] (the metric renderer's sRGB tone map)."""
-    from neumat.render import sphere
-    x = img.numpy() if torch.is_tensor(img) else np.asarray(img)
-    return sphere.srgb_encode(x * 2.0 ** sphere.EXPOSURE)
-
-
-def render_psnr(weights, tables=None, resolution: int = 128, activation: str = "relu",
-                device: str = "cpu", view_values=None) -> np.ndarray:
-    """Render PSNR of fitted fields (B, 675) against their tabulated materials in the fixed
-    metric view (`neumat.render.sphere`): sRGB display values, sphere pixels only. The
-    materials are full tables (B, 3, 90, 90, 180) or, cheaper, `view_values` (B, 3, N): their
-    values at `sphere.sphere_view(resolution).bins`."""
-    from neumat.render import sphere
-    fit_img = display(sphere.render_fields(weights, resolution, activation, device))
-    ref_img = display(sphere.render_tables(tables, resolution, device) if view_values is None
-                      else sphere.render_view_values(view_values, resolution, device))
-    mask = sphere.sphere_view(resolution, str(device)).mask.cpu().numpy()
-    return psnr(fit_img, ref_img, mask)
-
-
-# ----------------------------------------------------------------------------- NeuMERL merge
-
-
-def merge_fits(fits: list[dict], evals: list, manifest) -> tuple[np.ndarray, "pd.DataFrame"]:
-    """Shard fit results + render-PSNR tables -> (weights (N, 675) float32 in manifest order,
-    fit table with columns id, name, train_loss, val_loss, render_psnr)."""
-    import pandas as pd
-
-    ids = np.concatenate([f["ids"] for f in fits])
-    want = manifest["id"].to_numpy()
-    if len(ids) != len(set(ids.tolist())) or set(ids.tolist()) != set(want.tolist()):
-        missing = sorted(set(want.tolist()) - set(ids.tolist()))[:5]
-        raise ValueError(f"shard fits do not cover the manifest exactly once (missing e.g. "
-                         f"{missing}, {len(ids)} fits for {len(want)} materials)")
-    pos = {int(i): k for k, i in enumerate(ids)}
-    order = np.array([pos[int(i)] for i in want])
-    psnr = pd.concat(evals).set_index("id")["render_psnr"]
-    table = pd.DataFrame({
-        "id": want, "name": manifest["name"].to_numpy(),
-        "train_loss": np.concatenate([f["train_loss"] for f in fits])[order],
-        "val_loss": np.concatenate([f["val_loss"] for f in fits])[order],
-        "render_psnr": psnr.reindex(want).to_numpy()})
-    if table["render_psnr"].isna().any():
-        raise ValueError(f"no render PSNR for ids {table.loc[table['render_psnr'].isna(), 'id'].tolist()[:5]}")
-    weights = np.concatenate([f["weights"] for f in fits])[order].astype(np.float32)
-    return weights, table
-
-
-def save_npy(path: str | Path, array: np.ndarray) -> None:
-    """Atomic np.save."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".part.npy")
-    np.save(tmp, array)
-    os.replace(tmp, path)
-
-
-def plot_fit_quality(render_psnr, val_loss, steps, val_history, path: str | Path) -> None:
-    """Report figure: histograms of render PSNR and val loss, and the val-loss curves
-    (median and 10-90 % band over materials, (k, N) history at `steps`)."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 3, figsize=(12, 3.2))
-    ax[0].hist(render_psnr, bins=30, color="tab:blue")
-    ax[0].axvline(np.median(render_psnr), color="k", ls="--", label="median")
-    ax[0].set(xlabel="render PSNR (dB)", ylabel="materials", title="render PSNR vs table")
-    ax[0].legend()
-    v = np.asarray(val_loss)
-    ax[1].hist(v, bins=np.geomspace(max(v.min(), 1e-6), max(v.max(), 2e-6), 30), color="tab:orange")
-    ax[1].set(xscale="log", xlabel="validation loss (eq. 2)", title="validation loss")
-    h = np.asarray(val_history)
-    if len(steps):
-        ax[2].fill_between(steps, np.percentile(h, 10, 1), np.percentile(h, 90, 1), alpha=0.3)
-        ax[2].plot(steps, np.median(h, 1), marker=".")
-    ax[2].set(yscale="log", xlabel="step", ylabel="val loss", title="median, 10-90 % band")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+# Evaluation, results on disk, merging and plots live in their own modules; their names stay
+# importable from here (`from neumat import fit; fit.load_fits(...)`).
+from neumat.fit_eval import display, export_merl, psnr, render_psnr  # noqa: E402,F401
+from neumat.fit_merge import load_fits, merge_fits, save_fits  # noqa: E402,F401
+from neumat.fit_plots import plot_fit_quality  # noqa: E402,F401
+from neumat.io.atomic import save_npy  # noqa: E402,F401

@@ -1,0 +1,23 @@
+"""Atomic writes: a temporary name beside the target, then os.replace, so a killed job never
+leaves a truncated output or checkpoint behind."""
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+
+def save_npz(path: str | Path, **arrays) -> None:
+    """Atomic np.savez."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def save_npy(path: str | Path, array: np.ndarray) -> None:
+    """Atomic np.save."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part.npy")
+    np.save(tmp, array)
+    os.replace(tmp, path)
