@@ -9,7 +9,8 @@ rule augmerl_pca:
         recipe=out("augmerl/recipe.npz"),
     params:
         catalog=MERL.to_dict("records"),
-        cfg=config["augmerl"],
+        cfg=settings("augmerl", ["permutations", "size", "test_fraction", "pca_dims", "bins",
+                                 "shard_size"]),
         seed=seed_for("augmerl"),
     log:
         log("augmerl_pca"),
@@ -86,7 +87,6 @@ rule dataset_section:
         out("report/sections/10_dataset.md"),
     params:
         source=config["merl"]["source"],
-        cfg=config["augmerl"],
     log:
         log("dataset_section"),
     benchmark:

@@ -36,9 +36,7 @@ else:
         params:
             url=lambda w: UBO["url"].format(name=w.material, **UBO_CAT.loc[w.material]),
             local_dir=UBO["local_dir"] if UBO["source"] == "local" else None,
-            link=UBO["link"],
             lock_file=UBO["lock_file"],
-            retries=UBO["retries"],
         log:
             log("ubo2014_fetch/{material}"),
         benchmark:
@@ -92,7 +90,7 @@ rule btf_eval:
         methods=BTF["methods"],
         roi=lambda w: btf_roi(w.material),
         pairs=BTF["eval_pairs"],
-        tiling=BTF["tiling"],
+        tiling=canon(BTF["tiling"]),
     log:
         log("btf_eval/{material}"),
     benchmark:

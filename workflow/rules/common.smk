@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import pandas as pd
+import yaml
 
 # The library lives in src/; make it importable for DAG-time helpers even without `pip install -e`.
 SRC = str(Path(workflow.basedir) / "src")
@@ -29,6 +30,65 @@ def seed_for(stage, *items):
         with open(os.environ["NEUMAT_SEED_LOG"], "a") as f:
             f.write("\t".join(map(str, (stage, *items, seed))) + "\n")
     return seed
+
+
+# ----------------------------------------------------------------------------- params by value
+# Snakemake compares a rule's params as repr() text: {"a": 1, "b": 2} and {"b": 2, "a": 1} differ,
+# and so do 1 and 1.0. Numbers typed `number` in the schema become floats here, and params that
+# hold several keys go through canon() (keys sorted at every level). Speed-only keys
+# (config/speed_keys.yaml) never enter params: scripts read them from snakemake.config.
+
+
+def _floats_where_numbers(node, schema):
+    """Config with integers given for `type: number` keys turned into floats (1 -> 1.0)."""
+    props = schema.get("properties", {})
+    for k, v in (node.items() if isinstance(node, dict) else ()):
+        sub = props.get(k, {})
+        types = sub.get("type", [])
+        types = [types] if isinstance(types, str) else types
+        if "number" in types and "integer" not in types and type(v) is int:
+            node[k] = float(v)
+        elif isinstance(v, dict):
+            _floats_where_numbers(v, sub)
+
+
+_floats_where_numbers(config, yaml.safe_load(open(Path(workflow.basedir) / "config/schema.yaml")))
+_KEY_KINDS = yaml.safe_load(open(Path(workflow.basedir) / "config/speed_keys.yaml"))
+SPEED_KEYS = set(_KEY_KINDS["speed"])  # never params
+COSMETIC_KEYS = set(_KEY_KINDS["cosmetic"])  # params of report/figure rules only
+
+
+def canon(value):
+    """A params value compared by value: every dict's keys sorted, at every level."""
+    if isinstance(value, dict):
+        return {k: canon(value[k]) for k in sorted(value)}
+    if isinstance(value, (list, tuple)):
+        return [canon(v) for v in value]
+    return value
+
+
+def settings(section, keys=None, drop=()):
+    """Params value of config `section` ("fit", "diffusion.sample"): its `keys` (default all)
+    minus `drop`, without speed-only and (unless listed in `keys`) cosmetic keys, at any depth,
+    canonical."""
+    node = config
+    for part in section.split("."):
+        node = node[part]
+
+    chosen = {k: node[k] for k in (keys or node) if k not in drop}
+    keep = {f"{section}.{k}" for k in keys or ()}  # cosmetic keys asked for by name stay
+    return canon(substantive(chosen, section, keep))
+
+
+def substantive(d, path="", keep=()):
+    """`d` (config or a section at `path`) without speed-only and cosmetic keys, at any depth."""
+    out = {}
+    for k, v in d.items():
+        key = f"{path}.{k}" if path else k
+        if key in SPEED_KEYS or (key in COSMETIC_KEYS and key not in keep):
+            continue
+        out[k] = substantive(v, key, keep) if isinstance(v, dict) else v
+    return out
 
 
 def out(path):
@@ -210,4 +270,5 @@ def btf_seed(name, method):
 
 def _btf_fit_rule_params(method):
     return dict(method=method, roi=lambda w: btf_roi(w.material),
-                seed=lambda w: btf_seed(w.material, method), settings=BTF.get(method, {}))
+                seed=lambda w: btf_seed(w.material, method),
+                settings=settings(f"btf.{method}") if method in BTF else {})

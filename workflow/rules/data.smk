@@ -14,7 +14,6 @@ if MERL_CFG["source"] == "download":
         params:
             url=lambda w: MERL_CFG["url"].format(name=w.merl),
             sha256=merl_expected_sha256,
-            retries=MERL_CFG["retries"],
         log:
             log("download_merl/{merl}"),
         benchmark:
@@ -39,7 +38,6 @@ elif MERL_CFG["source"] == "local":
             merl_checked("resources/merl_local/{merl}.binary"),
         params:
             local_dir=MERL_CFG["local_dir"],
-            link=MERL_CFG["link"],
             sha256=merl_expected_sha256,
         log:
             log("local_merl/{merl}"),

@@ -24,10 +24,9 @@ rule train_diffusion:
         model=out("diffusion/{model}/model.pt"),
         history=out("diffusion/{model}/history.tsv"),
     params:
-        cfg={k: DIFF[k] for k in ("model", "schedule", "train")},
+        cfg=settings("diffusion", ["model", "schedule", "train"]),  # not train.checkpoint_every
         class_names=DIFF_CLASSES,
         seed=seed_for("train_diffusion"),
-        device=config["device"],
         checkpoint=out("diffusion/{model}/checkpoint.pt"),
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
@@ -55,10 +54,9 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
+        cfg={"sample": settings("diffusion.sample", drop=["guidance"])},  # unguided
         mode="uncond",
         seed=seed_for("sample_uncond"),
-        device=config["device"],
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
     log:
@@ -84,10 +82,9 @@ rule sample_type:
         table=out("samples/ours_type/samples.tsv"),
         timing=out("samples/ours_type/timing.tsv"),
     params:
-        cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
+        cfg=settings("diffusion", ["sample", "types", "per_type"]),
         mode="type",
         seed=seed_for("sample_type"),
-        device=config["device"],
     log:
         log("sample_type"),
     benchmark:
@@ -216,7 +213,7 @@ rule diffusion_mitsuba:
         types=report(out("report/figures/diffusion_mitsuba_types.png"), category="Diffusion"),
         info=out("render/mitsuba/diffusion.json"),
     params:
-        cfg=config["render"]["mitsuba"],
+        cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
         n_samples=DIFF["gallery_count"],
         n_types=DIFF["gallery_types"],
         per_type=DIFF["per_type"],
@@ -256,10 +253,10 @@ rule diffusion_section:
                                category="Diffusion"),
         types=report(out("report/figures/diffusion_types.png"), category="Diffusion"),
     params:
-        cfg=DIFF,
+        cfg=settings("diffusion", ["model", "schedule", "train", "sample", "per_type", "gallery_types",
+                                   "gallery_count", "explode_factor"]),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
-        device=config["device"],
     log:
         log("diffusion_section"),
     benchmark:

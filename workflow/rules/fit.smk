@@ -3,6 +3,9 @@
 #   (render PSNR per shard) -> neumerl (merge) -> neumerl_section; neumerl_export -> .binary
 
 FIT = config["fit"]
+# what a fit's result depends on (fit.threads, materials_per_batch, checkpoint_every: speed only)
+FIT_SETTINGS = settings("fit", ["steps", "template_steps", "lr", "lr_final", "batch", "activation",
+                                "mirror_phi_d", "val_fraction", "eval_every", "eval_bins", "kernel"])
 FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch order
 
 
@@ -12,9 +15,8 @@ rule fit_template:
     output:
         out("neumerl/template.npz"),
     params:
-        cfg=FIT,
+        cfg=FIT_SETTINGS,
         seed=FIT_SEED,
-        device=config["device"],
         checkpoint=out("neumerl/checkpoints/template.npz"),
     log:
         log("fit_template"),
@@ -38,9 +40,8 @@ rule fit_shard:
     output:
         out("neumerl/shards/{shard}.npz"),
     params:
-        cfg=FIT,
+        cfg=FIT_SETTINGS,
         seed=FIT_SEED,
-        device=config["device"],
         checkpoint=out("neumerl/checkpoints/{shard}.npz"),
     wildcard_constraints:
         shard=r"\d{3}",
@@ -69,7 +70,6 @@ rule fit_eval:
     params:
         resolution=FIT["render_resolution"],
         activation=FIT["activation"],
-        device=config["device"],
     wildcard_constraints:
         shard=r"\d{3}",
     log:
@@ -147,9 +147,9 @@ rule neumerl_section:
         best=report(out("report/figures/neumerl_best.png"), category="NeuMERL"),
         worst=report(out("report/figures/neumerl_worst.png"), category="NeuMERL"),
     params:
-        cfg=FIT,
+        cfg=settings("fit", ["report_examples", "activation", "batch", "lr", "lr_final", "steps",
+                             "template_steps", "val_fraction", "render_resolution"]),
         resolution=config["report"]["sphere_resolution"],
-        device=config["device"],
     log:
         log("neumerl_section"),
     benchmark:

@@ -20,7 +20,6 @@ rule metrics:
         brdf_samples=METRICS["brdf_samples"],
         inception_weights=METRICS["inception_weights"],
         activation=config["fit"]["activation"],
-        device=config["device"],
         seed=METRICS_SEED,
     log:
         log("metrics/{model}"),

@@ -18,7 +18,7 @@ rule mitsuba_figure:
     wildcard_constraints:
         scene="|".join(MITSUBA_SCENES),
     params:
-        cfg=RENDER["mitsuba"],
+        cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size", "materials"]),
         activation=config["fit"]["activation"],
         seed=seed_for("mitsuba_figure"),
     log:

@@ -9,7 +9,7 @@ rule report:
         html=out("report/index.html"),
     params:
         run=RUN,
-        config=config,
+        config=canon(substantive(config, keep=COSMETIC_KEYS)),  # speed-only keys left out
     log:
         log("report"),
     benchmark:

@@ -5,5 +5,8 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    fit.fit_method(p.method, snakemake.input[0], snakemake.output[0], p.settings, p.seed,
+    # checkpoint_every is speed-only (config/speed_keys.yaml): from the config, not params
+    ck = snakemake.config["btf"].get(p.method, {}).get("checkpoint_every")
+    settings = {**p.settings, **({"checkpoint_every": ck} if ck is not None else {})}
+    fit.fit_method(p.method, snakemake.input[0], snakemake.output[0], settings, p.seed,
                    roi=p.roi)

@@ -11,7 +11,6 @@ with script_logging(snakemake) as log:
     man = pd.read_csv(snakemake.input.manifest, sep="\t", keep_default_na=False)
     recipe = np.load(snakemake.input.recipe)
     shard_bytes = sum(Path(s).stat().st_size for s in snakemake.input.shards)
-    cfg = snakemake.params.cfg
     ops = man.groupby(["operation", "split"]).size().unstack(fill_value=0)
     types = man[man["type"] != ""].groupby("type").size().sort_values(ascending=False)
     pca = pd.DataFrame({"split": recipe["pca_split"], "PCA dims": recipe["pca_k"],

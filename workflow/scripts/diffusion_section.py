@@ -27,7 +27,7 @@ def sets_by_name(paths, kind):
 
 def render(w, p):
     return sphere.tonemap(sphere.render_fields(np.nan_to_num(w), p.resolution, p.activation,
-                                               str(resolve_device(p.device))))
+                                               str(resolve_device(snakemake.config["device"]))))
 
 
 def gallery(samples, near, weights, n, p, path, title):

@@ -12,7 +12,7 @@ with script_logging(snakemake) as log:
     fits = fit.load_fits(snakemake.input.fits)
     paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in snakemake.input.tables}
     aug = augment.AugMERL(snakemake.input.recipe, paths)
-    device = str(resolve_device(p.device))
+    device = str(resolve_device(snakemake.config["device"]))
     # the reference renders need each material only at the view's bins, not as a full table
     view_bins = sphere.sphere_view(p.resolution, device).bins.cpu().numpy()
     psnr = np.concatenate([

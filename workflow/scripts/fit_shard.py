@@ -11,10 +11,12 @@ with script_logging(snakemake) as log:
     p = snakemake.params
     shard = augment.load_shard(snakemake.input.shard)
     template = fit.load_fits(snakemake.input.template)["weights"][0]
-    settings = fit.FitSettings.from_config(p.cfg)
+    # params hold what changes the result; speed-only keys come from the config (speed_keys.yaml)
+    speed = {k: snakemake.config["fit"][k] for k in ("materials_per_batch", "checkpoint_every")}
+    settings = fit.FitSettings.from_config({**p.cfg, **speed})
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     res = fit.fit_many(shard["values"], shard["bins"], shard["ids"], template, settings, p.seed,
-                       resolve_device(p.device), checkpoint=p.checkpoint)
+                       resolve_device(snakemake.config["device"]), checkpoint=p.checkpoint)
     fit.save_fits(snakemake.output[0], res)
     Path(p.checkpoint).unlink(missing_ok=True)
     log.info("shard %s: %d materials, median val loss %.4g (max %.4g), %.1f s",

@@ -16,11 +16,13 @@ with script_logging(snakemake) as log:
     if not len(hit):
         raise ValueError(f"{snakemake.input.shard}: holds no material with manifest id 0")
     k = slice(hit[0], hit[0] + 1)
-    settings = fit.FitSettings.from_config(p.cfg, "template_steps")
+    # params hold what changes the result; speed-only keys come from the config (speed_keys.yaml)
+    speed = {k: snakemake.config["fit"][k] for k in ("materials_per_batch", "checkpoint_every")}
+    settings = fit.FitSettings.from_config({**p.cfg, **speed}, "template_steps")
     init = nbrdf.init_weights(1, torch.Generator().manual_seed(p.seed)).numpy()
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     res = fit.fit_many(shard["values"][k], shard["bins"], shard["ids"][k], init, settings,
-                       p.seed, resolve_device(p.device), checkpoint=p.checkpoint)
+                       p.seed, resolve_device(snakemake.config["device"]), checkpoint=p.checkpoint)
     fit.save_fits(snakemake.output[0], res)
     Path(p.checkpoint).unlink(missing_ok=True)
     log.info("template (id 0): train loss %.4g, val loss %.4g, %d steps in %.1f s",

@@ -21,7 +21,7 @@ def inception(path, device, log):
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    device = str(resolve_device(p.device))
+    device = str(resolve_device(snakemake.config["device"]))
     ref, smp = (np.load(f) for f in (snakemake.input.reference, snakemake.input.samples))
     log.info("%s: %d samples vs %d references", snakemake.wildcards.model, len(smp), len(ref))
     model, reason = inception(p.inception_weights, device, log)

@@ -13,7 +13,7 @@ from neumat.render.gallery import gallery
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
-    cfg, dev = p.cfg, str(resolve_device(p.device))
+    cfg, dev = p.cfg, str(resolve_device(snakemake.config["device"]))
     fits = pd.read_csv(inp.fits, sep="\t", keep_default_na=False)
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     fits = fits.merge(man[["id", "operation", "split"]], on="id")
@@ -53,7 +53,7 @@ with script_logging(snakemake) as log:
         f"**{len(fits)}** NBRDF fields (6-21-21-3, 675 weights, {cfg['activation']}), one per "
         f"AugMERL material, fitted with the eq. 2 loss (mean absolute log error of f cos θi), "
         f"Adam, batch {cfg['batch']}, lr {cfg['lr']:g} → {cfg['lr_final']:g} (cosine), "
-        f"{cfg['steps']} steps, {cfg['materials_per_batch']} materials per batched model, "
+        f"{cfg['steps']} steps, "
         f"{1 - cfg['val_fraction']:.0%}/{cfg['val_fraction']:.0%} train/val split of each "
         f"material's stored bins. Every fit starts from the template (manifest id 0, "
         f"{cfg['template_steps']} steps, val loss {template['val_loss'][0]:.4g}).",

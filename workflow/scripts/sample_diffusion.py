@@ -12,7 +12,7 @@ from neumat.logs import script_logging
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
     s = p.cfg["sample"]
-    sampler = Sampler(snakemake.input.model, p.device)
+    sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
     if p.mode == "uncond":
         n, types, guidance = len(dataset.reference_rows(man)), None, 1.0

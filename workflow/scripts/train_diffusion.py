@@ -16,12 +16,13 @@ with script_logging(snakemake) as log:
     labels = dataset.labels(man["type"].iloc[rows], p.class_names)
     log.info("model %s: %d training materials (%d typed), %d classes", model, len(rows),
              int((labels >= 0).sum()), len(p.class_names))
-    cfg = p.cfg
+    cfg, c = p.cfg, snakemake.config["diffusion"]  # c: speed-only keys (checkpoint_every)
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     bundle = train(weights[rows], labels, p.class_names,
                    DenoiserConfig(**cfg["model"], n_classes=len(p.class_names)),
-                   ScheduleConfig(**cfg["schedule"]), TrainConfig(**cfg["train"]),
-                   snakemake.output.model, p.checkpoint, p.seed, p.device)
+                   ScheduleConfig(**cfg["schedule"]),
+                   TrainConfig(**cfg["train"], checkpoint_every=c["train"]["checkpoint_every"]),
+                   snakemake.output.model, p.checkpoint, p.seed, snakemake.config["device"])
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)
