@@ -42,6 +42,19 @@ def permute(table: np.ndarray, perm: str) -> np.ndarray:
 # ----------------------------------------------------------------------------- plan
 
 
+def check_split(names: list[str], test_fraction: float, what: str = "merl.subset") -> None:
+    """DAG-time check: the run needs a train and a test split of its source materials
+    (split_sources gives each at least one when test_fraction > 0)."""
+    if test_fraction <= 0:
+        raise ValueError(f"config augmerl.test_fraction = {test_fraction}: must be > 0 (the "
+                         "test split is Table 2's reference set)")
+    if len(names) < 2:
+        raise ValueError(
+            f"config {what}: {len(names)} material(s) {list(names)} with augmerl.test_fraction = "
+            f"{test_fraction} leave no train/test split; at least 2 source materials are needed "
+            "(one for training, one for the test split)")
+
+
 def split_sources(names: list[str], test_fraction: float, seed: int) -> dict[str, str]:
     """Assign each source material to train/test (at least one of each when test_fraction > 0)."""
     rng = np.random.default_rng(seed)
@@ -106,16 +119,21 @@ def build_manifest(rows: pd.DataFrame, pairs, shard_size: int) -> pd.DataFrame:
 # ----------------------------------------------------------------------------- PCA
 
 
-def load_log_tables(paths: list[str | Path]):
+def load_log_tables(paths: list[str | Path], negative: dict | None = None):
     """Read source tables -> (log1p values (M, 3, V) float32, valid flat bin indices (V,)).
 
     Valid = above the horizon at the bin centre and non-negative in every table. Tables are
-    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB."""
+    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB. With a
+    `negative` dict, each table is checked (merl.check_negative: a warning with the count, an
+    error for far more negative bins than real MERL tables have) and its count stored there."""
     geo = np.flatnonzero(merl.valid_mask())
     keep = np.ones(len(geo), dtype=bool)
     logs = []
     for p in paths:
-        t = merl.read_merl(p).reshape(3, -1)[:, geo]
+        t = merl.read_merl(p).reshape(3, -1)
+        if negative is not None:
+            negative[str(p)] = merl.check_negative(p, t)
+        t = t[:, geo]
         keep &= (t >= 0).all(0)
         logs.append(np.log1p(np.maximum(t, 0)).astype(np.float32))
     return np.stack(logs)[:, :, keep], geo[keep]

@@ -26,9 +26,8 @@ if UBO["source"] == "synthetic":
             "../scripts/synthetic_btf.py"
 
 else:
-    if UBO["source"] == "local" and not UBO["local_dir"]:
-        raise ValueError("config ubo2014.local_dir must name the directory of the .btf files "
-                         "when ubo2014.source is local")
+    if UBO["source"] == "local":  # fail when the DAG is built, naming the files
+        _ubo2014.check_local_dir(UBO["local_dir"], [f"{n}{BTF_SUFFIX}" for n in BTF_NAMES])
 
     rule ubo2014_fetch:
         output:

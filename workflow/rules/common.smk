@@ -117,6 +117,11 @@ def merl_catalog():
 
 MERL = merl_catalog()
 MERL_NAMES = list(MERL["name"])
+from neumat import augment as _augment  # noqa: E402
+
+_augment.check_split(MERL_NAMES, config["augmerl"]["test_fraction"],
+                     "merl.synthetic.count" if config["merl"]["source"] == "synthetic"
+                     else "merl.subset")
 _MERL_SHA256 = dict(zip(MERL["name"], MERL["sha256"]))
 
 

@@ -19,12 +19,14 @@ with script_logging(snakemake) as log:
     manifest = augment.build_manifest(rows, pairs, cfg["shard_size"])
     log.info("%d sources -> %d rows + %d interpolations", len(names), len(rows), len(pairs))
 
-    logs, valid = augment.load_log_tables(snakemake.input.tables)
+    negative = {}  # per table: warned in this log and shown in the report, refused if far too many
+    logs, valid = augment.load_log_tables(snakemake.input.tables, negative)
     log.info("%d bins valid in every source table", len(valid))
     recipe = augment.build_recipe(manifest, rows, pairs, logs, names, cfg["pca_dims"])
     bins = augment.choose_bins(valid, cfg["bins"], seed)
     stats = recipe.pop("pca_stats")
     np.savez(snakemake.output.recipe, bins=bins, valid_bins=valid,
              pca_split=np.array(sorted(stats)), pca_k=np.array([stats[s][0] for s in sorted(stats)]),
-             pca_explained=np.array([stats[s][1] for s in sorted(stats)]), **recipe)
+             pca_explained=np.array([stats[s][1] for s in sorted(stats)]),
+             negative_bins=np.array([negative[str(t)] for t in snakemake.input.tables]), **recipe)
     manifest.to_csv(snakemake.output.manifest, sep="\t", index=False)

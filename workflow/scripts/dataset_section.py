@@ -5,7 +5,24 @@ import numpy as np
 import pandas as pd
 
 from neumat import report
+from neumat.io import merl
 from neumat.logs import script_logging
+
+
+def negative_bins_note(recipe, man):
+    """A warning paragraph for source tables with more negative bins than real MERL tables."""
+    if "negative_bins" not in recipe.files:
+        return []
+    counts = recipe["negative_bins"]
+    n = int(merl.valid_mask().sum())
+    sources = list(man.loc[man["operation"] == "original", "name"])
+    bad = [(s, int(c)) for s, c in zip(sources, counts) if c > merl.WARN_NEGATIVE_SHARE * n]
+    if not bad:
+        return []
+    listed = ", ".join(f"{s}: {c:,} ({c / n:.2%})" for s, c in bad)
+    return [f"**Warning**: {len(bad)} source table(s) have many negative above-horizon bins, "
+            f"left out of every material: {listed} (real MERL tables: 0.0041 %)."]
+
 
 with script_logging(snakemake) as log:
     man = pd.read_csv(snakemake.input.manifest, sep="\t", keep_default_na=False)
@@ -24,6 +41,7 @@ with script_logging(snakemake) as log:
         f"{shard_bytes / 1e6:.1f} MB on disk).",
         "Splits are by source material; interpolation pairs never cross splits and each split "
         "has its own PCA.",
+        *negative_bins_note(recipe, man),
         "### Materials per operation and split", report.md_table(ops.reset_index()),
         "### PCA", report.md_table(pca),
         f"### Materials per type ({len(types)} types; interpolations carry none)",

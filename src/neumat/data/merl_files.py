@@ -59,7 +59,7 @@ def verify(path: str | os.PathLike, sha256: str | None = None, name: str | None 
                     f"{name}: sha256 mismatch: expected {sha256.lower()}, got {actual} ({kept}). "
                     "If the file is right and the pinned value is not, set "
                     f"merl.sha256_override: {{{Path(name).stem}: {actual}}}")
-        merl.read_merl(path)
+        merl.check_negative(name, merl.read_merl(path))  # many negative bins: refused
     except (ChecksumError, merl.MerlFormatError) as e:
         if remove_bad:
             path.unlink(missing_ok=True)

@@ -74,6 +74,19 @@ def verify_or_record(path, name: str, lock_file) -> str:
     return digest
 
 
+def check_local_dir(local_dir, files: list[str]) -> None:
+    """DAG-time check of ubo2014.local_dir (source local): set, and holding every file."""
+    if not local_dir:
+        raise ValueError("config ubo2014.local_dir must name the directory of the .btf files "
+                         "when ubo2014.source is local")
+    d = Path(local_dir)
+    missing = [str(d / f) for f in files if not (d / f).is_file()]
+    if missing:
+        raise FileNotFoundError(
+            f"config ubo2014.local_dir: {len(missing)} of {len(files)} BTF files not found: "
+            f"{', '.join(missing)} (copy them there, or change ubo2014.materials)")
+
+
 def fetch(name: str, out, *, url: str | None = None, local_dir=None, link=False,
           lock_file, retries: int = 3, expect=(400, 400, 151)) -> None:
     """Download (url) or copy (local_dir) one material to `out`, verified; the output only

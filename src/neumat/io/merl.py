@@ -9,10 +9,14 @@ Tables in memory are float arrays of shape (3, 90, 90, 180) holding the *physica
 
 from __future__ import annotations
 
+import functools
+import logging
 import os
 from pathlib import Path
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 N_TH, N_TD, N_PD = 90, 90, 180
 N_BINS = N_TH * N_TD * N_PD
@@ -91,6 +95,44 @@ def valid_mask() -> np.ndarray:
     """Bins whose centre has both directions above the horizon, flat bool (N_BINS,)."""
     wi, wo = half_diff_to_dirs(*grid_angles())
     return (wi[:, 2] > 0) & (wo[:, 2] > 0)
+
+
+# Negative above-horizon bins: AugMERL drops such a bin from every material. Real MERL tables
+# store -1 below the horizon only; measured on the 100 published NBRDF fits decoded to MERL
+# (benchmarks/merl_negative_bins.py), each has 45 of 1,096,216 (0.0041 %): bins whose centre is
+# above the horizon but whose lower edge is not. Above WARN a table gets a warning with the
+# count (~12x the real share); above MAX (~240x) it is refused.
+WARN_NEGATIVE_SHARE = 0.0005
+MAX_NEGATIVE_SHARE = 0.01
+
+
+def negative_bins(table: np.ndarray) -> tuple[int, int]:
+    """(negative, total) counts over the above-horizon bins (valid_mask) of a table
+    (3, 90, 90, 180) or (3, N_BINS); a bin is negative when any channel is."""
+    t = np.asarray(table).reshape(3, -1)[:, _valid_flat()]
+    return int((t < 0).any(0).sum()), t.shape[1]
+
+
+@functools.cache
+def _valid_flat() -> np.ndarray:
+    return np.flatnonzero(valid_mask())
+
+
+def check_negative(path, table: np.ndarray, max_share: float = MAX_NEGATIVE_SHARE) -> int:
+    """Negative above-horizon bins of the table read from `path`; logs a warning with the count
+    above WARN_NEGATIVE_SHARE, raises MerlFormatError naming the file and the share above
+    `max_share`."""
+    count, n = negative_bins(table)
+    if count > WARN_NEGATIVE_SHARE * n:
+        log.warning("%s: %d of %d above-horizon bins (%.3f %%) are negative; AugMERL leaves them "
+                    "out of every material", path, count, n, 100 * count / n)
+    if count > max_share * n:
+        raise MerlFormatError(
+            f"{path}: {count / n:.1%} of its above-horizon bins are negative ({count} of {n}); "
+            f"real MERL tables have 0.0041 %, the limit is {max_share:.0%} "
+            "(neumat.io.merl.MAX_NEGATIVE_SHARE). A sign-flipped or corrupt table? Replace it, "
+            "or leave the material out with merl.subset.")
+    return count
 
 
 def angles_to_index(theta_h, theta_d, phi_d):

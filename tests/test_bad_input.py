@@ -1,0 +1,98 @@
+"""Bad input fails with a clear message before any job runs (or, for tables only readable by a
+job, as soon as the table is read), naming the key or file and what to do."""
+
+import logging
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from neumat import augment
+from neumat.data import catalog, merl_files
+from neumat.io import merl
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
+    for item in ("Snakefile", "workflow", "config", "src"):
+        src = ROOT / item
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, tmp_path / item)
+    (tmp_path / "extra.yaml").write_text(yaml.safe_dump(extra))
+    res = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "report", "--dry-run",
+                          "--configfile", base, "extra.yaml"], cwd=tmp_path, capture_output=True,
+                         text=True)
+    return res.returncode, res.stdout + res.stderr
+
+
+def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
+    rc, text = _dry_run(tmp_path, {"merl": {"subset": ["alum-bronze"]}})
+    assert rc != 0
+    assert "merl.subset" in text and "augmerl.test_fraction" in text and "at least 2" in text
+    assert not (tmp_path / "results").exists()
+
+
+def test_check_split():
+    augment.check_split(["a", "b"], 0.05)
+    with pytest.raises(ValueError, match=r"merl.subset.*\['a'\].*test_fraction = 0.5.*at least 2"):
+        augment.check_split(["a"], 0.5)
+    with pytest.raises(ValueError, match="test_fraction = 0"):
+        augment.check_split(["a", "b"], 0)
+
+
+def test_empty_subset_means_every_material():
+    """`merl.subset: []` (the default) is documented as 'all of the catalogue'."""
+    all_ = catalog.load_catalog(ROOT / "config/merl_materials.tsv", [])
+    assert len(all_) == 100
+    assert "empty" in (ROOT / "config/schema.yaml").read_text().split("subset:")[1][:400]
+    assert "`merl.subset: []`" in (ROOT / "README.md").read_text()
+
+
+def test_missing_local_btf_is_named_when_the_dag_is_built(tmp_path):
+    (tmp_path / "btfs").mkdir()
+    rc, text = _dry_run(tmp_path, {"ubo2014": {"source": "local", "local_dir": str(tmp_path / "btfs"),
+                                               "materials": ["leather08"]}}, "config/tiny.yaml")
+    assert rc != 0
+    assert "ubo2014.local_dir" in text
+    assert "leather08_resampled_W400xH400_L151xV151.btf" in text
+
+
+def _table(n_negative: int, seed=0) -> np.ndarray:
+    """A physical-looking table with -1 below the horizon and `n_negative` negative valid bins."""
+    rng = np.random.default_rng(seed)
+    t = np.full((3, merl.N_BINS), -1.0)
+    valid = np.flatnonzero(merl.valid_mask())
+    t[:, valid] = rng.uniform(0.01, 1, (3, len(valid)))
+    t[1, valid[:n_negative]] *= -1  # a sign-flipped block in one channel
+    return t
+
+
+def test_real_like_table_passes_quietly(caplog):
+    with caplog.at_level(logging.WARNING):
+        assert merl.check_negative("real.binary", _table(45)) == 45  # as the real MERL fits
+    assert not caplog.records
+
+
+def test_some_negative_bins_warn_with_the_count(caplog):
+    n = int(merl.WARN_NEGATIVE_SHARE * merl.valid_mask().sum()) + 100
+    with caplog.at_level(logging.WARNING):
+        assert merl.check_negative("odd.binary", _table(n)) == n
+    assert f"odd.binary: {n} of" in caplog.text
+
+
+def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
+    half = int(merl.valid_mask().sum()) // 2
+    with pytest.raises(merl.MerlFormatError, match=r"flipped.binary: 50.0% of its above-horizon"):
+        merl.check_negative("flipped.binary", _table(half))
+    # the data rules refuse (and remove) such a file; AugMERL refuses it too
+    path = tmp_path / "flipped.binary"
+    merl.write_merl(path, _table(half).reshape(3, 90, 90, 180))
+    with pytest.raises(merl.MerlFormatError, match="flipped.binary"):
+        augment.load_log_tables([path], negative={})
+    with pytest.raises(merl.MerlFormatError, match="50.0%"):
+        merl_files.verify(path)
+    assert not path.exists()
