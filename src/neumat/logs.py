@@ -4,16 +4,22 @@ Snakemake log file."""
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
+import signal
 import sys
 import traceback
+
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
 @contextlib.contextmanager
 def script_logging(smk):
     """Route logging (and a crash's traceback) of a `script:` to `smk.log[0]`, and hold the
-    script to its rule's `threads:` (see `limit_threads`)."""
+    script to its rule's `threads:` (see `limit_threads`); the script dies with the Snakemake
+    process that started it (see `die_with_parent`)."""
+    die_with_parent()
     limit_threads(getattr(smk, "threads", None))
     path = smk.log[0] if len(smk.log) else None
     handlers = [logging.FileHandler(path, mode="w")] if path else []
@@ -25,6 +31,22 @@ def script_logging(smk):
     except BaseException:
         logging.getLogger("neumat").error("failed:\n%s", traceback.format_exc())
         raise
+
+
+def die_with_parent(sig: int = signal.SIGTERM) -> bool:
+    """Ask the kernel to send `sig` when our parent (the Snakemake process running this job)
+    exits, even by SIGKILL: otherwise a killed run leaves its jobs running as orphans that
+    keep writing outputs and holding CPUs. Linux only (prctl PR_SET_PDEATHSIG); returns
+    whether it is armed."""
+    if not sys.platform.startswith("linux"):
+        return False
+    parent = os.getppid()
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, int(sig), 0, 0, 0) != 0:
+        return False
+    if parent == 1 or os.getppid() != parent:  # the parent died before we asked
+        os.kill(os.getpid(), sig)
+    return True
 
 
 def limit_threads(threads) -> None:
