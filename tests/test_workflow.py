@@ -162,3 +162,16 @@ def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run, tmp_pa
     _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
     for f in SAME_BYTES:
         assert (wd / "results/tiny" / f).read_bytes() == (tiny_run / "results/tiny" / f).read_bytes(), f
+
+
+@pytest.mark.slow
+def test_tiny_run_used_the_fast_mitsuba_variant(tiny_run):
+    """Every Mitsuba figure of the tiny run used llvm_ad_rgb when a libLLVM can be loaded (the
+    karellen-llvm-core wheel is a dependency): scalar_rgb there costs minutes of the tiny run."""
+    import json
+    from neumat.render import mitsuba_bsdf as mb
+    infos = sorted((tiny_run / "results/tiny/render/mitsuba").glob("*.json"))
+    assert infos
+    expect = "llvm_ad_rgb" if mb.find_libllvm() else "scalar_rgb"
+    for f in infos:
+        assert json.loads(f.read_text())["variant"] == expect, f

@@ -13,9 +13,10 @@ and the specular probability is the estimated specular albedo 4 pi alpha^2 (f(0)
 total, clipped to [0.05, 0.95]; alpha is clipped to [0.005, 0.6] (rougher GGX lobes send
 much of their mass below the horizon, and the cosine lobe covers such materials). MIS with emitter sampling is done by Mitsuba's path tracer.
 
-Variant: `select_variant()` picks `llvm_ad_rgb` when a libLLVM >= 16 is found (Dr.Jit's LLVM
-backend crashes with 14/15) and falls back to `scalar_rgb` with a warning (slow: the Python BSDF
-is then called per ray, so keep resolution x spp small).
+Variant: `select_variant()`, the one place Mitsuba is first imported, picks `llvm_ad_rgb` when a
+libLLVM >= 16 is found (Dr.Jit's LLVM backend crashes with 14/15): the system's, else the PyPI
+wheel karellen-llvm-core installed with neumat. Without one it falls back to `scalar_rgb` with a
+warning (slow: the Python BSDF is then called per ray, so keep resolution x spp small).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from neumat.io import merl
 
 log = logging.getLogger(__name__)
 PLUGIN = "neumat_brdf"
+_LLVM_NEWEST = 30  # search libLLVM versions from here down (karellen-llvm-core: 23)
 _LLVM_GLOBS = ["/usr/lib/x86_64-linux-gnu/libLLVM-{v}.so*", "/usr/lib/llvm-{v}/lib/libLLVM*.so*",
                "/usr/lib64/libLLVM-{v}.so*", "/usr/local/lib/libLLVM-{v}.so*",
                "/opt/homebrew/opt/llvm@{v}/lib/libLLVM*.dylib"]
@@ -43,20 +45,36 @@ _LLVM_GLOBS = ["/usr/lib/x86_64-linux-gnu/libLLVM-{v}.so*", "/usr/lib/llvm-{v}/l
 
 
 def find_libllvm(min_version: int = 16) -> str | None:
-    """Path of a usable libLLVM (>= min_version): DRJIT_LIBLLVM_PATH if set, else the newest
-    system library found."""
+    """Path of a usable libLLVM (>= min_version), made loadable: DRJIT_LIBLLVM_PATH if set,
+    else the newest system library, else one in this environment's prefix: conda-forge
+    `libllvm19`, or PyPI `karellen-llvm-core` (a dependency, so `pip install -e .` alone
+    gives Mitsuba its fast variant; a system libLLVM still wins)."""
     env = os.environ.get("DRJIT_LIBLLVM_PATH")
     if env and os.path.exists(env):
-        return env
-    # a conda env (conda-forge `libllvm19`) or venv prefix first, then system locations
+        return _with_runtime(env)
     prefixes = [p for p in (os.environ.get("CONDA_PREFIX"), sys.prefix) if p]
     local = [f"{p}/lib/libLLVM-{{v}}.so*" for p in prefixes] + [f"{p}/lib/libLLVM.so.{{v}}*" for p in prefixes]
-    for v in range(21, min_version - 1, -1):
-        for pattern in local + _LLVM_GLOBS:
-            hits = sorted(glob.glob(pattern.format(v=v)))
-            if hits:
-                return hits[0]
+    for patterns in (_LLVM_GLOBS, local):
+        for v in range(_LLVM_NEWEST, min_version - 1, -1):
+            for pattern in patterns:
+                hits = sorted(glob.glob(pattern.format(v=v)))
+                if hits:
+                    return _with_runtime(hits[0])
     return None
+
+
+def _with_runtime(lib: str) -> str:
+    """Load the LLVM C++ runtime that karellen-llvm-core ships beside its libLLVM
+    (<prefix>/lib/<triple>/lib{unwind,c++abi,c++}.so.1.0) into the global symbol namespace:
+    libLLVM needs it, and pip does not always create the .so.1 names it links against."""
+    import ctypes
+
+    real = os.path.realpath(lib)
+    for name in ("libunwind", "libc++abi", "libc++"):
+        hits = sorted(glob.glob(f"{os.path.dirname(real)}/*-linux-gnu/{name}.so.1*"))
+        if hits:
+            ctypes.CDLL(hits[-1], mode=ctypes.RTLD_GLOBAL)  # .so.1.0 sorts last: the file itself
+    return real
 
 
 def select_variant(preference: str = "auto") -> str:
