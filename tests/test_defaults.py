@@ -62,3 +62,15 @@ def test_library_defaults_equal_schema_defaults(name):
     assert not unmatched, f"{name}: library defaults with no key in schema {'.'.join(path)}: {unmatched}"
     diff = {k: (lib[k], schema[k]) for k in shared if lib[k] != schema[k]}
     assert not diff, f"{name} vs schema {'.'.join(path)} (library, schema): {diff}"
+
+
+def test_speed_and_cosmetic_keys_are_schema_keys():
+    """config/speed_keys.yaml names real schema keys, each with why and a value to try."""
+    kinds = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/speed_keys.yaml").read_text())
+    assert set(kinds) == {"speed", "cosmetic"} and not set(kinds["speed"]) & set(kinds["cosmetic"])
+    for key, entry in {**kinds["speed"], **kinds["cosmetic"]}.items():
+        node = SCHEMA
+        for part in key.split("."):
+            assert part in node.get("properties", {}), f"{key}: not in config/schema.yaml"
+            node = node["properties"][part]
+        assert entry.get("why") and "try" in entry, key

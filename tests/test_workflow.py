@@ -175,3 +175,59 @@ def test_tiny_run_used_the_fast_mitsuba_variant(tiny_run):
     expect = "llvm_ad_rgb" if mb.find_libllvm() else "scalar_rgb"
     for f in infos:
         assert json.loads(f.read_text())["variant"] == expect, f
+
+
+# ----------------------------------------------------------------------------- caching
+
+HEAVY = ("fit_shard", "fit_template", "augmerl_", "train_", "btf_triple_plane", "btf_neumip",
+         "btf_pca", "btf_sh", "btf_td")
+
+
+def _planned_jobs(wd: Path, configfile: str) -> list[str]:
+    """Rules `snakemake -n` would run for the report with `configfile`."""
+    import re
+    res = _snakemake(wd, "report", "--dry-run", "--quiet", "rules", "--configfile", configfile)
+    text = res.stdout + res.stderr
+    if "Nothing to be done" in text:
+        return []
+    return [j for j in re.findall(r"^(\w+)\s+\d+$", text, re.M) if j != "total"]
+
+
+def _set(cfg: dict, dotted: str, value):
+    *path, last = dotted.split(".")
+    for p in path:
+        cfg = cfg.setdefault(p, {})
+    cfg[last] = value
+
+
+@pytest.mark.slow
+def test_reordered_config_reruns_nothing(tiny_run):
+    """Params compare by value: the same config with its keys sorted, written by another YAML
+    emitter, is not a change."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    (tiny_run / "config/tiny_sorted.yaml").write_text(yaml.safe_dump(cfg, sort_keys=True))
+    assert _planned_jobs(tiny_run, "config/tiny_sorted.yaml") == []
+
+
+@pytest.mark.slow
+def test_speed_and_cosmetic_keys_rerun_no_fit(tiny_run):
+    """Every key in config/speed_keys.yaml changed at once (then one at a time, to name the
+    culprit): no fit, AugMERL or training job would rerun; speed-only keys rerun nothing."""
+    import yaml
+    kinds = yaml.safe_load((ROOT / "config/speed_keys.yaml").read_text())
+    base = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+
+    def plan(keys):
+        cfg = yaml.safe_load(yaml.safe_dump(base))
+        for k in keys:
+            _set(cfg, k, kinds["speed"].get(k, kinds["cosmetic"].get(k, {})).get("try"))
+        (tiny_run / "config/changed.yaml").write_text(yaml.safe_dump(cfg))
+        return _planned_jobs(tiny_run, "config/changed.yaml")
+
+    every = [*kinds["speed"], *kinds["cosmetic"]]
+    jobs = plan(every)
+    if any(j.startswith(HEAVY) for j in jobs):
+        culprits = {k: [j for j in plan([k]) if j.startswith(HEAVY)] for k in every}
+        pytest.fail(f"speed/cosmetic keys rerun heavy jobs: {({k: v for k, v in culprits.items() if v})}")
+    assert plan(list(kinds["speed"])) == [], "speed-only keys rerun jobs"
