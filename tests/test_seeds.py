@@ -28,7 +28,7 @@ def test_seed_for_rejects_bad_seed():
         seed_for(-1, "fit")
 
 
-@pytest.mark.parametrize("configfile", ["config/config.yaml", "config/tiny.yaml"])
+@pytest.mark.parametrize("configfile", ["config/config.yaml"])
 def test_every_stream_of_a_config_is_distinct(tmp_path, configfile):
     for item in ("Snakefile", "workflow", "config", "src"):
         src = ROOT / item
