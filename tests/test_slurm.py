@@ -1,0 +1,162 @@
+"""profiles/slurm on a real single-node Slurm without accounting (no slurmdbd): a subset of the
+tiny DAG runs through sbatch with retries 0, and its outputs equal a local run's.
+
+Runs where it can set Slurm up: as root with apt (Debian packages munge, slurmctld, slurmd,
+slurm-client, --no-install-recommends) or with those already installed. The daemons run from a
+temporary directory with a minimal slurm.conf and are stopped by PID at the end. Elsewhere the
+test skips and names what is missing."""
+
+import importlib.util
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ["munge", "slurmctld", "slurmd", "slurm-client"]
+BINARIES = ["munged", "slurmctld", "slurmd", "sbatch", "squeue", "sinfo"]
+UNTIL = ["synthetic_merl", "synthetic_btf"]
+
+pytestmark = [pytest.mark.slow]
+
+
+def _missing() -> str | None:
+    """Why a Slurm cannot be set up here, or None (installing the packages if needed)."""
+    if not sys.platform.startswith("linux"):
+        return "Linux only"
+    if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
+        return "snakemake-executor-plugin-slurm is not installed"
+    if all(shutil.which(b) or Path(f"/usr/sbin/{b}").exists() for b in BINARIES):
+        return None
+    if os.geteuid() != 0 or not shutil.which("apt-get"):
+        return f"Slurm is not installed ({', '.join(BINARIES)}) and installing it needs root and apt"
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    cmd = ["apt-get", "install", "-y", "-qq", "--no-install-recommends", *PACKAGES]
+    if subprocess.run(cmd, env=env, capture_output=True).returncode != 0:
+        subprocess.run(["apt-get", "update", "-qq"], env=env, capture_output=True)
+        res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        if res.returncode != 0:
+            return f"apt-get install {' '.join(PACKAGES)} failed: {res.stderr[-300:]}"
+    return None
+
+
+def _memory_mb() -> int:
+    kb = int(re.search(r"MemTotal:\s+(\d+)", Path("/proc/meminfo").read_text()).group(1))
+    return kb // 1024 - 1024  # leave the OS some
+
+
+def _slurm_conf(d: Path) -> Path:
+    host = socket.gethostname().split(".")[0]
+    conf = d / "slurm.conf"
+    conf.write_text(f"""ClusterName=neumattest
+SlurmctldHost={host}
+SlurmUser=root
+SlurmdUser=root
+AuthType=auth/munge
+StateSaveLocation={d}/state
+SlurmdSpoolDir={d}/spool
+SlurmctldPidFile={d}/slurmctld.pid
+SlurmdPidFile={d}/slurmd.pid
+SlurmctldLogFile={d}/slurmctld.log
+SlurmdLogFile={d}/slurmd.log
+ProctrackType=proctrack/linuxproc
+TaskPlugin=task/none
+SelectType=select/cons_tres
+SelectTypeParameters=CR_Core_Memory
+AccountingStorageType=accounting_storage/none
+JobAcctGatherType=jobacct_gather/none
+JobCompType=jobcomp/none
+MinJobAge=300
+ReturnToService=2
+NodeName={host} CPUs={os.cpu_count()} RealMemory={_memory_mb()} State=UNKNOWN
+PartitionName=main Nodes=ALL Default=YES MaxTime=INFINITE State=UP
+""")
+    (d / "state").mkdir()
+    (d / "spool").mkdir()
+    return conf
+
+
+def _sbin(name: str) -> str:
+    return shutil.which(name) or f"/usr/sbin/{name}"
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory):
+    reason = _missing()
+    if reason:
+        pytest.skip(reason)
+    d = tmp_path_factory.mktemp("slurm")
+    conf = _slurm_conf(d)
+    env = {**os.environ, "SLURM_CONF": str(conf)}
+    pids = []
+    # munge: the packaged key, our own socket and pid file
+    key = Path("/etc/munge/munge.key")
+    if not key.exists():
+        subprocess.run(["mungekey", "--create", "--keyfile", str(key)], check=True)
+        shutil.chown(key, "munge", "munge")
+    sock = Path("/run/munge/munge.socket.2")
+    if not sock.exists():
+        Path("/run/munge").mkdir(exist_ok=True)
+        shutil.chown("/run/munge", "munge", "munge")
+        subprocess.run(["runuser", "-u", "munge", "--", _sbin("munged"), "--pid-file",
+                        str(d / "munged.pid")], check=True)
+        pids.append(d / "munged.pid")
+    try:
+        for daemon in ("slurmctld", "slurmd"):
+            subprocess.run([_sbin(daemon), "-f", str(conf)], check=True, env=env)
+            pids.append(d / f"{daemon}.pid")
+        for _ in range(120):
+            out = subprocess.run(["sinfo", "-h", "-o", "%t"], env=env, capture_output=True, text=True)
+            if out.stdout.strip() in ("idle", "mix"):
+                break
+            time.sleep(0.5)
+        else:
+            pytest.fail(f"the Slurm node did not come up: {out.stdout} {out.stderr}\n"
+                        + (d / "slurmctld.log").read_text()[-2000:])
+        yield env
+    finally:
+        for pid_file in reversed(pids):  # stop what we started, by PID
+            if pid_file.exists():
+                try:
+                    os.kill(int(pid_file.read_text().split()[0]), signal.SIGTERM)
+                except (ProcessLookupError, ValueError):
+                    pass
+
+
+def _copy_workflow(dst: Path) -> Path:
+    for item in ("Snakefile", "workflow", "config", "profiles", "src"):
+        src = ROOT / item
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, dst / item)
+    return dst
+
+
+def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
+    remote, local = _copy_workflow(tmp_path / "slurm"), _copy_workflow(tmp_path / "local")
+    cmd = [sys.executable, "-m", "snakemake", "report", "--until", *UNTIL, "--retries", "0"]
+    t0 = time.time()
+    res = subprocess.run([*cmd, "--profile", "profiles/slurm", "--configfile", "config/tiny.yaml"],
+                         cwd=remote, env=slurm, capture_output=True, text=True, timeout=1800)
+    slurm_s = time.time() - t0
+    text = res.stdout + res.stderr
+    assert res.returncode == 0, text[-6000:]
+    t0 = time.time()
+    subprocess.run([*cmd, "--cores", "2", "--configfile", "config/tiny.yaml"], cwd=local,
+                   check=True, capture_output=True)
+    local_s = time.time() - t0
+    done = re.findall(r"Finished job", text) or re.findall(r"\d+ of \d+ steps", text)
+    submitted = re.findall(r"submitted with SLURM jobid", text, re.I)
+    n_jobs = int(re.findall(r"(\d+) of (\d+) steps", text)[-1][1])
+    assert len(submitted) == n_jobs >= 10 and done, text[-3000:]
+    files = sorted(p.relative_to(local) for p in (local / "results/tiny").rglob("*")
+                   if p.is_file() and "/logs/" not in str(p) and "/benchmarks/" not in str(p))
+    assert files
+    for f in files:
+        assert (remote / f).read_bytes() == (local / f).read_bytes(), f
+    print(f"via Slurm {slurm_s:.0f} s, local {local_s:.0f} s ({slurm_s / local_s:.2f}x)")
