@@ -123,7 +123,6 @@ def _job_processes(wd: Path, names=("",)) -> list[int]:
 
 def _interrupt_during_fit(wd: Path, sig: int, *args):
     """Start snakemake towards NeuMERL, send `sig` once a fit job runs; return after it exits."""
-    import signal
     import time
     cmd = [sys.executable, "-m", "snakemake", "--cores", "2", NEUMERL, *args,
            "--configfile", "config/tiny.yaml"]
