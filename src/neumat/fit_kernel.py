@@ -10,12 +10,10 @@ so they run in parallel without touching torch's thread pool.
 Why C and not a library: no maintained library trains thousands of tiny independent MLPs on a
 CPU (tiny-cuda-nn is GPU-only), and torch.compile of the step gained <= 10 %.
 
-The shared library is built with the system C compiler (`$CC`, default `cc`) for a target
-`-march` (default `native`, or `$NEUMAT_FIT_MARCH`, e.g. `x86-64-v3` for an AVX2 build on any
-x86 host) into `$NEUMAT_CACHE` (default `~/.cache/neumat`), keyed by a hash of the source, the
-compiler, the flags and (for `native`) the CPU, so a cluster with mixed nodes builds one per CPU
-type. fit_step.c picks its vector width and register blocking from the target ISA.
-Without a compiler, `available()` is False and the fitter uses the torch path.
+The shared library is built and cached by `neumat.cbuild` for a target `-march` (default
+`native`, or `$NEUMAT_FIT_MARCH`, e.g. `x86-64-v3` for an AVX2 build on any x86 host);
+fit_step.c picks its vector width and register blocking from the target ISA. Without a
+compiler, `available()` is False and the fitter uses the torch path.
 
 `fit.kernel: auto` uses the C step only where it is the faster one here: `auto_choice` times
 both steps on a small problem once per library (a few hundred ms) and caches the result next to
@@ -25,14 +23,9 @@ it (`<library>.choice.json`).
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import json
 import logging
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
@@ -40,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-from neumat import nbrdf
+from neumat import cbuild, nbrdf
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("fit_step.c")
@@ -49,93 +42,21 @@ WORK_ROWS = 73  # scratch floats per sample per thread: inputs 7, 3 x 21 + 3 act
 # (+ 3 per material of the thread: its targets)
 
 
-def _cpu_id() -> str:
-    """What -march=native depends on: the CPU model and its feature flags."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-        return "\n".join(sorted({l for l in lines if l.startswith(("model name", "flags"))}))
-    except OSError:
-        return platform.processor() + platform.machine()
-
-
 def default_march() -> str:
     """The -march the fitter's kernel is built for: `$NEUMAT_FIT_MARCH`, else native."""
     return os.environ.get("NEUMAT_FIT_MARCH", "native")
 
 
-def _flags(march: str) -> list[str]:
-    flags = ["-O3", "-ffast-math", f"-march={march}", "-fPIC"]
-    if platform.machine().lower() in ("x86_64", "amd64"):
-        flags.append("-mprefer-vector-width=512")  # use zmm registers where -march has them
-    return flags
-
-
-# x86-64 micro-architecture levels and a CPU flag each needs (the rest come with it)
-_X86_LEVELS = {"x86-64": "sse2", "x86-64-v2": "sse4_2", "x86-64-v3": "avx2",
-               "x86-64-v4": "avx512f"}
-
-
-def runs_here(march: str) -> bool:
-    """Whether code built for `march` can run on this CPU (known x86 levels are checked; any
-    other -march is taken on trust, native always runs)."""
-    need = _X86_LEVELS.get(march)
-    if need is None:
-        return True
-    return platform.machine().lower() in ("x86_64", "amd64") and need in _cpu_id().split()
-
-
-def _compile(cc: str, march: str, out: Path) -> None:
-    """Compile to a temporary name and rename: concurrent jobs never load a half-written file.
-
-    -ffast-math only when compiling: linking a shared library with it would add crtfastmath,
-    which sets flush-to-zero for the whole process (torch included) when loaded."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
-        obj, lib = Path(tmp) / "fit_step.o", Path(tmp) / out.name
-        for cmd in ([cc, *_flags(march), "-c", str(SOURCE), "-o", str(obj)],
-                    [cc, "-shared", str(obj), "-o", str(lib), "-lm"]):
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            if r.returncode:
-                raise RuntimeError(f"compiling {SOURCE.name} failed: {' '.join(cmd)}\n{r.stderr}")
-        os.replace(lib, out)
-
-
-def library_path(march: str | None = None) -> Path | None:
-    """Where the library for `march` (default: `default_march()`) is or will be cached; None
-    without a compiler."""
-    march = march or default_march()
-    cc = os.environ.get("CC", "cc")
-    if shutil.which(cc) is None:
-        return None
-    version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join([SOURCE.read_text(), version, " ".join(_flags(march)),
-                                    _cpu_id() if march == "native" else ""]).encode())
-    cache_dir = Path(os.environ.get("NEUMAT_CACHE", Path.home() / ".cache" / "neumat"))
-    tag = "" if march == "native" else f"{march}-"
-    return cache_dir / f"fit_step-{tag}{key.hexdigest()[:16]}.so"
+runs_here = cbuild.runs_here
 
 
 @cache
 def _library(march: str | None = None):
     """The loaded kernel library for `march`, or None (with the reason logged) where it cannot
     be built or cannot run on this CPU."""
-    march = march or default_march()
-    path = library_path(march)
+    path = cbuild.build(SOURCE, march or default_march(), "the fitter uses the torch path")
     if path is None:
-        log.warning("no C compiler (%s): the fitter uses the slower torch path",
-                    os.environ.get("CC", "cc"))
         return None
-    if not runs_here(march):
-        log.warning("the fit kernel for -march=%s cannot run on this CPU; the fitter uses the "
-                    "torch path", march)
-        return None
-    if not path.exists():
-        log.info("compiling %s -march=%s -> %s", SOURCE.name, march, path)
-        try:
-            _compile(os.environ.get("CC", "cc"), march, path)
-        except (RuntimeError, OSError) as e:
-            log.warning("%s; the fitter uses the slower torch path", e)
-            return None
     lib = ctypes.CDLL(str(path))
     p, f, i = ctypes.c_void_p, ctypes.c_float, ctypes.c_int
     lib.nbrdf_fit_steps.argtypes = [i, i, i, i, p, p, i, p, p, p, p, p, p, p, p, p, f]
