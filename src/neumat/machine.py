@@ -76,9 +76,10 @@ def describe(march: str | None = None) -> str:
     return s
 
 
-def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> float:
-    """fp32 matmul FLOP/s of this machine: the best of `repeat` n^3 torch.mm (CPU), with
-    `threads` torch threads (default: as set)."""
+def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> tuple[float, float]:
+    """fp32 matmul rate of this machine from n^3 torch.mm (CPU) with `threads` torch threads
+    (default: as set): (FLOP per wall second, FLOP per CPU second of the process), each the best
+    of `repeat`. On a shared machine the second is the load-independent one."""
     import torch
     old = torch.get_num_threads()
     if threads:
@@ -87,11 +88,11 @@ def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> fl
         g = torch.Generator().manual_seed(0)
         a, b = torch.randn(n, n, generator=g), torch.randn(n, n, generator=g)
         c = torch.mm(a, b)  # warm-up
-        best = float("inf")
+        wall = cpu = float("inf")
         for _ in range(repeat):
-            t = time.perf_counter()
+            t, p = time.perf_counter(), time.process_time()
             torch.mm(a, b, out=c)
-            best = min(best, time.perf_counter() - t)
-        return 2 * n ** 3 / best
+            wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - p)
+        return 2 * n ** 3 / wall, 2 * n ** 3 / cpu
     finally:
         torch.set_num_threads(old)
