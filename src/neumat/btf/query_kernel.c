@@ -92,11 +92,10 @@ static void layer(int J, int K, const float *A, const float *b, const float *X, 
     }
 }
 
-/* Bilinear fetch of plane (H, W, C) at (x, y) in [0, 1]^2, texel centres at (i + .5) / W, into
- * rows c of X at column q; wrap tiles the plane, else coordinates clamp to the border (as
- * neumat.btf.neural.fetch). */
-static inline void fetch(const float *plane, int H, int W, int C, float px, float py, int wrap,
-                         float *X, int q)
+/* Bilinear taps of a plane (H, W, C) at (x, y) in [0, 1]^2, texel centres at (i + .5) / W:
+ * offsets (in floats) of the 4 texels and their weights; wrap tiles the plane, else coordinates
+ * clamp to the border (as neumat.btf.neural.fetch). */
+static inline void taps(int H, int W, int C, float px, float py, int wrap, long *off, float *w)
 {
     float x = px * W - 0.5f, y = py * H - 0.5f;
     if (!wrap) {
@@ -114,11 +113,44 @@ static inline void fetch(const float *plane, int H, int W, int C, float px, floa
         x1 = x0 + 1 < W ? x0 + 1 : W - 1;
         y1 = y0 + 1 < H ? y0 + 1 : H - 1;
     }
-    const float *p00 = plane + (y0 * W + x0) * C, *p01 = plane + (y0 * W + x1) * C,
-                *p10 = plane + (y1 * W + x0) * C, *p11 = plane + (y1 * W + x1) * C;
-    float w00 = (1 - fx) * (1 - fy), w01 = fx * (1 - fy), w10 = (1 - fx) * fy, w11 = fx * fy;
+    off[0] = (y0 * W + x0) * C, off[1] = (y0 * W + x1) * C;
+    off[2] = (y1 * W + x0) * C, off[3] = (y1 * W + x1) * C;
+    w[0] = (1 - fx) * (1 - fy), w[1] = fx * (1 - fy), w[2] = (1 - fx) * fy, w[3] = fx * fy;
+}
+
+/* Rows c of X at column q = the bilinear interpolation of plane's taps (off, w). */
+static inline void interp(const float *plane, int C, const long *off, const float *w, float *X,
+                          int q)
+{
+    const float *p0 = plane + off[0], *p1 = plane + off[1], *p2 = plane + off[2],
+                *p3 = plane + off[3];
     for (int c = 0; c < C; c++)
-        X[c * T + q] = w00 * p00[c] + w01 * p01[c] + w10 * p10[c] + w11 * p11[c];
+        X[c * T + q] = w[0] * p0[c] + w[1] * p1[c] + w[2] * p2[c] + w[3] * p3[c];
+}
+
+static inline void fetch(const float *plane, int H, int W, int C, float px, float py, int wrap,
+                         float *X, int q)
+{
+    long off[4];
+    float w[4];
+    taps(H, W, C, px, py, wrap, off, w);
+    interp(plane, C, off, w, X, q);
+}
+
+/* The f_U taps of the tile of queries t0 ... t0 + T - 1 (a short tile repeats its last query),
+ * prefetched: f_U (megabytes) is read at random texels, and a tile's 4 T fetches in flight
+ * while the previous tile runs its MLP hide most of the memory latency. */
+static void prepare_u(const float *u, long t0, long N, const float *fu, int Hu, int Wu, int Cu,
+                      long (*off)[4], float (*w)[4])
+{
+    for (int q = 0; q < T; q++) {
+        long i = t0 + q < N ? t0 + q : N - 1;
+        taps(Hu, Wu, Cu, u[2 * i], u[2 * i + 1], 1, off[q], w[q]);
+        for (int k = 0; k < 4; k++) {
+            __builtin_prefetch(fu + off[q][k]);
+            __builtin_prefetch(fu + off[q][k] + Cu - 1);  /* a texel may straddle two lines */
+        }
+    }
 }
 
 /* neumat.btf.directions.half_diff: h = normalize(wi + wo), d = R_b(-theta_h) R_n(-phi_h) wi;
@@ -148,12 +180,17 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
                       const float *params, float *out, int raw)
 {
     float bufa[MAXW * T], bufb[MAXW * T];  /* a tile's activations, ping-pong between layers */
-    float u_[2 * T], wi_[3 * T], wo_[3 * T];
-    for (long t0 = 0; t0 < N; t0 += T) {
+    float wi_[3 * T], wo_[3 * T];
+    long uoff[2][T][4];  /* f_U taps of this tile and the next */
+    float uw[2][T][4];
+    if (!feat_u && N > 0)
+        prepare_u(u, 0, N, fu, Hu, Wu, Cu, uoff[0], uw[0]);
+    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile ^= 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
+        if (!feat_u && t0 + T < N)
+            prepare_u(u, t0 + T, N, fu, Hu, Wu, Cu, uoff[tile ^ 1], uw[tile ^ 1]);
         for (int q = 0; q < T; q++) {
             long i = t0 + (q < nt ? q : nt - 1);
-            u_[2 * q] = u[2 * i], u_[2 * q + 1] = u[2 * i + 1];
             for (int k = 0; k < 3; k++)
                 wi_[3 * q + k] = wi[3 * i + k], wo_[3 * q + k] = wo[3 * i + k];
             if (feat_u)
@@ -164,7 +201,7 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
             float hxy[2], dxy[2];
             half_diff(wi_ + 3 * q, wo_ + 3 * q, hxy, dxy);
             if (!feat_u)
-                fetch(fu, Hu, Wu, Cu, u_[2 * q], u_[2 * q + 1], 1, bufa, q);
+                interp(fu, Cu, uoff[tile][q], uw[tile][q], bufa, q);
             fetch(fh, R, R, C, hxy[0], hxy[1], 0, bufa + Cu * T, q);
             fetch(fd, R, R, C, dxy[0], dxy[1], 0, bufa + (Cu + C) * T, q);
         }
