@@ -51,12 +51,12 @@ def _f32(t: torch.Tensor) -> torch.Tensor:
     return t.detach().to(torch.float32).contiguous()
 
 
-def supported(model, *tensors) -> bool:
+def supported(model, *tensors, march: str = "native") -> bool:
     """Whether `query` runs this model and these inputs in C (else it uses the torch path):
     a Triple Plane model on the CPU, and no autograd wanted (grad mode off, or no parameter
     that requires grad)."""
     from neumat.btf.neural import TriplePlane
-    if not isinstance(model, TriplePlane) or not available():
+    if not isinstance(model, TriplePlane) or not available(march):
         return False
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     if max(max(l.in_features, l.out_features) for l in lin) > MAX_WIDTH:
@@ -69,13 +69,15 @@ def supported(model, *tensors) -> bool:
 
 
 def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
-          raw: bool = False, threads: int | None = None) -> torch.Tensor:
+          raw: bool = False, threads: int | None = None, march: str = "native") -> torch.Tensor:
     """RGB (N, 3) of `model` at texture coordinates u (N, 2) and unit directions wi, wo (N, 3);
     raw=True: the MLP output log(1 + RGB) instead. `features_u`: see the module docstring.
-    Queries are split over `threads` (default: torch's) threads."""
+    Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
+    (e.g. x86-64-v3 for the AVX2 one, in tests)."""
     if callable(features_u):
         features_u = features_u(u)
-    if not supported(model, u, wi, wo, *([] if features_u is None else [features_u])):
+    if not supported(model, u, wi, wo, *([] if features_u is None else [features_u]),
+                     march=march):
         fu = model.features_u(u) if features_u is None else features_u
         y = model.decode(fu, wi, wo)
         return y if raw else torch.relu(torch.expm1(y))
@@ -90,7 +92,7 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     dims = torch.tensor([lin[0].in_features] + [l.out_features for l in lin], dtype=torch.int32)
     params = torch.cat([t.detach().reshape(-1) for l in lin for t in (l.weight, l.bias)]).float()
     out = torch.empty(N, 3)
-    lib = _library()
+    lib = _library(march)
     threads = max(1, min(threads or torch.get_num_threads(), N // 4096 + 1))
     bounds = [N * k // threads for k in range(threads + 1)]
     f4 = 4

@@ -213,10 +213,14 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
             p += J * K + J;
             float *tmp = X; X = Y; Y = tmp;
         }
-        for (int q = 0; q < nt; q++)
-            for (int c = 0; c < 3; c++) {
+        float o[3 * T];  /* every tile through the same (vectorised) expm1f: a result does
+                            not depend on where its tile starts, e.g. on the thread count */
+        for (int c = 0; c < 3; c++)
+            for (int q = 0; q < T; q++) {
                 float y = X[c * T + q];
-                out[(t0 + q) * 3 + c] = raw ? y : fmaxf(expm1f(y), 0.f);
+                o[3 * q + c] = raw ? y : fmaxf(expm1f(y), 0.f);
             }
+        for (int k = 0; k < 3 * nt; k++)
+            out[t0 * 3 + k] = o[k];
     }
 }
