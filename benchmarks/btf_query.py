@@ -1,7 +1,10 @@
-"""Triple Plane query throughput for one 1920 x 1080 frame (2,073,600 queries), against
-(a) a plain unbatched torch implementation of the same model (one query per call, timed on a
-subset and extrapolated) and (b) the FLOP bound of this machine (FLOPs per query vs a large
-float32 matmul measured in the same run). Paper anchor: 2.0 ms per frame on an RTX 4090.
+"""Triple Plane query throughput for one 1920 x 1080 frame (2,073,600 queries): the fused C
+query (`neumat.btf.query`, CPU) and the batched torch path (`model(u, wi, wo)` in chunks),
+against (a) a plain unbatched torch implementation of the same model (one query per call, timed
+on a subset and extrapolated) and (b) the FLOP bound of this machine (FLOPs per query vs a
+float32 matmul measured in the same run). Wall and CPU time both: on a shared machine the
+fraction of the bound per CPU-second is the load-independent one. Each figure line names the
+CPU and ISA. Paper anchor: 2.0 ms per frame on an RTX 4090.
 
     OMP_NUM_THREADS=2 python benchmarks/btf_query.py [--model results/<run>/btf/models/<m>/triple_plane.pt]
 """
@@ -13,7 +16,8 @@ import time
 
 import torch
 
-from neumat.btf import models
+from neumat import machine
+from neumat.btf import models, query
 from neumat.btf.directions import half_diff
 from neumat.btf.neural import fetch
 
@@ -39,14 +43,15 @@ def flops_per_query(m) -> int:
 
 
 def timed(fn, repeat=3, sync=lambda: None):
-    best = float("inf")
+    """Best wall and best process CPU seconds of `repeat` calls."""
+    wall = cpu = float("inf")
     for _ in range(repeat):
         sync()
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         fn()
         sync()
-        best = min(best, time.perf_counter() - t)
-    return best
+        wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - c)
+    return wall, cpu
 
 
 @torch.no_grad()
@@ -89,30 +94,51 @@ def main():
     print(f"device {dev}, torch threads {torch.get_num_threads()}, model {m.kwargs}, "
           f"{m.n_params()} parameters")
 
+    m.requires_grad_(False)  # inference: the fused query needs no autograd
+    where = machine.describe("native" if dev.type == "cpu" and query.supported(m, u) else None)
+    if dev.type == "cuda":
+        where += f"; GPU {torch.cuda.get_device_name(dev)}"
+    print(f"machine: {where}")
+
     batched(m, u[:4096], wi[:4096], wo[:4096], a.chunk)                 # warm-up
-    t_b = timed(lambda: batched(m, u, wi, wo, a.chunk), sync=sync)
+    t_b, c_b = timed(lambda: batched(m, u, wi, wo, a.chunk), sync=sync)
     n1 = min(a.unbatched, FRAME)
     ref = batched(m, u[:n1], wi[:n1], wo[:n1], a.chunk)
-    t1 = timed(lambda: unbatched(m, u[:n1], wi[:n1], wo[:n1]), repeat=1, sync=sync)
+    t1, _ = timed(lambda: unbatched(m, u[:n1], wi[:n1], wo[:n1]), repeat=1, sync=sync)
     assert torch.allclose(unbatched(m, u[:50], wi[:50], wo[:50]), ref[:50], rtol=1e-4, atol=1e-5)
     t_u = t1 * FRAME / n1
+    fused = dev.type == "cpu" and query.supported(m, u)
+    if fused:
+        with torch.no_grad():
+            query.query(m, u[:4096], wi[:4096], wo[:4096])                 # warm-up, build
+            t_f, c_f = timed(lambda: query.query(m, u, wi, wo))
+            diff = (query.query(m, u[:n1], wi[:n1], wo[:n1]) - ref).abs().max().item()
 
     fq = flops_per_query(m)
     n = 4096 if dev.type == "cuda" else 2048
     A = torch.randn(n, n, device=dev)
-    t_mm = timed(lambda: A @ A, sync=sync)
-    peak = 2 * n ** 3 / t_mm
-    bound = peak / fq
+    t_mm, c_mm = timed(lambda: A @ A, sync=sync)
+    peak, peak_cpu = 2 * n ** 3 / t_mm, 2 * n ** 3 / c_mm
+    bound, bound_cpu = peak / fq, peak_cpu / fq  # queries per wall s, per CPU-s
 
     qps_b, qps_u = FRAME / t_b, FRAME / t_u
-    print(f"batched   : {t_b * 1e3:10.1f} ms/frame  {qps_b:12.4g} queries/s")
+    print(f"batched   : {t_b * 1e3:10.1f} ms/frame  {qps_b:12.4g} queries/s, "
+          f"{c_b * 1e3:.1f} CPU-ms/frame  [{where}]")
+    if fused:
+        print(f"fused C   : {t_f * 1e3:10.1f} ms/frame  {FRAME / t_f:12.4g} queries/s, "
+              f"{c_f * 1e3:.1f} CPU-ms/frame, max |fused - batched| {diff:.2e}  [{where}]")
     print(f"unbatched : {t_u * 1e3:10.1f} ms/frame  {qps_u:12.4g} queries/s "
           f"(extrapolated from {n1} queries)")
     print(f"FLOP bound: {FRAME / bound * 1e3:10.1f} ms/frame  {bound:12.4g} queries/s "
-          f"({fq} FLOP/query, matmul {peak / 1e9:.1f} GFLOP/s)")
-    print(f"ratios    : batched/unbatched {qps_b / qps_u:.1f}x, batched/bound {qps_b / bound:.3f}, "
-          f"paper anchor (RTX 4090, 2.0 ms/frame) / batched {t_b / 2.0e-3:.1f}x slower")
-
+          f"({fq} FLOP/query, {n}^3 matmul {peak / 1e9:.1f} GFLOP/s, "
+          f"{peak_cpu / 1e9:.1f} GFLOP/CPU-s)  [{where}]")
+    print(f"ratios    : batched/unbatched {qps_b / qps_u:.1f}x, batched/bound {qps_b / bound:.3f} "
+          f"(per CPU-s {FRAME / c_b / bound_cpu:.3f}), "
+          f"paper anchor (RTX 4090, 2.0 ms/frame) / batched {t_b / 2.0e-3:.1f}x slower  [{where}]")
+    if fused:
+        print(f"ratios    : fused/bound {FRAME / t_f / bound:.3f} (per CPU-s "
+              f"{FRAME / c_f / bound_cpu:.3f}), fused/batched {t_b / t_f:.1f}x wall, "
+              f"{c_b / c_f:.1f}x CPU  [{where}]")
 
 if __name__ == "__main__":
     main()

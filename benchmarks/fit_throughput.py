@@ -3,23 +3,29 @@
 The loop is the usual PyTorch way: one nn.Sequential 6-21-21-3 and one torch.optim.Adam per
 material, autograd, the same eq. 2 loss, lr schedule, 80/20 split and minibatch order as the
 batched fitter (`neumat.fit`). Prints material-samples per second for both, the ratio and both
-final validation losses (mean over materials, all validation bins).
+final validation losses (mean over materials, all validation bins), and the batched fitter's
+matmul FLOP rate as a fraction of this machine's fp32 sgemm peak (a 2048^3 torch.mm with the
+same threads, measured in the same run). Every figure line names the CPU and the ISA.
 
     OMP_NUM_THREADS=2 python benchmarks/fit_throughput.py [--tables DIR] [--materials 50]
+                                                          [--march x86-64-v3]
 
 --tables DIR fits MERL .binary tables from DIR (e.g. decoded real materials); without it the
 materials are random NBRDF fields (deterministic). --kernel torch times the batched fitter's
 torch path instead of the C kernel (`neumat.fit_kernel`), e.g. to see what the kernel adds.
+--march builds and times the C kernel for another target, e.g. x86-64-v3 (AVX2) or x86-64-v2
+(SSE4.2) on an AVX-512 host.
 """
 import argparse
 import dataclasses
+import os
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from neumat import fit, fit_kernel, nbrdf
+from neumat import fit, fit_kernel, machine, nbrdf
 from neumat.io import merl
 
 
@@ -73,6 +79,11 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
     return torch.stack(weights).numpy(), np.array(val)
 
 
+# matmul FLOPs per material-sample of one training step: forward 6-21-21-3 (630 multiply-adds),
+# weight gradients (630) and input gradients of layers 2 and 3 (504); 2 FLOPs per multiply-add
+STEP_FLOPS = 2 * (630 + 630 + 504)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--tables", help="directory of MERL .binary tables (default: random fields)")
@@ -81,7 +92,12 @@ def main():
     ap.add_argument("--bins", type=int, default=65536, help="stored bins per material")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--kernel", choices=fit.KERNELS, default="auto", help="batched fitter's step")
+    ap.add_argument("--march", default=None,
+                    help="-march of the C kernel (default: native, or $NEUMAT_FIT_MARCH)")
     args = ap.parse_args()
+    if args.march:  # before the first library load: the fitter builds for this target
+        os.environ["NEUMAT_FIT_MARCH"] = args.march
+    march = fit_kernel.default_march()
     torch.set_num_threads(args.threads)
     bins, values = load_data(args)
     ids = np.arange(args.materials)
@@ -103,7 +119,10 @@ def main():
     val_batch, w_batch = f.eval_loss("val"), f.w.numpy()  # the loop also evaluates val only
     t_batch, c_batch = time.perf_counter() - t0, time.process_time() - c0
 
+    peak, peak_cpu = machine.sgemm_peak(args.threads)
     vl, vb = val_loop.mean(), val_batch.mean()
+    where = machine.describe(march if f.kernel == "c" else None)
+    print(f"machine: {where}")
     print(f"{args.materials} materials x {args.steps} steps x batch {s.batch}, {len(bins)} bins, "
           f"{args.threads} threads, kernel {f.kernel}, data: {args.tables or 'random NBRDF fields'}")
     for what, t, c, v in (("per-material loop", t_loop, c_loop, vl),
@@ -112,8 +131,13 @@ def main():
               f"CPU {c:8.2f} s ({samples / c:10.4g} material-samples/CPU-s), final val loss {v:.5f}")
     print(f"speed-up: wall {t_loop / t_batch:.1f}x, CPU {c_loop / c_batch:.1f}x; "
           f"val loss batched/loop {vb / vl:.4f}; "
-          f"max |w_batched - w_loop| {np.abs(w_batch - w_loop).max():.2e}")
-
+          f"max |w_batched - w_loop| {np.abs(w_batch - w_loop).max():.2e}  [{where}]")
+    rate, rate_cpu = samples * STEP_FLOPS / t_batch, samples * STEP_FLOPS / c_batch
+    print(f"batched fitter: {rate / 1e9:.1f} GFLOP/s wall = {100 * rate / peak:.1f} % of the fp32 "
+          f"sgemm peak {peak / 1e9:.1f} GFLOP/s; {rate_cpu / 1e9:.1f} GFLOP/CPU-s = "
+          f"{100 * rate_cpu / peak_cpu:.1f} % of sgemm's {peak_cpu / 1e9:.1f} GFLOP/CPU-s "
+          f"({STEP_FLOPS} matmul FLOP per material-sample; 2048^3 torch.mm, {args.threads} "
+          f"threads)  [{where}]")
 
 if __name__ == "__main__":
     main()

@@ -24,8 +24,9 @@ results do not depend on which materials share a batch, and a run resumed from a
 Forward and backward are written out by hand (`loss_and_grad`): one pass per layer instead of
 autograd's graph, feature-major (samples on the contiguous axis) and into buffers reused every
 step; `tests/test_fit.py` checks it against autograd, `benchmarks/fit_throughput.py` measures it.
-On the CPU the same step runs by default in C (`fit_step.c` via `neumat.fit_kernel`, setting
-`kernel`), ~3x faster per material: torch's batched matmuls are overhead-bound at 21 x 21.
+On the CPU the same step can run in C (`fit_step.c` via `neumat.fit_kernel`, setting
+`kernel`): torch's batched matmuls are overhead-bound at 21 x 21. `kernel: auto` takes whichever
+step a one-off calibration found faster on this CPU (`fit_kernel.auto_choice`).
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ class FitSettings:
     eval_every: int = 500  # validation-loss history (on `eval_bins` val bins per material)
     eval_bins: int = 4096
     checkpoint_every: int = 500
-    kernel: str = "auto"  # step on the CPU: "c" (fit_step.c), "torch", or "auto" (c if it builds)
+    kernel: str = "auto"  # step on the CPU: "c" (fit_step.c), "torch", or "auto" (the faster here)
 
     def __post_init__(self):
         if self.activation not in nbrdf.ACTIVATIONS:
@@ -243,6 +244,9 @@ def resolve_kernel(settings: FitSettings, device) -> str:
            f"fit.batch {settings.batch} is not a multiple of {fit_kernel.VECTOR}"
            if settings.batch % fit_kernel.VECTOR else
            None if fit_kernel.available() else "it could not be compiled (see the log)")
+    if why is None and settings.kernel == "auto":  # C only where it is the faster step here
+        why = (None if fit_kernel.auto_choice(settings.batch, settings.activation) == "c" else
+               "the torch step is faster on this CPU (fit_kernel.auto_choice)")
     if why is None:
         return "c"
     if settings.kernel == "c":

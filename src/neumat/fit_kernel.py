@@ -2,37 +2,38 @@
 
 One call runs K Adam steps of M fits (minibatch gather, eq. 2 loss, hand-written backward,
 Adam): the same maths as `fit.BatchFitter` with `fit.loss_and_grad` + `fit.adam_step`, material
-by material with that material's activations in cache. It is ~3.5x faster per material-step than torch's batched matmuls,
-whose per-matrix overhead dominates at 21 x 21 (measured: `benchmarks/fit_throughput.py`).
+by material with that material's activations in cache, where torch's batched matmuls spend most
+of a step on per-matrix overhead at 21 x 21 (`benchmarks/fit_throughput.py` measures both).
 Materials are split over `threads` Python threads; ctypes releases the GIL during the call,
 so they run in parallel without touching torch's thread pool.
 
 Why C and not a library: no maintained library trains thousands of tiny independent MLPs on a
 CPU (tiny-cuda-nn is GPU-only), and torch.compile of the step gained <= 10 %.
 
-The shared library is built with the system C compiler (`$CC`, default `cc`) for this CPU
-(-march=native) into `$NEUMAT_CACHE` (default `~/.cache/neumat`), keyed by a hash of the
-source, the compiler and the CPU, so a cluster with mixed nodes builds one per CPU type.
-Without a compiler, `available()` is False and the fitter uses the torch path.
+The shared library is built and cached by `neumat.cbuild` for a target `-march` (default
+`native`, or `$NEUMAT_FIT_MARCH`, e.g. `x86-64-v3` for an AVX2 build on any x86 host);
+fit_step.c picks its vector width and register blocking from the target ISA. Without a
+compiler, `available()` is False and the fitter uses the torch path.
+
+`fit.kernel: auto` uses the C step only where it is the faster one here: `auto_choice` times
+both steps on a small problem once per library (a few hundred ms) and caches the result next to
+it (`<library>.choice.json`).
 """
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
+import json
 import logging
 import os
-import platform
-import shutil
-import subprocess
-import tempfile
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
 
 import torch
 
-from neumat import nbrdf
+from neumat import cbuild, nbrdf
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("fit_step.c")
@@ -41,69 +42,34 @@ WORK_ROWS = 73  # scratch floats per sample per thread: inputs 7, 3 x 21 + 3 act
 # (+ 3 per material of the thread: its targets)
 
 
-def _cpu_id() -> str:
-    """What -march=native depends on: the CPU model and its feature flags."""
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-        return "\n".join(sorted({l for l in lines if l.startswith(("model name", "flags"))}))
-    except OSError:
-        return platform.processor() + platform.machine()
+def default_march() -> str:
+    """The -march the fitter's kernel is built for: `$NEUMAT_FIT_MARCH`, else native."""
+    return os.environ.get("NEUMAT_FIT_MARCH", "native")
 
 
-def _flags() -> list[str]:
-    flags = ["-O3", "-ffast-math", "-march=native", "-fPIC"]
-    if platform.machine().lower() in ("x86_64", "amd64"):
-        flags.append("-mprefer-vector-width=512")  # 16-float vectors: one zmm where there is one
-    return flags
-
-
-def _compile(cc: str, out: Path) -> None:
-    """Compile to a temporary name and rename: concurrent jobs never load a half-written file.
-
-    -ffast-math only when compiling: linking a shared library with it would add crtfastmath,
-    which sets flush-to-zero for the whole process (torch included) when loaded."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
-        obj, lib = Path(tmp) / "fit_step.o", Path(tmp) / out.name
-        for cmd in ([cc, *_flags(), "-c", str(SOURCE), "-o", str(obj)],
-                    [cc, "-shared", str(obj), "-o", str(lib), "-lm"]):
-            r = subprocess.run(cmd, capture_output=True, text=True)
-            if r.returncode:
-                raise RuntimeError(f"compiling {SOURCE.name} failed: {' '.join(cmd)}\n{r.stderr}")
-        os.replace(lib, out)
+runs_here = cbuild.runs_here
 
 
 @cache
-def _library():
-    """The loaded kernel library, or None (with the reason logged) where it cannot be built."""
-    cc = os.environ.get("CC", "cc")
-    if shutil.which(cc) is None:
-        log.warning("no C compiler (%s): the fitter uses the slower torch path", cc)
+def _library(march: str | None = None):
+    """The loaded kernel library for `march`, or None (with the reason logged) where it cannot
+    be built or cannot run on this CPU."""
+    path = cbuild.build(SOURCE, march or default_march(), "the fitter uses the torch path")
+    if path is None:
         return None
-    version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join([SOURCE.read_text(), version, " ".join(_flags()),
-                                    _cpu_id()]).encode()).hexdigest()[:16]
-    cache_dir = Path(os.environ.get("NEUMAT_CACHE", Path.home() / ".cache" / "neumat"))
-    path = cache_dir / f"fit_step-{key}.so"
-    if not path.exists():
-        log.info("compiling %s -> %s", SOURCE.name, path)
-        try:
-            _compile(cc, path)
-        except (RuntimeError, OSError) as e:
-            log.warning("%s; the fitter uses the slower torch path", e)
-            return None
     lib = ctypes.CDLL(str(path))
     p, f, i = ctypes.c_void_p, ctypes.c_float, ctypes.c_int
     lib.nbrdf_fit_steps.argtypes = [i, i, i, i, p, p, i, p, p, p, p, p, p, p, p, p, f]
     lib.nbrdf_fit_steps.restype = None
     lib.nbrdf_loss_sums.argtypes = [i, i, i, i, p, p, i, p, p, p, p, f]
     lib.nbrdf_loss_sums.restype = None
+    lib.path = path
     return lib
 
 
-def available() -> bool:
+def available(march: str | None = None) -> bool:
     """True when the kernel is built (or can be) for this machine."""
-    return _library() is not None
+    return _library(march) is not None
 
 
 class Stepper:
@@ -114,11 +80,11 @@ class Stepper:
     xc_all (B, 7) inputs + cos and target (B, M * 3) of all bins are fixed at construction."""
 
     def __init__(self, xc_all: torch.Tensor, target: torch.Tensor, n: int, threads: int = 1,
-                 slope: float = 0.0):
+                 slope: float = 0.0, march: str | None = None):
         if n % VECTOR:
             raise ValueError(f"the C fit kernel needs a minibatch that is a multiple of {VECTOR}, "
                              f"got {n}")
-        self.lib = _library()
+        self.lib = _library(march)
         if self.lib is None:
             raise RuntimeError("the C fit kernel could not be built (see the log)")
         B, self.M = xc_all.shape[0], target.shape[1] // 3
@@ -200,3 +166,80 @@ def _check(t: torch.Tensor, shape):
 def _pool(threads: int) -> ThreadPoolExecutor:
     """One pool per thread count for the process: fitters come and go, threads stay idle."""
     return ThreadPoolExecutor(threads, thread_name_prefix="fit_kernel")
+
+
+# ----------------------------------------------------------------------------- auto: C or torch
+
+CALIBRATION = dict(materials=16, bins=4096, steps=8, rounds=3)  # ~0.1-0.5 s on one core
+
+
+def _time_steps(kernel: str, batch: int, activation: str, march: str | None) -> float:
+    """CPU seconds per material-step of the batched fitter's `kernel` path ("c" or "torch") on a
+    small random problem, one thread (this one: CPU time of the thread, not wall time, so that
+    other processes on a shared machine do not decide): the best of a few rounds."""
+    import dataclasses
+
+    import numpy as np
+
+    from neumat import fit  # here, not at the top: neumat.fit imports this module
+    from neumat.io import merl
+    c = CALIBRATION
+    rng = np.random.default_rng(0)
+    bins = np.sort(rng.choice(merl.N_BINS, c["bins"], replace=False))
+    x, cos = fit.bin_inputs(bins)
+    target = torch.as_tensor(rng.random((c["materials"], c["bins"], 3), dtype=np.float32))
+    s = dataclasses.replace(fit.FitSettings(), batch=batch, activation=activation, kernel=kernel,
+                            steps=10 ** 6, val_fraction=0.5)
+    init = nbrdf.init_weights(c["materials"], torch.Generator().manual_seed(0))
+    f = fit.BatchFitter(x, cos, target, range(c["materials"]), init, s, seed=0)
+    if kernel == "c" and march is not None:  # the variant being calibrated
+        f._c.lib = _library(march)
+    f._run(2)  # warm-up: first-touch of buffers, torch's kernel selection
+    best = float("inf")
+    for _ in range(c["rounds"]):
+        t = time.thread_time()
+        f._run(c["steps"])
+        best = min(best, time.thread_time() - t)
+    return best / (c["steps"] * c["materials"])
+
+
+def _calibrate(batch: int, activation: str, march: str | None) -> dict:
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        t_torch = _time_steps("torch", batch, activation, march)
+        t_c = _time_steps("c", batch, activation, march)
+    finally:
+        torch.set_num_threads(old)
+    return dict(c_us=t_c * 1e6, torch_us=t_torch * 1e6, choice="c" if t_c <= t_torch else "torch")
+
+
+@cache
+def auto_choice(batch: int, activation: str = "relu", march: str | None = None) -> str:
+    """"c" or "torch": the faster step for `fit.kernel: auto` on this CPU (the C kernel must be
+    available). Timed once per library, minibatch size and activation (single-threaded, both
+    paths, a small problem) and cached in `<library>.choice.json`; the choice is logged."""
+    lib = _library(march)
+    path = Path(str(lib.path) + ".choice.json")
+    key = f"batch={batch} activation={activation}"
+    try:
+        table = json.loads(path.read_text())
+    except (OSError, ValueError):
+        table = {}
+    how = "cached calibration"
+    if key not in table:
+        t0 = time.perf_counter()
+        table[key] = _calibrate(batch, activation, march)
+        how = f"calibrated in {time.perf_counter() - t0:.2f} s"
+        try:
+            fresh = json.loads(path.read_text())  # another job may have added other keys
+        except (OSError, ValueError):
+            fresh = {}
+        fresh[key] = table[key]
+        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(fresh, indent=1, sort_keys=True))
+        os.replace(tmp, path)
+    e = table[key]
+    log.info("fit kernel auto: %s (C step %.1f us, torch step %.1f us per material-step, %s, "
+             "1 thread, %s; %s)", e["choice"], e["c_us"], e["torch_us"], key, path, how)
+    return e["choice"]

@@ -3,9 +3,13 @@
  * The CPU fast path of neumat.fit (see neumat/fit_kernel.py, which compiles and loads this
  * file). It computes what neumat.fit.loss_and_grad + adam_step compute (equal to float32
  * rounding; -ffast-math may reorder sums), material by material: one material's activations (21 x n floats per layer) stay in L1/L2 cache, and the
- * small matmuls are register-blocked over 16-float vectors (GCC vector extensions: AVX-512,
- * AVX2 or SSE, whatever -march gives). torch's batched matmuls spend most of a step on
- * per-matrix overhead at these sizes; tests/test_fit_kernel.py checks this file against them.
+ * small matmuls are register-blocked over vectors of the target's native width (GCC vector
+ * extensions), chosen at compile time from what -march gives (see "Vector width and register
+ * blocking" below): 16 floats on AVX-512, 8 on AVX2, 4 on SSE or NEON. A block's
+ * accumulators must fit the register file: 16-float vectors blocked for 32 zmm registers spill
+ * on every FMA when compiled for AVX2's 16 ymm registers (10x slower). torch's batched
+ * matmuls spend most of a step on per-matrix overhead at these sizes;
+ * tests/test_fit_kernel.py checks every variant that builds against them.
  *
  * Layouts (float32 unless said, row-major):
  *   xc_all     (B, 7)   all bins' inputs [h, d] and cos(theta_i)
@@ -15,7 +19,7 @@
  *   w, m, v (M, 675)    weights in neumat.nbrdf's flatten order, Adam moments (updated)
  *   grad (M, 675), loss (M,)  gradient and eq. 2 loss of the last step (written)
  *   work                (73 + 3 M) (n + 16) floats of scratch
- * n must be a multiple of 16. step0 = Adam steps already taken (bias correction).
+ * n must be a multiple of 16 (any vector width divides it). step0 = Adam steps already taken (bias correction).
  * nbrdf_loss_sums (at the end) evaluates the loss of fitted fields on any set of bins.
  */
 #include <math.h>
@@ -25,9 +29,35 @@
 #include <xmmintrin.h>
 #endif
 
-typedef float vf __attribute__((vector_size(64), aligned(4)));  /* 16 floats, any alignment */
-typedef int vi __attribute__((vector_size(64), aligned(4)));
+/* Vector width and register blocking, from the target ISA.
+ *   VL       floats per vector
+ *   AJ, AS   affine: blocks of AJ output rows x AS vectors of samples: AJ AS accumulators,
+ *            AS inputs and one broadcast weight live at once
+ *   OJ, OK   outer: OJ x OK accumulators + OJ rows of D + one row of X
+ * 32 registers (AVX-512, aarch64): 7 x 2 (17 live) and 3 x 7 (25 live).
+ * 16 registers (AVX2, SSE): 6 x 2 (15 live) and 3 x 4 (16 live). */
+#if defined(__AVX512F__)
 #define VL 16
+#define NREG 32
+#elif defined(__AVX__)
+#define VL 8
+#define NREG 16
+#elif defined(__aarch64__)
+#define VL 4
+#define NREG 32
+#else
+#define VL 4
+#define NREG 16
+#endif
+#if NREG >= 32
+enum { AJ = 7, AS = 2, OJ = 3, OK = 7 };
+#else
+enum { AJ = 6, AS = 2, OJ = 3, OK = 4 };
+#endif
+#define PAD 16  /* scratch rows are n + PAD floats apart, whatever VL */
+
+typedef float vf __attribute__((vector_size(4 * VL), aligned(4)));  /* any alignment */
+typedef int vi __attribute__((vector_size(4 * VL), aligned(4)));
 #define H 21
 enum { OW1 = 0, OB1 = 126, OW2 = 147, OB2 = 588, OW3 = 609, OB3 = 672, NP = 675 };
 
@@ -53,30 +83,33 @@ static inline vf finish(vf z, int mode, const float *g, float slope)
 }
 
 /* Y (J x n) = f(A X + b), A (J x K) with element (j, k) at A[j * sj + k * sk], X (K x n),
- * f by `mode` (G: J x n, for GATE). Blocks of JB rows x 2 vectors of samples; JB and mode
+ * f by `mode` (G: J x n, for GATE). Blocks of JB rows x AS vectors of samples; JB and mode
  * are constants after inlining. */
 static inline __attribute__((always_inline)) void
 affine_block(int JB, int j0, int K, int n, int ld, const float *A, int sj, int sk,
              const float *b, const float *X, float *Y, int mode, const float *G, float slope)
 {
-    for (int s = 0; s < n; s += 2 * VL) {
-        int two = s + VL < n;
-        vf acc[7][2];
+    for (int s = 0; s < n; s += AS * VL) {
+        int nv = (n - s) / VL < AS ? (n - s) / VL : AS;  /* vectors in this block */
+        vf acc[AJ][AS];
         for (int j = 0; j < JB; j++)
-            acc[j][0] = acc[j][1] = splat(b ? b[j0 + j] : 0.f);
+            for (int q = 0; q < AS; q++)
+                acc[j][q] = splat(b ? b[j0 + j] : 0.f);
         for (int k = 0; k < K; k++) {
-            vf x0 = vload(X + (size_t)k * ld + s), x1 = two ? vload(X + (size_t)k * ld + s + VL) : x0;
+            vf x[AS];
+            x[0] = vload(X + (size_t)k * ld + s);
+            for (int q = 1; q < AS; q++)  /* a short last block repeats its first vector */
+                x[q] = q < nv ? vload(X + (size_t)k * ld + s + q * VL) : x[0];
             for (int j = 0; j < JB; j++) {
                 float a = A[(j0 + j) * sj + k * sk];
-                acc[j][0] += a * x0;
-                acc[j][1] += a * x1;
+                for (int q = 0; q < AS; q++)
+                    acc[j][q] += a * x[q];
             }
         }
         for (int j = 0; j < JB; j++) {
             size_t o = (size_t)(j0 + j) * ld + s;
-            st(Y + o, finish(acc[j][0], mode, G + o, slope));
-            if (two)
-                st(Y + o + VL, finish(acc[j][1], mode, G + o + VL, slope));
+            for (int q = 0; q < nv; q++)
+                st(Y + o + q * VL, finish(acc[j][q], mode, G + o + q * VL, slope));
         }
     }
 }
@@ -86,8 +119,12 @@ affine(int J, int K, int n, int ld, const float *A, int sj, int sk, const float 
        const float *X, float *Y, int mode, const float *G, float slope)
 {
     int j0 = 0;
-    for (; j0 + 7 <= J; j0 += 7)
-        affine_block(7, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
+    for (; j0 + AJ <= J; j0 += AJ)
+        affine_block(AJ, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
+    if (J - j0 >= 3) {  /* J = 21 with AJ = 6, and J = 3 */
+        affine_block(3, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
+        j0 += 3;
+    }
     for (; j0 < J; j0++)
         affine_block(1, j0, K, n, ld, A, sj, sk, b, X, Y, mode, G, slope);
 }
@@ -101,12 +138,12 @@ static inline float hsum(vf v)
 }
 
 /* G (J x K) = D X^T, D (J x n), X (K x n); gb (J) = row sums of D (if not NULL).
- * Blocks of 3 rows of D x KB rows of X, accumulated over all samples. */
+ * Blocks of OJ = 3 rows of D x KB rows of X, accumulated over all samples. */
 static inline __attribute__((always_inline)) void
 outer_block(int j0, int KB, int k0, int K, int n, int ld, const float *D, const float *X,
             float *G)
 {
-    vf acc[3][7] = {{{0}}};
+    vf acc[OJ][7] = {{{0}}};  /* KB <= 7 columns used; the others are optimised away */
     for (int s = 0; s < n; s += VL) {
         vf d0 = vload(D + (size_t)j0 * ld + s), d1 = vload(D + (size_t)(j0 + 1) * ld + s),
            d2 = vload(D + (size_t)(j0 + 2) * ld + s);
@@ -127,10 +164,16 @@ static void outer(int J, int K, int n, int ld, const float *D, const float *X, f
 {
     for (int j0 = 0; j0 < J; j0 += 3) {  /* J is 21 or 3 */
         int k0 = 0;
-        for (; k0 + 7 <= K; k0 += 7)
-            outer_block(j0, 7, k0, K, n, ld, D, X, G);
-        if (K - k0 == 6)
-            outer_block(j0, 6, k0, K, n, ld, D, X, G);
+        for (; k0 + OK <= K; k0 += OK)
+            outer_block(j0, OK, k0, K, n, ld, D, X, G);
+        switch (K - k0) {  /* the rest (K is 21 or 6; < OK), a constant block size per case */
+        case 1: outer_block(j0, 1, k0, K, n, ld, D, X, G); break;
+        case 2: outer_block(j0, 2, k0, K, n, ld, D, X, G); break;
+        case 3: outer_block(j0, 3, k0, K, n, ld, D, X, G); break;
+        case 4: outer_block(j0, 4, k0, K, n, ld, D, X, G); break;
+        case 5: outer_block(j0, 5, k0, K, n, ld, D, X, G); break;
+        case 6: outer_block(j0, 6, k0, K, n, ld, D, X, G); break;
+        }
     }
     if (gb)
         for (int j = 0; j < J; j++) {
@@ -235,7 +278,7 @@ void nbrdf_fit_steps(int M, int n, int K, int step0, const float *xc_all,
                      float *work, float slope)
 {
     unsigned csr = flush_denormals();
-    int ld = n + VL;
+    int ld = n + PAD;
     float *xc = work, *a1 = xc + 7 * ld, *a2 = a1 + H * ld, *d = a2 + H * ld, *y = d + H * ld,
           *tb = y + 3 * ld;  /* y: 3 x n, tb: M * 3 x n */
     const float *cos = xc + 6 * (size_t)ld;
@@ -273,7 +316,7 @@ void nbrdf_loss_sums(int M, int n, int N, int nv, const float *xc_all, const flo
                      float slope)
 {
     unsigned csr = flush_denormals();
-    int ld = n + VL;
+    int ld = n + PAD;
     float *xc = work, *a1 = xc + 7 * ld, *a2 = a1 + H * ld, *y = a2 + 2 * H * ld,
           *tb = y + 3 * ld;
     const float *cos = xc + 6 * (size_t)ld;

@@ -1,0 +1,121 @@
+"""Fast Triple Plane queries on the CPU: `query_kernel.c` (half/difference frame, three bilinear
+fetches and the MLP fused per tile of 64 queries), the same function of (u, wi, wo) as
+`TriplePlane.forward` to float32 rounding (tests/test_btf_query.py); `benchmarks/btf_query.py`
+measures both against the FLOP bound.
+
+    rgb = query(model, u, wi, wo)                       # = model(u, wi, wo)
+    rgb = query(model, u, wi, wo, features_u=f)         # = relu(expm1(model.decode(f, wi, wo)))
+
+The f_U hook, for texture synthesis: `features_u` replaces the positional fetch of f_U at u by
+the caller's features, either a tensor (N, C_U) or a callable u -> (N, C_U) (e.g. a fetch from a
+synthesised plane); u is then only passed to that callable. Everything else (directions,
+f_H, f_D, MLP) is unchanged.
+
+Falls back to the model's torch path (same results) for other models (NeuMIP), tensors off the
+CPU, autograd, or where the kernel cannot be built (no compiler; see neumat.cbuild).
+"""
+
+from __future__ import annotations
+
+import ctypes
+from concurrent.futures import ThreadPoolExecutor
+from functools import cache
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+from neumat import cbuild
+
+SOURCE = Path(__file__).with_name("query_kernel.c")
+MAX_WIDTH = 128  # MAXW in query_kernel.c: the widest layer its scratch holds
+
+
+@cache
+def _library(march: str = "native"):
+    path = cbuild.build(SOURCE, march, "BTF queries use the torch path")
+    if path is None:
+        return None
+    lib = ctypes.CDLL(str(path))
+    p, i, l = ctypes.c_void_p, ctypes.c_int, ctypes.c_long
+    lib.btf_triple_plane.argtypes = [l, p, p, p, p, p, i, i, i, p, p, i, i, i, p, p, p, i]
+    lib.btf_triple_plane.restype = None
+    return lib
+
+
+def available(march: str = "native") -> bool:
+    return _library(march) is not None
+
+
+def _f32(t: torch.Tensor) -> torch.Tensor:
+    return t.detach().to(torch.float32).contiguous()
+
+
+def supported(model, *tensors, march: str = "native") -> bool:
+    """Whether `query` runs this model and these inputs in C (else it uses the torch path):
+    a Triple Plane model on the CPU, and no autograd wanted (grad mode off, or no parameter
+    that requires grad)."""
+    from neumat.btf.neural import TriplePlane
+    if not isinstance(model, TriplePlane) or not available(march):
+        return False
+    lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
+    if max(max(l.in_features, l.out_features) for l in lin) > MAX_WIDTH:
+        return False
+    if model.f_h.shape != model.f_d.shape or model.f_h.shape[0] != model.f_h.shape[1]:
+        return False
+    if torch.is_grad_enabled() and any(p.requires_grad for p in model.parameters()):
+        return False
+    return all(t.device.type == "cpu" for t in (model.f_u, *tensors))
+
+
+def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
+          raw: bool = False, threads: int | None = None, march: str = "native") -> torch.Tensor:
+    """RGB (N, 3) of `model` at texture coordinates u (N, 2) and unit directions wi, wo (N, 3);
+    raw=True: the MLP output log(1 + RGB) instead. `features_u`: see the module docstring.
+    Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
+    (e.g. x86-64-v3 for the AVX2 one, in tests)."""
+    if callable(features_u):
+        features_u = features_u(u)
+    if not supported(model, u, wi, wo, *([] if features_u is None else [features_u]),
+                     march=march):
+        fu = model.features_u(u) if features_u is None else features_u
+        y = model.decode(fu, wi, wo)
+        return y if raw else torch.relu(torch.expm1(y))
+    N = wi.shape[0]
+    cu = model.kwargs["u_channels"]
+    if features_u is not None and tuple(features_u.shape) != (N, cu):
+        raise ValueError(f"features_u must be ({N}, {cu}), got {tuple(features_u.shape)}")
+    u, wi, wo = _f32(u), _f32(wi), _f32(wo)
+    feat = None if features_u is None else _f32(features_u)
+    fu, fh, fd = _f32(model.f_u), _f32(model.f_h), _f32(model.f_d)
+    lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
+    dims = torch.tensor([lin[0].in_features] + [l.out_features for l in lin], dtype=torch.int32)
+    params = torch.cat([t.detach().reshape(-1) for l in lin for t in (l.weight, l.bias)]).float()
+    out = torch.empty(N, 3)
+    lib = _library(march)
+    threads = max(1, min(threads or torch.get_num_threads(), N // 4096 + 1))
+    bounds = [N * k // threads for k in range(threads + 1)]
+    f4 = 4
+
+    def part(k):
+        a, b = bounds[k], bounds[k + 1]
+        lib.btf_triple_plane(
+            b - a, u.data_ptr() + 2 * f4 * a, wi.data_ptr() + 3 * f4 * a,
+            wo.data_ptr() + 3 * f4 * a, None if feat is None else feat.data_ptr() + cu * f4 * a,
+            fu.data_ptr(), fu.shape[0], fu.shape[1], cu, fh.data_ptr(), fd.data_ptr(),
+            fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
+            out.data_ptr() + 3 * f4 * a, int(raw))
+
+    if threads == 1:
+        part(0)
+    else:  # ctypes releases the GIL: the parts run in parallel
+        futures = [_pool(threads - 1).submit(part, k) for k in range(1, threads)]
+        part(0)
+        for f in futures:
+            f.result()
+    return out
+
+
+@cache
+def _pool(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(threads, thread_name_prefix="btf_query")

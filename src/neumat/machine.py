@@ -1,0 +1,98 @@
+"""What machine a figure was measured on: CPU model, vector ISA, cores, sgemm peak.
+
+Benchmarks print `describe()` next to every figure, so that a speed-up is never quoted without
+the machine it came from (an AVX-512 figure says nothing about an AVX2 machine).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import shutil
+import subprocess
+import time
+from functools import cache
+from pathlib import Path
+
+
+@cache
+def cpu_model() -> str:
+    """The CPU's model name (lscpu's "Model name"), or the platform's processor string."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+@cache
+def cpu_flags() -> frozenset[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def _isa_name(has) -> str:
+    """The widest float vector ISA among the names `has` accepts."""
+    for name, keys in (("AVX-512", ("avx512f", "__AVX512F__")), ("AVX2", ("avx2", "__AVX2__")),
+                       ("AVX", ("avx", "__AVX__")), ("SSE4.2", ("sse4_2", "__SSE4_2__")),
+                       ("SSE2", ("sse2", "__SSE2__")), ("NEON", ("asimd", "__ARM_NEON"))):
+        if any(has(k) for k in keys):
+            return name
+    return "scalar"
+
+
+def host_isa() -> str:
+    """The widest float vector ISA this CPU has, e.g. "AVX-512", "AVX2", "NEON"."""
+    return _isa_name(cpu_flags().__contains__)
+
+
+@cache
+def compiler_isa(march: str = "native") -> str | None:
+    """The vector ISA C code compiled with -march=`march` targets (the compiler's predefined
+    macros), or None without a compiler or for a -march it rejects."""
+    cc = os.environ.get("CC", "cc")
+    if shutil.which(cc) is None:
+        return None
+    r = subprocess.run([cc, f"-march={march}", "-dM", "-E", "-"], input="", capture_output=True,
+                       text=True)
+    if r.returncode:
+        return None
+    macros = {line.split()[1] for line in r.stdout.splitlines() if line.startswith("#define")}
+    return _isa_name(macros.__contains__)
+
+
+def describe(march: str | None = None) -> str:
+    """One line: CPU model, host ISA, CPUs, and the ISA of a C build for `march` if given."""
+    s = f"CPU {cpu_model()} ({platform.machine()}, {host_isa()}, {os.cpu_count()} CPUs)"
+    if march:
+        s += f"; C kernel -march={march} -> {compiler_isa(march) or 'no compiler'}"
+    return s
+
+
+def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> tuple[float, float]:
+    """fp32 matmul rate of this machine from n^3 torch.mm (CPU) with `threads` torch threads
+    (default: as set): (FLOP per wall second, FLOP per CPU second of the process), each the best
+    of `repeat`. On a shared machine the second is the load-independent one."""
+    import torch
+    old = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    try:
+        g = torch.Generator().manual_seed(0)
+        a, b = torch.randn(n, n, generator=g), torch.randn(n, n, generator=g)
+        c = torch.mm(a, b)  # warm-up
+        wall = cpu = float("inf")
+        for _ in range(repeat):
+            t, p = time.perf_counter(), time.process_time()
+            torch.mm(a, b, out=c)
+            wall, cpu = min(wall, time.perf_counter() - t), min(cpu, time.process_time() - p)
+        return 2 * n ** 3 / wall, 2 * n ** 3 / cpu
+    finally:
+        torch.set_num_threads(old)

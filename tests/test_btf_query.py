@@ -1,0 +1,94 @@
+"""The fused C Triple Plane query (neumat.btf.query) against the model's torch path."""
+
+import platform
+
+import pytest
+import torch
+
+from neumat.btf import query
+from neumat.btf.neural import NeuMIP, TriplePlane
+
+pytestmark = pytest.mark.skipif(not query.available(), reason="the C query kernel cannot be built")
+X86 = platform.machine().lower() in ("x86_64", "amd64")
+MARCHES = [pytest.param(m, marks=pytest.mark.skipif(not (X86 or m == "native") or
+                                                    not query.available(m),
+                                                    reason=f"-march={m} does not build or run here"))
+           for m in ("native", "x86-64-v3", "x86-64-v2")]
+
+
+def model(**kw):
+    m = TriplePlane(37, 23, **kw)
+    g = torch.Generator().manual_seed(1)
+    with torch.no_grad():  # planes with structure at the scale of a texel, a non-trivial MLP
+        for p in m.parameters():
+            p.copy_(torch.randn(p.shape, generator=g) * 0.5)
+    return m.requires_grad_(False).eval()
+
+
+def queries(n, seed=0):
+    """Random queries with the edge cases: u outside [0, 1) (wraps), wi = wo = the normal
+    (phi_h undefined), grazing directions, mirror directions (h on the pole)."""
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(n, 2, generator=g) * 3 - 1
+    wi, wo = (torch.nn.functional.normalize(torch.randn(n, 3, generator=g) *
+                                            torch.tensor([1, 1, 0]) +
+                                            torch.tensor([0, 0, 0.02]) +
+                                            torch.rand(n, 1, generator=g) *
+                                            torch.tensor([0, 0, 3.0]), dim=-1)
+              for _ in range(2))
+    wi[0] = wo[0] = torch.tensor([0.0, 0.0, 1.0])
+    wi[1], wo[1] = torch.tensor([0.6, 0.0, 0.8]), torch.tensor([-0.6, 0.0, 0.8])
+    return u, wi, wo
+
+
+@pytest.mark.parametrize("march", MARCHES)
+@pytest.mark.parametrize("n", [2, 203, 1000])
+def test_query_matches_the_torch_path(march, n):
+    m, (u, wi, wo) = model(), queries(n)
+    ref, raw = m(u, wi, wo), m.raw(u, wi, wo)
+    got = query.query(m, u, wi, wo, march=march)
+    assert ref.abs().max() > 0.1  # not all clamped to 0
+    # float32 rounding of sums in another order, at the scale of the MLP's outputs (~30 here)
+    scale = raw.abs().max().item()
+    torch.testing.assert_close(got, ref, rtol=1e-4, atol=3e-6 * scale)
+    torch.testing.assert_close(query.query(m, u, wi, wo, raw=True, march=march), raw,
+                               rtol=1e-4, atol=3e-6 * scale)
+
+
+def test_other_widths_and_depths():
+    m, (u, wi, wo) = model(u_channels=5, dir_res=9, dir_channels=3, hidden=19, layers=3), \
+        queries(300, 1)
+    torch.testing.assert_close(query.query(m, u, wi, wo), m(u, wi, wo), rtol=1e-4, atol=1e-5)
+
+
+def test_features_u_hook_replaces_the_f_u_fetch():
+    """Synthesis passes its own positional features (a tensor, or a function of u)."""
+    m, (u, wi, wo) = model(), queries(500, 2)
+    feat = torch.randn(500, 8, generator=torch.Generator().manual_seed(3))
+    ref = torch.relu(torch.expm1(m.decode(feat, wi, wo)))
+    torch.testing.assert_close(query.query(m, u, wi, wo, features_u=feat), ref,
+                               rtol=1e-4, atol=1e-5)
+    shifted = lambda uu: m.features_u(uu + 0.25)  # e.g. a fetch at synthesised coordinates
+    torch.testing.assert_close(query.query(m, u, wi, wo, features_u=shifted),
+                               m(u + 0.25, wi, wo), rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="features_u"):
+        query.query(m, u, wi, wo, features_u=feat[:, :4])
+
+
+def test_threads_split_the_queries_exactly():
+    m, (u, wi, wo) = model(), queries(20000, 4)
+    assert torch.equal(query.query(m, u, wi, wo, threads=1), query.query(m, u, wi, wo, threads=3))
+
+
+def test_fallbacks_give_the_torch_path():
+    """NeuMIP, and autograd on a trainable model, run the torch path (gradients flow)."""
+    u, wi, wo = queries(100, 5)
+    nm = NeuMIP(16, 16).eval()
+    with torch.no_grad():
+        torch.testing.assert_close(query.query(nm, u, wi, wo), nm(u, wi, wo))
+    tp = TriplePlane(16, 16)
+    assert not query.supported(tp, u)  # requires grad, grad mode on
+    query.query(tp, u, wi, wo).sum().backward()
+    assert tp.f_u.grad is not None
+    with torch.no_grad():
+        assert query.supported(tp, u)
