@@ -39,8 +39,19 @@ def gain3(x: torch.Tensor, r: float) -> torch.Tensor:
     k = math.log(1 - r) / math.log(0.5)
     s = 2.0 * (x >= 0.5).to(x.dtype)
     m = 2.0 * (1 - s)
-    res = 0.5 * s + 0.25 * m * torch.clamp(s + x * m, min=0) ** k
+    res = 0.5 * s + 0.25 * m * torch.exp(k * torch.log(torch.clamp(s + x * m, min=1e-30)))
     return res / res.sum(-1, keepdim=True)
+
+
+def _power(x: torch.Tensor, e: float) -> torch.Tensor:
+    """x ** e; integer e by repeated multiplication (torch's SIMD and scalar pow differ in the
+    last ulp, which would make a query's value depend on its position in the batch)."""
+    if float(e).is_integer() and 0 <= e <= 16:
+        out = torch.ones_like(x)
+        for _ in range(int(e)):
+            out = out * x
+        return out
+    return x ** e
 
 
 class HexTile:
@@ -79,7 +90,7 @@ class HexTile:
         taps = fetch(self.plane_lum, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3, -1)
         c, lum = taps[..., :-1], taps[..., -1]
         dw = 1 + s["contrast"] * (lum - 1)
-        W = dw * w.float() ** s["exponent"]
+        W = dw * _power(w.float(), s["exponent"])
         W = W / W.sum(1, keepdim=True).clamp_min(1e-30)
         if s["gain"] != 0.5:
             W = gain3(W, s["gain"])
