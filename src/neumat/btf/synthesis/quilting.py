@@ -5,7 +5,10 @@ Blocks of B texels overlap by B / 6; each new block is chosen at random among th
 positions whose SSD over the already-filled overlap is within `tolerance` x the best, then
 pasted along a minimum-error boundary cut (dynamic programming over the overlap's squared
 difference). Candidates are all W x H positions of the exemplar treated as a torus (the plane
-tiles), so the SSD of every candidate is three FFT correlations."""
+tiles), so the SSD of every candidate is three FFT correlations. On a torus the verbatim
+continuation of the left / upper neighbour's source always matches with zero error, and
+quilting would reproduce plain tiling; candidates within B / 2 texels of those continuations
+are therefore excluded (Efros & Freeman's exemplars have borders, which break such runs)."""
 
 from __future__ import annotations
 
@@ -66,6 +69,8 @@ def quilt(ex: np.ndarray, out_h: int, out_w: int, block: int, rng: np.random.Gen
     exw = np.concatenate([ex, ex[:block]], 0)
     exw = np.concatenate([exw, exw[:, :block]], 1).astype(np.float64)   # torus windows
     err_sum, err_n = 0.0, 0
+    src = {}
+    r = block // 2
     for by in range(ny):
         for bx in range(nx):
             y0, x0 = by * step, bx * step
@@ -85,9 +90,15 @@ def quilt(ex: np.ndarray, out_h: int, out_w: int, block: int, rng: np.random.Gen
                 ssd = (_corr(F_E2, np.broadcast_to(m, T.shape), H, W)
                        - 2 * _corr(F_E, T, H, W) + (T * T).sum())
                 ssd = np.maximum(ssd, 0)
+                for (sy, sx) in ([(src[by, bx - 1][0], src[by, bx - 1][1] + step)] if bx else []) + \
+                        ([(src[by - 1, bx][0] + step, src[by - 1, bx][1])] if by else []):
+                    ys = np.arange(sy - r + 1, sy + r) % H
+                    xs = np.arange(sx - r + 1, sx + r) % W
+                    ssd[np.ix_(ys, xs)] = np.inf
                 best = ssd.min()
                 cand = np.flatnonzero(ssd.reshape(-1) <= best * tolerance + 1e-12 * (1 + best))
                 py, px = divmod(int(cand[rng.integers(len(cand))]), W)
+            src[by, bx] = (py, px)
             patch = exw[py:py + block, px:px + block]
             if mask.any():
                 d = ((patch - tgt) ** 2).sum(-1)
