@@ -1,0 +1,82 @@
+"""Synthesis overhead per 1920 x 1080 frame of BTF queries (2,073,600 queries, u uniform over a
+x15 area, float64) against the plain Triple Plane query of the same frame, in the same run.
+Overhead = (t(query with synthesis) - t(plain query)) / t(plain query); goal <= 10 % (paper:
+< 0.2 ms synthesis vs 2.0 ms query on an RTX 4090). Also times the plane fetch alone.
+
+    OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--model results/<run>/btf/models/<m>/triple_plane.pt]
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import subprocess
+import time
+
+import torch
+
+import neumat.btf.synthesis as syn
+from neumat.btf import models
+from neumat.btf.neural import fetch
+
+FRAME = 1920 * 1080
+
+
+def cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
+        return next(l.split(":", 1)[1].strip() for l in out.splitlines() if l.startswith("Model name"))
+    except (OSError, StopIteration):
+        return platform.processor() or "unknown"
+
+
+def timed(fn, repeat=3, sync=lambda: None):
+    best = float("inf")
+    for _ in range(repeat):
+        sync()
+        t = time.perf_counter()
+        fn()
+        sync()
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+@torch.no_grad()
+def chunked(fn, n, chunk):
+    return [fn(slice(s, s + chunk)) for s in range(0, n, chunk)]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", help="trained triple_plane.pt (default: random 400 x 400 model)")
+    ap.add_argument("--methods", nargs="+", default=["linear", "hpb", "hextile"])
+    ap.add_argument("--quilt-scale", type=int, default=2,
+                    help="quilting (if in --methods) is built at this scale first (not timed)")
+    ap.add_argument("--chunk", type=int, default=1 << 18)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    m = (models.load(a.model) if a.model else models.TriplePlane(400, 400)).eval()
+    g = torch.Generator().manual_seed(0)
+    u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
+    u32 = torch.remainder(u, 1.0).float()
+    w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
+                                      + torch.tensor([0, 0, 0.8]), dim=-1)
+    print(f"CPU {cpu_model()}, torch ISA {torch.backends.cpu.get_cpu_capability()}, "
+          f"torch threads {torch.get_num_threads()}, torch {torch.__version__}")
+    print(f"model {m.method} {m.kwargs}, frame {FRAME} queries, chunk {a.chunk}")
+    c = a.chunk
+    plain = timed(lambda: chunked(lambda s: m(u32[s], w[s], w[s]), FRAME, c), a.repeat)
+    f_plain = timed(lambda: chunked(lambda s: fetch(m.f_u.detach(), u32[s], True), FRAME, c), a.repeat)
+    print(f"{'plain tiling':16s} query {plain * 1e3:9.1f} ms/frame   f_U fetch {f_plain * 1e3:8.1f} ms")
+    for method in a.methods:
+        st = {"scale": a.quilt_scale} if method == "quilting" else {}
+        wrapped = syn.Synthesized(m, syn.build(m, method, 1, st))
+        tq = timed(lambda: chunked(lambda s: wrapped(u[s], w[s], w[s]), FRAME, c), a.repeat)
+        tf = timed(lambda: chunked(lambda s: wrapped.synth(u[s]), FRAME, c), a.repeat)
+        print(f"{syn.LABELS[method]:16s} query {tq * 1e3:9.1f} ms/frame   synthesis {tf * 1e3:8.1f} ms"
+              f"   overhead vs plain query {(tq - plain) / plain * 100:6.1f} %"
+              f"   (synthesis - plain fetch) / plain query {(tf - f_plain) / plain * 100:6.1f} %")
+
+
+if __name__ == "__main__":
+    main()
