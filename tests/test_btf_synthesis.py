@@ -121,18 +121,50 @@ def test_hpb_at_u_1e5_equals_float64_reference():
     assert np.abs(got32[:25] - ref[:25]).max() > 100 * np.abs(got[:25] - ref[:25]).max()
 
 
-def test_dynamic_methods_are_consistent_at_large_u():
-    """hex-tiling and linear blend at u + 1e5 (exact in float64) equal the float64 result
-    of the same function when its float32 fetch coordinate is the same: no cancellation."""
+def _grid_ref(u):
+    x, y = (c * 2 * math.sqrt(3) for c in u)
+    s0, s1 = x - y / math.sqrt(3), 2 * y / math.sqrt(3)
+    b0, b1 = math.floor(s0), math.floor(s1)
+    f0, f1 = s0 - b0, s1 - b1
+    z = 1 - f0 - f1
+    if z > 0:
+        return [(b0, b1), (b0, b1 + 1), (b0 + 1, b1)], [z, f1, f0]
+    return [(b0 + 1, b1 + 1), (b0 + 1, b1), (b0, b1 + 1)], [-z, 1 - f1, 1 - f0]
+
+
+def _hextile_ref(s, u):
+    """Hex-tiling at one point in Python float64 / ints (rotation about the vertex centre)."""
+    vs, ws = _grid_ref(u)
+    pl = s.plane_lum.double().numpy()
+    cs, W = [], []
+    for (vx, vy), w in zip(vs, ws):
+        hx, hy, ha = _hash_ref(vx, vy, s.seed, 3)
+        a = (2 * math.pi * ha - math.pi) * s.s["rotation"]
+        cx, cy = (vx + vy / 2) / (2 * math.sqrt(3)), vy * (math.sqrt(3) / 2) / (2 * math.sqrt(3))
+        dx, dy = u[0] - cx, u[1] - cy
+        px = math.cos(a) * dx - math.sin(a) * dy + cx % 1 + hx
+        py = math.sin(a) * dx + math.cos(a) * dy + cy % 1 + hy
+        t = _bilinear64(pl, px % 1, py % 1)
+        cs.append(t[:-1])
+        W.append((1 + s.s["contrast"] * (t[-1] - 1)) * w ** s.s["exponent"])
+    W = np.asarray(W) / sum(W)
+    k = math.log(1 - s.s["gain"]) / math.log(0.5)
+    W = np.where(W < 0.5, 0.5 * (2 * W) ** k, 1 - 0.5 * (2 - 2 * W) ** k)
+    W /= W.sum()
+    return sum(wi * c for wi, c in zip(W, cs))
+
+
+def test_hextile_at_u_1e5_equals_float64_reference():
     m = _plane_model()
-    u = torch.rand(200, 2, dtype=torch.float64)
-    for method in ("hextile", "linear"):
-        s = syn.build(m, method, 5)
-        big = s(u + 1e5)
-        assert torch.isfinite(big).all() and big.std() > 0
-        # shift by a lattice period of the triangle grid and of the texture: values repeat
-        # only where both coincide; a shift by one grid row is not such a period
-        assert not torch.allclose(big, s(u + 1e5 + 0.5))
+    s = syn.build(m, "hextile", 5)
+    g = np.random.default_rng(2)
+    pts = [(1e5 + a, 1e5 + b) for a, b in g.random((25, 2))] + [tuple(g.random(2)) for _ in range(5)]
+    u = torch.tensor(pts, dtype=torch.float64)
+    got = s(u).double().numpy()
+    ref = np.stack([_hextile_ref(s, p) for p in pts])
+    assert np.abs(got - ref).max() < 1e-4 * np.std(ref)
+    got32 = s(u.float().double()).double().numpy()
+    assert np.abs(got32[:25] - ref[:25]).max() > 100 * np.abs(got[:25] - ref[:25]).max()
 
 
 def test_blend_preserves_mean_and_variance_of_gaussians():
