@@ -107,18 +107,32 @@ def test_vertex_hash_is_exact_integer_arithmetic():
     assert len({tuple(r) for r in grid.vertex_hash(v[:1] + torch.arange(50)[:, None], 1).tolist()}) == 50
 
 
-def test_hpb_at_u_1e5_equals_float64_reference():
+@pytest.mark.parametrize("path", ["default", "torch"])
+def test_hpb_at_u_1e5_equals_float64_reference(path):
+    """default: the C kernel where it is built (else torch); torch: the torch path."""
     s = syn.build(_plane_model(), "hpb", 11)
+    f = s if path == "default" else s.torch_features
     g = np.random.default_rng(0)
     pts = [(1e5 + a, 1e5 + b) for a, b in g.random((25, 2))] + [tuple(g.random(2)) for _ in range(5)]
     u = torch.tensor(pts, dtype=torch.float64)
-    got = s(u).double().numpy()
+    got = f(u).double().numpy()
     ref = np.stack([_hpb_ref(s, p) for p in pts])
     # float32 rounding of the fetch and of the features only (measured 5e-7 vs std 0.07)
     assert np.abs(got - ref).max() < 1e-4 * np.std(ref)
     # the same points through float32 u (what a float32 hash/coordinate path sees) are off
-    got32 = s(u.float().double()).double().numpy()
+    got32 = f(u.float().double()).double().numpy()
     assert np.abs(got32[:25] - ref[:25]).max() > 100 * np.abs(got[:25] - ref[:25]).max()
+
+
+def test_hpb_kernel_matches_torch_path():
+    from neumat.btf.synthesis import kernel
+    if not kernel.available():
+        pytest.skip("no C compiler: HPB runs its torch path only")
+    s = syn.build(_plane_model(), "hpb", 3)
+    u = torch.rand(20000, 2, dtype=torch.float64) * 30 - 10
+    u[:50] += 1e5
+    k, t = s(u), s.torch_features(u)
+    assert (k - t).abs().max() < 1e-4 * t.std()
 
 
 def _grid_ref(u):

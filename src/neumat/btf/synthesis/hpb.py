@@ -19,6 +19,7 @@ import math
 import torch
 
 from neumat.btf.neural import fetch
+from neumat.btf.synthesis import kernel
 from neumat.btf.synthesis.grid import triangle_grid, vertex_hash, wrap_fetch_coords
 
 SIGMA = 1.0 / 6.0
@@ -94,6 +95,11 @@ class HPB:
         return cls(seed, state["mean"], state["basis"], state["gauss"], state["lut"])
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
+        """Features (N, C) at u: the fused C kernel where it is built, else `torch_features`."""
+        out = kernel.hpb_features(u, self.gauss, self.lut, self.mean, self.basis, self.seed)
+        return self.torch_features(u) if out is None else out
+
+    def torch_features(self, u: torch.Tensor) -> torch.Tensor:
         v, w = triangle_grid(u)
         xy = wrap_fetch_coords(u, vertex_hash(v, self.seed))
         taps = fetch(self.gauss, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3, -1)
