@@ -21,6 +21,7 @@ include: "workflow/rules/diffusion.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/metrics.smk"
 include: "workflow/rules/btf.smk"
+include: "workflow/rules/btf_synthesis.smk"
 include: "workflow/rules/report.smk"
 
 

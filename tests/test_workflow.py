@@ -69,6 +69,10 @@ def test_tiny_config_runs_every_stage(tiny_run):
     assert len(table) == 13  # FID + 3 metrics x 4 distances
     q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
     assert len(q) > 0
+    assert "Dynamic synthesis on the positional plane" in md
+    syn = pd.read_csv(res / "btf_synthesize/synthesis.tsv", sep="\t")
+    assert {"tiling", "linear", "hpb", "hextile", "quilting"} <= set(syn["method"])
+    assert (syn[syn.method == "tiling"]["acf"] > 0.99).all()
 
 
 @pytest.mark.slow

@@ -60,11 +60,12 @@ def texture(model, width: int, height: int, wi, wo) -> np.ndarray:
     return out.reshape(height, width, 3).numpy()
 
 
-def plane_queries(width: int, height: int, tiles: float, light, fov_deg: float = 40.0):
+def plane_queries(width: int, height: int, tiles: float, light, fov_deg: float = 40.0,
+                  wrap: bool = True):
     """Queries of a pinhole view of the plane z = 0, x, y in [-1, 1], with u = tiles * (x, y)
     / 2 wrapped (repetitive tiling), lit by a point light at `light` (3,). Returns u, wi, wo
     (N, .) of the pixels that hit the plane, their mask, and the 1 / r^2 light falloff (the
-    cosine is already part of BTF values)."""
+    cosine is already part of BTF values). wrap=False: u unwrapped, float64 (synthesis)."""
     cam = np.array([0.0, -2.4, 1.9])
     fwd = -cam / np.linalg.norm(cam)
     right = np.cross(fwd, [0, 0, 1.0])
@@ -85,9 +86,12 @@ def plane_queries(width: int, height: int, tiles: float, light, fov_deg: float =
     li = np.asarray(light, np.float64) - p
     r2 = np.sum(li ** 2, -1)
     wi = li / np.sqrt(r2)[:, None]
+    t = lambda a: torch.as_tensor(a, dtype=torch.float32)
+    if not wrap:
+        u = np.stack([tiles * (p[:, 0] + 1) / 2, tiles * (1 - p[:, 1]) / 2], -1)
+        return torch.from_numpy(u), t(wi), t(wo), mask, (1 / r2).astype(np.float32)
     u = np.mod(tiles * (p[:, :2] + 1) / 2, 1.0)
     u[:, 1] = 1 - u[:, 1] - 1e-7 * (u[:, 1] == 0)     # image rows grow downwards in v
-    t = lambda a: torch.as_tensor(a, dtype=torch.float32)
     return t(np.mod(u, 1.0)), t(wi), t(wo), mask, (1 / r2).astype(np.float32)
 
 

@@ -1,0 +1,266 @@
+"""Stage entry points of BTF synthesis (called by workflow scripts): synthesise, evaluate a
+material (renders, figures, measurements), write the report fragment.
+
+No ground truth exists for a synthesised BTF, so the evaluation measures what synthesis
+promises, each against plain tiling (the repeating exemplar) in the same run:
+- histogram: per-channel 1-D Wasserstein distance between f_U sampled over a `measure.scale`
+  area and the exemplar plane, divided by the exemplar channel's std, mean over channels;
+- repetition: normalised autocorrelation (Pearson correlation of the image with itself
+  shifted by one exemplar period, max of the x and y shifts) of an orthographic top-down
+  render of the `measure.scale` area at `px_per_tile` pixels per exemplar, luminance;
+- appearance: FLIP and PSNR of perspective renders against plain tiling at each UV scale
+  (display images, plain tiling's exposure), and the relative deviation of the mean colour
+  of the orthographic render per light from plain tiling's (max over RGB)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+from scipy.stats import wasserstein_distance
+
+import neumat.btf.synthesis as syn
+from neumat.btf import evaluate as ev
+from neumat.btf import figures, models
+from neumat.btf.synthesis.quilting import Quilting
+
+log = logging.getLogger(__name__)
+FIG_METHODS = ["tiling", "hpb", "hextile", "quilting"]
+PLANE_LABELS = {"triple_plane": "Triple Plane", "neumip": "NeuMIP"}
+
+
+def synthesize(model_paths: dict, method: str, seed: int, settings: dict, out_path) -> None:
+    """Synthesis state of `method` for every plane model in model_paths, one file."""
+    synths = {}
+    for name, path in model_paths.items():
+        m = models.load(path)
+        if not hasattr(m, "f_u"):
+            raise ValueError(f"{path}: {m.method} has no positional feature plane f_U; "
+                             "synthesis applies to triple_plane and neumip")
+        synths[name] = syn.build(m, method, seed, settings)
+        extra = sum(v.numel() * v.element_size() for v in synths[name].state().values()
+                    if torch.is_tensor(v))
+        log.info("%s on %s (%s): state %.3f MB beyond the model", method, name,
+                 tuple(m.f_u.shape), extra / 1e6)
+    syn.save(out_path, method, seed, settings, synths)
+
+
+def _unit(x):
+    x = np.asarray(x, np.float64)
+    return x / np.linalg.norm(x)
+
+
+def perspective_queries(width, height, scale, light, spp):
+    """plane_queries of the BTF evaluation (same camera and plane) with u unwrapped in float64
+    (synthesis needs the absolute position), supersampled spp x spp per pixel."""
+    k = int(spp)
+    u, wi, wo, mask, fall = ev.plane_queries(width * k, height * k, scale, light, wrap=False)
+    return u, wi, wo, mask, fall, k
+
+
+@torch.no_grad()
+def _query(model, u, wi, wo, chunk=1 << 16):
+    return torch.cat([model(u[s:s + chunk], wi[s:s + chunk], wo[s:s + chunk])
+                      for s in range(0, len(u), chunk)]) if len(u) else torch.zeros(0, 3)
+
+
+def render_perspective(model, width, height, scale, light, intensity, spp=1) -> np.ndarray:
+    u, wi, wo, mask, fall, k = perspective_queries(width, height, scale, light, spp)
+    img = np.zeros((height * k, width * k, 3), np.float32)
+    img[mask] = _query(model, u, wi, wo).numpy() * (intensity * fall)[:, None]
+    return img.reshape(height, k, width, k, 3).mean((1, 3))
+
+
+def ortho_u(scale: int, px: int) -> torch.Tensor:
+    """Pixel centres of a top-down view of [0, scale)^2, px pixels per exemplar (float64)."""
+    n = int(scale) * int(px)
+    t = (torch.arange(n, dtype=torch.float64) + 0.5) / px
+    ys, xs = torch.meshgrid(t, t, indexing="ij")
+    return torch.stack([xs.reshape(-1), ys.reshape(-1)], -1)
+
+
+def texel_centres(W: int, H: int, scale: int, seed: int, n: int = 1 << 18) -> torch.Tensor:
+    """n random texel-centre positions in [0, scale)^2 (all of them if fewer): where plain
+    tiling returns exemplar texels exactly, so its W1 is 0 and the others are comparable."""
+    g = torch.Generator().manual_seed(int(seed))
+    n = min(n, scale * W * scale * H)
+    ix = torch.randint(0, scale * W, (n,), generator=g)
+    iy = torch.randint(0, scale * H, (n,), generator=g)
+    return torch.stack([(ix + 0.5) / W, (iy + 0.5) / H], -1).double()
+
+
+def render_ortho(model, u, light, intensity) -> np.ndarray:
+    """Directional light from `light` towards the plane centre, view from the evaluation
+    camera's direction: the image depends on u only (no falloff, no perspective)."""
+    n = int(round(math.sqrt(len(u))))
+    wi = torch.tensor(_unit(light), dtype=torch.float32).expand(len(u), 3)
+    wo = torch.tensor(_unit([0.0, -2.4, 1.9]), dtype=torch.float32).expand(len(u), 3)
+    r2 = float(np.sum(np.square(light)))
+    return _query(model, u, wi, wo).numpy().reshape(n, n, 3) * intensity / r2
+
+
+def autocorrelation_at(img: np.ndarray, period: int) -> float:
+    """max over x, y of corr(L(p), L(p + period)), L = Rec. 709 luminance."""
+    L = img @ np.array([0.2126, 0.7152, 0.0722])
+    c = [np.corrcoef(a.reshape(-1), b.reshape(-1))[0, 1]
+         for a, b in ((L[:, :-period], L[:, period:]), (L[:-period], L[period:]))]
+    return float(max(c))
+
+
+def histogram_distance(feat: np.ndarray, exemplar: np.ndarray) -> float:
+    return float(np.mean([wasserstein_distance(feat[:, c], exemplar[:, c]) / exemplar[:, c].std()
+                          for c in range(exemplar.shape[1])]))
+
+
+def evaluate(material, model_paths: dict, synth_paths: dict, render: dict, measure: dict,
+             lights, intensity, seed: int, metrics_out, methods_png, planes_png, neumip_png):
+    """All measurements and figures of one material. model_paths: {plane model: file};
+    synth_paths: {method: synthesis file}; `linear` and `tiling` need no state and are built
+    here (linear with `seed`)."""
+    loaded = {k: models.load(p) for k, p in model_paths.items()}
+    wrapped = {k: {"tiling": syn.Synthesized(m, syn.build(m, "tiling", seed)),
+                   "linear": syn.Synthesized(m, syn.build(m, "linear", seed))}
+               for k, m in loaded.items()}
+    for method, path in synth_paths.items():
+        for k, w in syn.load(path, loaded).items():
+            wrapped[k][method] = w
+    u_meas = ortho_u(measure["scale"], measure["px_per_tile"])
+    rows, persp, exposure = [], {}, {}
+    for k, ws in wrapped.items():
+        m = loaded[k]
+        ex = m.f_u.detach().reshape(-1, m.f_u.shape[-1]).numpy()
+        u_hist = texel_centres(m.f_u.shape[1], m.f_u.shape[0], measure["scale"], seed)
+        base_ortho = None
+        for method, w in ws.items():
+            feat = torch.cat([w.synth(u_hist[s:s + (1 << 16)]) for s in range(0, len(u_hist), 1 << 16)])
+            ortho = [render_ortho(w, u_meas, li, intensity) for li in lights]
+            if method == "tiling":
+                base_ortho = ortho
+            imgs = {(s, j): render_perspective(w, render["width"], render["height"], s, li,
+                                               intensity, render["spp"])
+                    for s in render["scales"] for j, li in enumerate(lights)}
+            if method == "tiling":
+                exposure[k] = ev.exposure_for(np.stack(list(imgs.values())))
+            persp[(k, method)] = {key: ev.display(im, exposure[k]) for key, im in imgs.items()}
+            st = w.synth.state()
+            row = {"material": material, "model": k, "method": method,
+                   "dynamic": bool(w.synth.dynamic),
+                   "w1": histogram_distance(feat.numpy(), ex),
+                   "acf": autocorrelation_at(ortho[0] + ortho[1], int(measure["px_per_tile"])),
+                   "state_mb": sum(v.numel() * v.element_size() for v in st.values()
+                                   if torch.is_tensor(v)) / 1e6}
+            for j, (o, b) in enumerate(zip(ortho, base_ortho)):
+                mo, mb = o.mean((0, 1)), b.mean((0, 1))
+                row[f"dmean_l{j + 1}"] = float(np.max(np.abs(mo - mb)) / max(mb.mean(), 1e-12))
+            for s in render["scales"]:
+                mets = [ev.image_metrics(persp[(k, "tiling")][(s, j)], persp[(k, method)][(s, j)])
+                        for j in range(len(lights))]
+                row[f"flip_x{s}"] = float(np.mean([q["flip"] for q in mets]))
+                row[f"psnr_x{s}"] = float(np.mean([q["psnr"] for q in mets]))
+            if isinstance(w.synth, Quilting):
+                row["seam_ssd"] = float(w.synth.seam_ssd)
+            rows.append(row)
+            log.info("%s %s %s: %s", material, k, method,
+                     {a: round(b, 4) for a, b in row.items() if isinstance(b, float)})
+    df = pd.DataFrame(rows)
+    tmp = f"{metrics_out}.tmp"
+    df.to_csv(tmp, sep="\t", index=False, float_format="%.6g")
+    os.replace(tmp, metrics_out)
+
+    cols = [(s, j) for s in render["scales"] for j in range(len(lights))]
+    col_names = [f"x{s}, light {j + 1}" for s, j in cols]
+    first = next(iter(wrapped))
+    meths = [m for m in FIG_METHODS if m in wrapped[first]]
+    _grid(methods_png, df, first, meths, cols, col_names, persp, material,
+          f"{PLANE_LABELS.get(first, first)}: plain tiling vs synthesis")
+    pairs = [(k, m) for k in ("neumip", "triple_plane") if k in wrapped
+             for m in ("tiling", "hpb") if m in wrapped[k]]
+    _grid(neumip_png, df, None, pairs, cols, col_names, persp, material,
+          "NeuMIP and Triple Plane, plain tiling and HPB")
+    _planes(planes_png, wrapped[first], material, loaded[first])
+
+
+def _grid(path, df, model, rows, cols, col_names, persp, material, title):
+    keyed = [(model, r) if model else r for r in rows]
+    labels = [f"{PLANE_LABELS.get(k, k)} {syn.LABELS[m]}" if not model else syn.LABELS[m]
+              for k, m in keyed]
+    notes = []
+    for k, m in keyed:
+        sel = df[(df.model == k) & (df.method == m)].iloc[0]
+        notes.append(["" if m == "tiling" else f"FLIP {sel[f'flip_x{s}']:.3f}" for s, _ in cols])
+    figures.texture_grid(path, labels, col_names, [[persp[(k, m)][c] for c in cols] for k, m in keyed],
+                         notes, f"{material}: {title} (FLIP vs plain tiling, mean of both lights)")
+
+
+def _planes(path, ws, material, model):
+    """First three principal components of f_U over a 3 x 3 exemplar area, per method."""
+    ex = model.f_u.detach().reshape(-1, model.f_u.shape[-1])
+    mean = ex.mean(0)
+    _, _, V = torch.linalg.svd(ex - mean, full_matrices=False)
+    proj = (ex - mean) @ V[:3].T
+    lo, hi = proj.quantile(0.01, 0), proj.quantile(0.99, 0)
+    H = model.f_u.shape[0]
+    u = ortho_u(3, max(H, 32))
+    n = int(round(math.sqrt(len(u))))
+    imgs = []
+    for m in ["tiling", "linear", "hpb", "hextile", "quilting"]:
+        if m in ws:
+            p = ((ws[m].synth(u) - mean) @ V[:3].T - lo) / (hi - lo)
+            imgs.append((m, p.clamp(0, 1).reshape(n, n, 3).numpy()))
+    figures.texture_grid(path, ["f_U"], [syn.LABELS[m] for m, _ in imgs], [[i for _, i in imgs]],
+                         title=f"{material}: positional features over a 3 x 3 exemplar area "
+                               "(first 3 principal components as RGB)")
+
+
+def quilting_storage_note(scale: int, side: int = 400, channels: int = 8) -> str:
+    b = (scale * side) ** 2 * channels * 4
+    return (f"A quilted plane is stored: at x{scale} a {side} x {side}, {channels}-channel float32 "
+            f"f_U becomes {scale * side} x {scale * side} x {channels} = {b / 1e9:.2f} GB "
+            f"(paper, Sec. 4: 'about 2GB' at x15); HPB and hex-tiling store only exemplar-sized "
+            "tables.")
+
+
+def write_section(metric_files, md_out, table_out, measure, render, quilt_scale, channels):
+    df = pd.concat([pd.read_csv(f, sep="\t") for f in metric_files], ignore_index=True)
+    tmp = f"{table_out}.tmp"
+    df.to_csv(tmp, sep="\t", index=False, float_format="%.5g")
+    os.replace(tmp, table_out)
+    S = measure["scale"]
+    lines = ["### Dynamic synthesis on the positional plane", "",
+             f"Synthesis replaces the fetch of f_U by a synthesised plane (Xu et al. 2024); "
+             f"no ground truth exists, so each method is measured against plain tiling. "
+             f"W1: per-channel 1-D Wasserstein distance of f_U sampled at 2^18 random texel "
+             f"centres of a x{S} area to the exemplar plane, in exemplar standard deviations (lower = histogram kept). ACF: "
+             f"normalised autocorrelation of a top-down x{S} render at the exemplar period "
+             f"(1 = strict repetition). dmean: largest deviation of a mean RGB channel from "
+             f"plain tiling's, over plain tiling's mean over RGB, per light. FLIP / PSNR: perspective renders ({render['width']} x "
+             f"{render['height']}, {render['spp']}^2 samples per pixel) against plain tiling, "
+             f"mean of both lights. State: stored floats beyond the model (MB).", ""]
+    scales = render["scales"]
+    head = ("| material | model | method | W1 | ACF | dmean L1 | dmean L2 | "
+            + " | ".join(f"FLIP x{s} | PSNR x{s}" for s in scales) + " | state MB |")
+    lines += [head, "|" + " --- |" * (7 + 2 * len(scales) + 1)]
+    for r in df.itertuples():
+        cells = [r.material, PLANE_LABELS.get(r.model, r.model), syn.LABELS.get(r.method, r.method),
+                 f"{r.w1:.3f}", f"{r.acf:.3f}", f"{100 * r.dmean_l1:.1f}%", f"{100 * r.dmean_l2:.1f}%"]
+        for s in scales:
+            f, p = getattr(r, f"flip_x{s}"), getattr(r, f"psnr_x{s}")
+            cells += ["-", "-"] if r.method == "tiling" else [f"{f:.3f}", f"{p:.1f}"]
+        cells.append(f"{r.state_mb:.3f}")
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
+    lines += ["", quilting_storage_note(quilt_scale, 400, channels), ""]
+    if "seam_ssd" in df:
+        q = df.dropna(subset=["seam_ssd"])
+        lines += ["Quilting: mean squared feature difference over the overlaps of the chosen "
+                  "blocks: " + ", ".join(f"{r.material}/{r.model} {r.seam_ssd:.3g}"
+                                         for r in q.itertuples()) + ".", ""]
+    for m in dict.fromkeys(df.material):
+        lines += [f"![{m}: synthesis methods](figures/btf_{m}_synthesis.png)", "",
+                  f"![{m}: NeuMIP and Triple Plane with HPB](figures/btf_{m}_synthesis_models.png)", "",
+                  f"![{m}: synthesised feature planes](figures/btf_{m}_synthesis_planes.png)", ""]
+    Path(md_out).write_text("\n".join(lines))
