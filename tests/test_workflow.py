@@ -55,7 +55,7 @@ def test_tiny_config_runs_to_report(tiny_run):
 def test_tiny_config_runs_every_stage(tiny_run):
     res = tiny_run / "results/tiny"
     md = (res / "report/index.md").read_text()
-    for section in ("NeuMERL", "Rendering", "Hyperdiffusion", "Table 2", "Triple Plane"):
+    for section in ("NeuMERL", "Rendering", "Hyperdiffusion", "Table 2", "Table 3", "Triple Plane"):
         assert section in md, section
     w = np.load(res / "neumerl/weights.npy")
     assert w.shape == (64, 675) and w.dtype == np.float32 and np.isfinite(w).all()
@@ -67,6 +67,10 @@ def test_tiny_config_runs_every_stage(tiny_run):
     assert len(table) == 13  # FID + 3 metrics x 4 distances
     q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
     assert len(q) > 0
+    t3 = pd.read_csv(res / "hyperbrdf/table3.csv")
+    assert list(t3["method"]) == ["mean training material", "HyperBRDF (merl)",
+                                  "HyperBRDF (augmerl)", "NeuMERL fit"]
+    assert t3.shape == (4, 7) and np.isfinite(t3.iloc[:, 1:].to_numpy(float)).all()
 
 
 def test_rerun_is_a_no_op(tiny_run):
