@@ -122,7 +122,10 @@ rule hyperbrdf_table:
     params:
         models=HB_MODELS,
         examples=HB["examples"],
-        cfg=HB,
+        latent=HB["model"]["latent"],
+        train={k: HB["train"][k] for k in ("steps", "materials_per_step", "lr")},
+        sparse_samples=HB["sparse_samples"],
+        resolution=HB["resolution"],
     log:
         log("hyperbrdf_table"),
     benchmark:

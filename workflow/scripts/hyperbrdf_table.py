@@ -35,19 +35,19 @@ with script_logging(snakemake) as log:
     gallery(imgs, labels, out.figure, ncols=len(cols), min_cell=110,
             title="Table 3 test materials: ground truth, NeuMERL fit, HyperBRDF (sparse, compression)")
 
-    cfg, t = p.cfg, p.cfg["train"]
+    t = p.train
     cost = ", ".join(f"{m}: {b['n_train']} materials, {b['train_seconds'] / 60:.1f} min"
                      for m, b in zip(p.models, bundles))
     n_mat = scores["material"].nunique()
     md = [
         "## Table 3: HyperBRDF trained on MERL vs AugMERL",
-        f"The hypernetwork BRDF model (Gokbudak et al. 2023; set encoder → {cfg['model']['latent']}-d "
+        f"The hypernetwork BRDF model (Gokbudak et al. 2023; set encoder → {p.latent}-d "
         f"latent → one head per target tensor → NBRDF) trained on the MERL train split and on "
         f"the AugMERL train split, {t['steps']} steps each of {t['materials_per_step']} "
         f"material(s), Adam lr {t['lr']:g} ({cost}). Scored on the {n_mat} test-split source "
-        f"materials, which neither model saw: **sparse** = {cfg['sparse_samples']} random stored "
+        f"materials, which neither model saw: **sparse** = {p.sparse_samples} random stored "
         f"samples into the encoder, **compression** = all stored samples through the latent. "
-        f"Metrics on {cfg['resolution']}² sRGB sphere renders under the metric light and a "
+        f"Metrics on {p.resolution}² sRGB sphere renders under the metric light and a "
         f"grazing light, mean over materials and both views: PSNR (dB, peak 1), ΔE = mean "
         f"CIEDE2000 over sphere pixels (lower is better), SSIM. Anchors: the per-material "
         f"NeuMERL fit (upper bound) and the mean train-split source material (floor); they do "
