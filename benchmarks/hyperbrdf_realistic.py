@@ -17,7 +17,8 @@ Usage (each model in its own process, then the evaluation):
   python benchmarks/hyperbrdf_realistic.py train merl --steps 600
   python benchmarks/hyperbrdf_realistic.py train augmerl --steps 600
   python benchmarks/hyperbrdf_realistic.py evaluate
-Outputs (and checkpoints: a killed `train` resumes) under benchmarks/out/hyperbrdf_realistic/.
+Outputs (and checkpoints: a killed `train` resumes) under benchmarks/out/hyperbrdf_realistic/
+(or `--out`).
 """
 
 import argparse
@@ -107,6 +108,8 @@ def median_full(values: np.ndarray, w_train: np.ndarray) -> np.ndarray:
 
 
 def cmd_train(args):
+    global OUT
+    OUT = args.out
     torch.set_num_threads(args.threads)
     OUT.mkdir(parents=True, exist_ok=True)
     names, w, train, bins, values = data(args)
@@ -130,6 +133,8 @@ def cmd_train(args):
 
 
 def cmd_evaluate(args):
+    global OUT
+    OUT = args.out
     torch.set_num_threads(args.threads)
     names, w, train, bins, values = data(args)
     med = np.load(OUT / "median.npy")
@@ -183,7 +188,8 @@ def cmd_evaluate(args):
     for i in range(min(4, len(test))):
         for c in cols:
             imgs.append(tonemap(hdr[c if len(c) > 1 else c[0]]["metric"][i]))
-            labels.append(tnames[i] if len(c) == 1 else " ".join(c).replace(" any", ""))
+            labels.append(tnames[i] if len(c) == 1 else c[0] if c[1] == "any"
+                          else f"{'AugMERL' if 'aug' in c[0] else 'MERL'}, {c[1]}")
     gallery(imgs, labels, OUT / "reconstructions.png", ncols=len(cols), min_cell=110)
 
 
@@ -203,6 +209,7 @@ def main():
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--seed", type=int, default=7000)
+    ap.add_argument("--out", type=Path, default=OUT, help="output folder (one per experiment)")
     args = ap.parse_args()
     if args.command == "train":
         if not args.model:

@@ -31,9 +31,10 @@ with script_logging(snakemake) as log:
     for i, n in enumerate(names):
         for m, t in cols:
             imgs.append(r[f"{m}|{t}|metric"][i])
-            labels.append(n if m == "truth" else (m if t == "any" else f"{m} {t}"))
+            short = m.removeprefix("HyperBRDF (").removesuffix(")").replace("merl", "MERL")
+            labels.append(n if m == "truth" else (m if t == "any" else f"{short.replace('augMERL', 'AugMERL')}, {t}"))
     gallery(imgs, labels, out.figure, ncols=len(cols), min_cell=110,
-            title="Table 3 test materials: ground truth, NeuMERL fit, HyperBRDF (sparse, compression)")
+            title="Table 3 test materials: ground truth, NeuMERL fit, HyperBRDF trained on MERL / AugMERL")
 
     t = p.train
     cost = ", ".join(f"{m}: {b['n_train']} materials, {b['train_seconds'] / 60:.1f} min"
