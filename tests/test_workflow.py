@@ -57,7 +57,7 @@ def test_tiny_config_runs_to_report(tiny_run):
 def test_tiny_config_runs_every_stage(tiny_run):
     res = tiny_run / "results/tiny"
     md = (res / "report/index.md").read_text()
-    for section in ("NeuMERL", "Rendering", "Hyperdiffusion", "Table 2", "Triple Plane"):
+    for section in ("NeuMERL", "Rendering", "Hyperdiffusion", "Table 2", "Table 3", "Triple Plane"):
         assert section in md, section
     w = np.load(res / "neumerl/weights.npy")
     assert w.shape == (64, 675) and w.dtype == np.float32 and np.isfinite(w).all()
@@ -73,6 +73,10 @@ def test_tiny_config_runs_every_stage(tiny_run):
     syn = pd.read_csv(res / "btf_synthesize/synthesis.tsv", sep="\t")
     assert {"tiling", "linear", "hpb", "hextile", "quilting"} <= set(syn["method"])
     assert (syn[syn.method == "tiling"]["acf"] > 0.99).all()
+    t3 = pd.read_csv(res / "hyperbrdf/table3.csv")
+    assert list(t3["method"]) == ["mean training material", "HyperBRDF (merl)",
+                                  "HyperBRDF (augmerl)", "NeuMERL fit"]
+    assert t3.shape == (4, 7) and np.isfinite(t3.iloc[:, 1:].to_numpy(float)).all()
 
 
 @pytest.mark.slow

@@ -111,7 +111,3 @@ rule btf_synthesis_section:
         runtime=5,
     script:
         "../scripts/btf_synthesis_section.py"
-
-
-if SYN["methods"] and BTF_NAMES:
-    REPORT_SECTIONS.append(out("report/sections/61_btf_synthesis.md"))

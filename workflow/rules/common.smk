@@ -164,7 +164,10 @@ REPORT_SECTIONS = [
     out("report/sections/30_rendering.md"),  # render.smk: render_section
     out("report/sections/40_diffusion.md"),  # diffusion.smk: diffusion_section
     out("report/sections/50_table2.md"),  # metrics.smk: metrics_table
+    out("report/sections/55_hyperbrdf.md"),  # hyperbrdf.smk: hyperbrdf_table
     out("report/sections/60_btf.md"),  # btf.smk: btf_section
+    # btf_synthesis.smk: btf_synthesis_section (only when synthesis methods are configured)
+    *([out("report/sections/61_btf_synthesis.md")] if config["btf_synthesis"]["methods"] else []),
 ]
 
 

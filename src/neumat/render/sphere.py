@@ -72,7 +72,10 @@ class SphereView:
       bins   (N,) int64 - flat MERL bin index of each row (nearest bin)
     """
 
-    def __init__(self, resolution: int, device: str | torch.device = "cpu"):
+    def __init__(self, resolution: int, device: str | torch.device = "cpu", light=LIGHT_POS):
+        """`light`: point-light position (default the metric view's LIGHT_POS; other positions
+        give extra views of the same sphere, e.g. Table 3's grazing light), intensity as for
+        LIGHT_POS: pi (|light| - 1)^2, irradiance pi at the sphere point nearest the light."""
         if resolution < 2:
             raise ValueError(f"sphere resolution must be >= 2, got {resolution}")
         self.resolution, self.device = resolution, torch.device(device)
@@ -88,13 +91,17 @@ class SphereView:
         t /= np.linalg.norm(t, axis=-1, keepdims=True)
         frame = np.stack([t, np.cross(n, t), n], 1)  # (P, 3, 3): rows = local axes
 
-        to_light = LIGHT_POS - n
+        light = np.asarray(light, dtype=np.float64)
+        if light.shape != (3,) or np.linalg.norm(light) <= 1:
+            raise ValueError(f"light position must be a 3-vector outside the unit sphere, got {light}")
+        to_light = light - n
         dist2 = np.sum(to_light ** 2, -1)
         wi = np.einsum("pij,pj->pi", frame, to_light / np.sqrt(dist2)[:, None])
         wo = frame[:, :, 2].copy()  # the camera direction (world +z) in the local frame
         lit = wi[:, 2] > 0
         pixels = np.flatnonzero(mask.ravel())
-        weight = (LIGHT_INTENSITY / dist2 * wi[:, 2])[lit]
+        intensity = np.pi * (np.linalg.norm(light) - 1.0) ** 2
+        weight = (intensity / dist2 * wi[:, 2])[lit]
 
         theta_o, awi, awo, aw = albedo_quadrature()
         wi = np.concatenate([wi[lit], awi])
@@ -133,9 +140,10 @@ class SphereView:
 
 
 @functools.lru_cache(maxsize=8)
-def sphere_view(resolution: int, device: str = "cpu") -> SphereView:
-    """Cached `SphereView` (the geometry is the same for every call)."""
-    return SphereView(resolution, device)
+def sphere_view(resolution: int, device: str = "cpu", light: tuple | None = None) -> SphereView:
+    """Cached `SphereView` (the geometry is the same for every call); `light` a position tuple,
+    None = the metric view's LIGHT_POS."""
+    return SphereView(resolution, device, LIGHT_POS if light is None else light)
 
 
 def _chunks(n: int, size: int):

@@ -1,0 +1,141 @@
+# Table 3 (M3ashy §4.6): the HyperBRDF model trained on MERL vs AugMERL, scored on sparse
+# reconstruction (N samples) and compression (all stored samples through the latent) of the
+# test-split source materials, with a per-material NeuMERL fit (upper bound) and the mean
+# training material (floor) in the same run.
+#   augmerl -> hyperbrdf_median -> train_hyperbrdf {merl, augmerl} -> hyperbrdf_eval
+#   (+ neumerl) -> hyperbrdf_table (Table 3 CSV/MD/HTML, report section, figure)
+
+HB = config["hyperbrdf"]
+# stage index 7; one place to switch to seed_for("hyperbrdf", ...) when common.smk has it
+HB_SEED = SEED + 7000
+HB_MODELS = ["merl", "augmerl"]
+
+
+def hyperbrdf_runtime():
+    """Minutes for a train_hyperbrdf job: 0.25 s per material-step of 6000 samples (measured
+    0.19 s: 1.5 s per step of 8 materials x (4000 + 2000) samples, 1 thread, two jobs on a shared
+    2-core AMD EPYC), scaled by samples, x2 margin for slower cores (a GPU: assumed 20x faster)."""
+    t = HB["train"]
+    per_step = 0.5 * t["materials_per_step"] * (t["context"] + t["query"]) / 6000
+    per_step /= 20 if config["device"] == "cuda" else 1
+    return 10 + math.ceil(t["steps"] * per_step / 60)
+
+
+rule hyperbrdf_median:
+    input:
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+        tables=[merl_table(n) for n in MERL_NAMES],
+    output:
+        out("hyperbrdf/median.npy"),
+    log:
+        log("hyperbrdf_median"),
+    benchmark:
+        bench("hyperbrdf_median")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=lambda wc, input: 2500 + 40 * len(input.tables),
+        runtime=30,
+    script:
+        "../scripts/hyperbrdf_median.py"
+
+
+rule train_hyperbrdf:
+    input:
+        shards=augmerl_shards(),
+        manifest=out("augmerl/manifest.tsv"),
+        median=out("hyperbrdf/median.npy"),
+    output:
+        model=out("hyperbrdf/{model}/model.pt"),
+        history=out("hyperbrdf/{model}/history.tsv"),
+    params:
+        cfg={k: HB[k] for k in ("model", "train", "train_bins")},
+        seed=HB_SEED,
+        device=config["device"],
+        checkpoint=out("hyperbrdf/{model}/checkpoint.pt"),
+    wildcard_constraints:
+        model="|".join(HB_MODELS),
+    log:
+        log("train_hyperbrdf/{model}"),
+    benchmark:
+        bench("train_hyperbrdf/{model}")
+    conda:
+        CONDA_ENV
+    threads: HB["threads"]
+    resources:
+        # one shard at a time, then values + mapped targets of the kept bins (2 x 12 bytes each)
+        mem_mb=lambda wc, input: 2000 + 2 * input.size_mb // len(AUG_SHARDS)
+        + 24 * augmerl_count() * HB["train_bins"] // 2**20,
+        runtime=hyperbrdf_runtime(),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/train_hyperbrdf.py"
+
+
+rule hyperbrdf_eval:
+    input:
+        models=expand(out("hyperbrdf/{model}/model.pt"), model=HB_MODELS),
+        median=out("hyperbrdf/median.npy"),
+        shards=augmerl_shards(),
+        manifest=out("augmerl/manifest.tsv"),
+        recipe=out("augmerl/recipe.npz"),
+        tables=[merl_table(n) for n in MERL_NAMES],
+        weights=out("neumerl/weights.npy"),
+    output:
+        scores=out("hyperbrdf/scores.tsv"),
+        renders=out("hyperbrdf/renders.npz"),
+    params:
+        models=HB_MODELS,
+        sparse_samples=HB["sparse_samples"],
+        resolution=HB["resolution"],
+        activation=config["fit"]["activation"],
+        seed=HB_SEED + 100,
+        device=config["device"],
+    log:
+        log("hyperbrdf_eval"),
+    benchmark:
+        bench("hyperbrdf_eval")
+    conda:
+        CONDA_ENV
+    threads: HB["threads"]
+    resources:
+        mem_mb=lambda wc, input: 3000 + 40 * len(input.tables),
+        runtime=30,
+    script:
+        "../scripts/hyperbrdf_eval.py"
+
+
+rule hyperbrdf_table:
+    input:
+        scores=out("hyperbrdf/scores.tsv"),
+        renders=out("hyperbrdf/renders.npz"),
+        models=expand(out("hyperbrdf/{model}/model.pt"), model=HB_MODELS),
+        histories=expand(out("hyperbrdf/{model}/history.tsv"), model=HB_MODELS),
+    output:
+        csv=out("hyperbrdf/table3.csv"),
+        md=out("hyperbrdf/table3.md"),
+        html=out("hyperbrdf/table3.html"),
+        section=out("report/sections/55_hyperbrdf.md"),
+        figure=report(out("report/figures/hyperbrdf_reconstructions.png"),
+                      caption="../report/hyperbrdf_reconstructions.rst", category="Table 3"),
+    params:
+        models=HB_MODELS,
+        examples=HB["examples"],
+        latent=HB["model"]["latent"],
+        train={k: HB["train"][k] for k in ("steps", "materials_per_step", "lr")},
+        sparse_samples=HB["sparse_samples"],
+        resolution=HB["resolution"],
+    log:
+        log("hyperbrdf_table"),
+    benchmark:
+        bench("hyperbrdf_table")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=1500,
+        runtime=10,
+    script:
+        "../scripts/hyperbrdf_table.py"
