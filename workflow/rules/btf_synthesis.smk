@@ -2,10 +2,6 @@
 # synthesis state of every plane model (Triple Plane, NeuMIP) -> renders at several UV
 # scales, measurements against plain tiling, figures -> report fragment 61 (after 60_btf).
 
-import zlib as _zlib
-
-import numpy as _np
-
 SYN = config["btf_synthesis"]
 SYN_PLANES = [m for m in ("triple_plane", "neumip") if m in BTF["methods"]]
 SYN_METHOD_RE = "|".join(SYN["methods"]) or "^$"
@@ -15,10 +11,8 @@ if SYN["methods"] and not SYN_PLANES:
 
 
 def syn_seed(*items):
-    """Named seed stream: seed_for("btf_synthesis", ...)-shaped; switch to common.smk's
-    seed_for once it lands."""
-    key = [SEED, _zlib.crc32(b"btf_synthesis")] + [_zlib.crc32(str(i).encode()) for i in items]
-    return int(_np.random.SeedSequence(key).generate_state(1)[0])
+    """Seed of the synthesis of one (material, method): the named stream "btf_synthesis"."""
+    return seed_for("btf_synthesis", *items)
 
 
 def _syn_models(w):
@@ -27,7 +21,6 @@ def _syn_models(w):
 
 rule btf_synthesize:
     wildcard_constraints:
-        material=BTF_NAME_RE,
         method=SYN_METHOD_RE,
     input:
         _syn_models,
@@ -53,8 +46,6 @@ rule btf_synthesize:
 
 
 rule btf_synthesis_eval:
-    wildcard_constraints:
-        material=BTF_NAME_RE,
     input:
         models=_syn_models,
         synth=expand(out("btf_synthesize/{{material}}/{method}.pt"), method=SYN["methods"]),

@@ -6,8 +6,6 @@
 #   (+ neumerl) -> hyperbrdf_table (Table 3 CSV/MD/HTML, report section, figure)
 
 HB = config["hyperbrdf"]
-# stage index 7; one place to switch to seed_for("hyperbrdf", ...) when common.smk has it
-HB_SEED = SEED + 7000
 HB_MODELS = ["merl", "augmerl"]
 
 
@@ -52,7 +50,7 @@ rule train_hyperbrdf:
         history=out("hyperbrdf/{model}/history.tsv"),
     params:
         cfg={k: HB[k] for k in ("model", "train", "train_bins")},
-        seed=HB_SEED,
+        seed=seed_for("train_hyperbrdf"),  # the same init for both training sets
         device=config["device"],
         checkpoint=out("hyperbrdf/{model}/checkpoint.pt"),
     wildcard_constraints:
@@ -91,7 +89,7 @@ rule hyperbrdf_eval:
         sparse_samples=HB["sparse_samples"],
         resolution=HB["resolution"],
         activation=config["fit"]["activation"],
-        seed=HB_SEED + 100,
+        seed=seed_for("hyperbrdf_eval"),
         device=config["device"],
     log:
         log("hyperbrdf_eval"),
