@@ -19,6 +19,7 @@ include: "workflow/rules/fit.smk"
 include: "workflow/rules/diffusion.smk"
 include: "workflow/rules/render.smk"
 include: "workflow/rules/metrics.smk"
+include: "workflow/rules/baselines.smk"
 include: "workflow/rules/btf.smk"
 include: "workflow/rules/report.smk"
 

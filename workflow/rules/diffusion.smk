@@ -59,6 +59,7 @@ rule sample_uncond:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="uncond",
         seed=DIFF_SEED + 100,
+        seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
         device=config["device"],
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
@@ -88,6 +89,7 @@ rule sample_type:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="type",
         seed=DIFF_SEED + 200,
+        seeds=[],
         device=config["device"],
     log:
         log("sample_type"),
@@ -114,6 +116,7 @@ rule diffusion_training_set:
         ref_table=out("samples/reference/samples.tsv"),
     params:
         seed=DIFF_SEED + 300,
+        draws=DRAWS,
     log:
         log("diffusion_training_set"),
     benchmark:

@@ -33,15 +33,21 @@ def gaussian(features: np.ndarray):
 
 
 @torch.no_grad()
-def features(model, images, batch: int = 16, device="cpu") -> np.ndarray:
-    """sRGB images (N, H, W, 3) in [0, 1] -> (N, 2048) pool3 features."""
+def features(model, images, batch: int = 16, device="cpu") -> dict[int, np.ndarray]:
+    """sRGB images (N, H, W, 3) in [0, 1] -> {64: (N, 64), 2048: (N, 2048)} features
+    (`FIDInception.forward_dims`)."""
     x = torch.as_tensor(images, dtype=torch.float32).permute(0, 3, 1, 2)
-    return torch.cat([model(x[s:s + batch].to(device)).cpu()
-                      for s in range(0, len(x), batch)]).double().numpy()
+    parts = [model.forward_dims(x[s:s + batch].to(device)) for s in range(0, len(x), batch)]
+    return {d: torch.cat([p[d].cpu() for p in parts]).double().numpy() for d in parts[0]}
 
 
-def fid(model, images_a, images_b, device="cpu") -> float:
-    if min(len(images_a), len(images_b)) < 2:
+def fid_from_features(fa: np.ndarray, fb: np.ndarray) -> float:
+    if min(len(fa), len(fb)) < 2:
         raise ValueError("FID needs at least 2 images per set")
-    return frechet_distance(*gaussian(features(model, images_a, device=device)),
-                            *gaussian(features(model, images_b, device=device)))
+    return frechet_distance(*gaussian(fa), *gaussian(fb))
+
+
+def fid(model, images_a, images_b, dims: int = 2048, device="cpu") -> float:
+    """FID between two sets of sRGB images on the `dims`-d features (2048 or 64)."""
+    return fid_from_features(features(model, images_a, device=device)[dims],
+                             features(model, images_b, device=device)[dims])
