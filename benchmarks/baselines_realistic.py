@@ -10,8 +10,15 @@ training field, so "how far off the training manifold" is measured the same way 
 Also prints each baseline's fit time on this machine, and the measured cost per VAE-A training
 step at the default config's sizes (`cost`).
 
+`floor`: the training loss of the *ideal* x0 denoiser for a training set - the posterior mean
+E[x0 | x_t] under the empirical distribution of the set, in the workflow's per-coordinate
+standardised space with the default cosine schedule (T = 1000) - averaged over uniform t like
+`Diffusion.loss`. That is the lowest loss any network can reach; the gap between two training
+sets' floors says how much of a loss gap is the data, not the model.
+
   python benchmarks/baselines_realistic.py run [--vae-steps 2000] [--table]
   python benchmarks/baselines_realistic.py cost
+  python benchmarks/baselines_realistic.py floor
 """
 
 import argparse
@@ -120,9 +127,45 @@ def cmd_cost(a):
     print("load average:", open("/proc/loadavg").read().split()[:3])
 
 
+def ideal_x0_loss(x, diffusion, n_draws=4096, seed=0, chunk=256):
+    """Mean over (x0 from the set, t uniform, noise) of |E[x0 | x_t] - x0|^2 / dims, with the
+    posterior mean a softmax over the set: log w_j = -|x_t - sqrt(ab) x_j|^2 / (2 (1 - ab))."""
+    g = torch.Generator().manual_seed(seed)
+    x = x.double()
+    idx = torch.randint(len(x), (n_draws,), generator=g)
+    t = torch.randint(diffusion.T, (n_draws,), generator=g)
+    noise = torch.randn(n_draws, x.shape[1], generator=g, dtype=torch.float64)
+    ab = diffusion.alpha_bar[t][:, None]
+    xt = ab.sqrt() * x[idx] + (1 - ab).sqrt() * noise
+    err = torch.empty(n_draws, dtype=torch.float64)
+    for s in range(0, n_draws, chunk):
+        sl = slice(s, s + chunk)
+        r = ab[sl].sqrt()  # (c, 1): each draw scales the set by its own sqrt(alpha_bar)
+        d2 = (xt[sl] ** 2).sum(1, keepdim=True) - 2 * r * (xt[sl] @ x.T) + r ** 2 * (x ** 2).sum(1)
+        w = torch.softmax(-d2 / (2 * (1 - ab[sl])), 1)
+        err[sl] = ((w @ x - x[idx[sl]]) ** 2).mean(1)
+    return err, t
+
+
+def cmd_floor(a):
+    from neumat.diffusion import Diffusion, Normalizer, ScheduleConfig
+    man, w = split_20()
+    diff = Diffusion(ScheduleConfig())
+    rows = []
+    for model in ("ours", "merl100"):
+        tr = torch.as_tensor(w[dataset.training_rows(man, model)])
+        x = Normalizer.fit(tr).encode(tr)
+        err, t = ideal_x0_loss(x, diff)
+        buckets = {f"t<{b}": float(err[(t >= lo) & (t < b)].mean())
+                   for lo, b in ((0, 250), (250, 500), (500, 750), (750, 1000))}
+        rows.append({"training set": model, "fields": len(tr), "ideal x0 loss": float(err.mean()), **buckets})
+    print(machine())
+    print(pd.DataFrame(rows).to_markdown(index=False, floatfmt=".4f"))
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
-    ap.add_argument("cmd", choices=["run", "cost"])
+    ap.add_argument("cmd", choices=["run", "cost", "floor"])
     ap.add_argument("--vae-steps", type=int, default=2000)
     ap.add_argument("--pca-components", type=int, default=64)
     ap.add_argument("--bins", type=int, default=20000)
@@ -131,4 +174,4 @@ if __name__ == "__main__":
     ap.add_argument("--table", action="store_true")
     a = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))
-    cmd_run(a) if a.cmd == "run" else cmd_cost(a)
+    {"run": cmd_run, "cost": cmd_cost, "floor": cmd_floor}[a.cmd](a)

@@ -101,6 +101,16 @@ def test_frechet_distance_closed_forms():
         pytest.approx(expected)
 
 
+@pytest.mark.parametrize("n, dims", [(12, 40), (30, 8)])
+def test_fid_from_features_equals_the_sqrtm_route(n, dims):
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((n, dims))
+    b = rng.standard_normal((n + 3, dims)) @ rng.standard_normal((dims, dims)) * 0.5 + 0.3
+    want = fid.frechet_distance(*fid.gaussian(a), *fid.gaussian(b))
+    assert fid.fid_from_features(a, b) == pytest.approx(want, rel=1e-6, abs=1e-8)
+    assert fid.fid_from_features(a, a) == pytest.approx(0, abs=1e-8)
+
+
 def test_inception_state_dict_and_features(tmp_path):
     model = FIDInception()
     keys = [k for k in model.state_dict() if not k.endswith("num_batches_tracked")]
