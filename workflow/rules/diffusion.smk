@@ -57,6 +57,7 @@ rule sample_uncond:
         cfg={"sample": settings("diffusion.sample", drop=["guidance"])},  # unguided
         mode="uncond",
         seed=seed_for("sample_uncond"),
+        seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
     log:
@@ -85,6 +86,7 @@ rule sample_type:
         cfg=settings("diffusion", ["sample", "types", "per_type"]),
         mode="type",
         seed=seed_for("sample_type"),
+        seeds=[],
     log:
         log("sample_type"),
     benchmark:
@@ -110,6 +112,7 @@ rule diffusion_training_set:
         ref_table=out("samples/reference/samples.tsv"),
     params:
         seed=seed_for("diffusion_training_set"),
+        draws=DRAWS,
     log:
         log("diffusion_training_set"),
     benchmark:

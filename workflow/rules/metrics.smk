@@ -1,7 +1,8 @@
 # Table 2 (paper §4.2): each model's sample set vs the NeuMERL test split -> MMD / COV / 1-NNA
-# x {BRDF-L1, RMSE, NegPSNR, NegSSIM} + FID; then one table over all models.
-#   samples/<model>/weights.npy + samples/reference/weights.npy -> metrics/<model>.csv
-#   -> metrics/table2.{csv,md,html} + report section 50_table2.md
+# x {BRDF-L1, RMSE, NegPSNR, NegSSIM} + FID (2048-d, 64-d), per draw (metrics.draws); then one
+# table over all models (mean ± std over draws) and the sanity rows (reference halves).
+#   samples/<model>/{weights.npy | tables.npz} + samples/reference/weights.npy
+#   -> metrics/<model>.csv -> metrics/table2.{csv,md,html} + report section 50_table2.md
 
 METRICS = config["metrics"]
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each
@@ -21,6 +22,8 @@ rule metrics:
         inception_weights=METRICS["inception_weights"],
         activation=config["fit"]["activation"],
         seed=METRICS_SEED,
+        draws=DRAWS,
+        halves_seeds=lambda wc: draw_seeds("halves", wc.model) if wc.model == "reference_halves" else [],
     log:
         log("metrics/{model}"),
     benchmark:
@@ -31,14 +34,15 @@ rule metrics:
     resources:
         # pairwise SSIM works in bounded chunks (~1 GB); renders add n * res^2 * 12 bytes
         mem_mb=lambda wc: 3000 + config["render"]["resolution"] ** 2 // 40,
-        runtime=120,
+        runtime=120 * DRAWS,
     script:
         "../scripts/metrics_eval.py"
 
 
 rule metrics_table:
     input:
-        expand(out("metrics/{model}.csv"), model=METRICS["models"]),
+        models=expand(out("metrics/{model}.csv"), model=METRICS["models"]),
+        sanity=out("metrics/reference_halves.csv"),
     output:
         csv=out("metrics/table2.csv"),
         md=out("metrics/table2.md"),

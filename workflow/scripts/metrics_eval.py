@@ -1,33 +1,56 @@
-"""Table-2 metrics of one model's samples against the reference set -> one CSV."""
+"""Table-2 metrics of one model's sample draws against the reference set -> one CSV (a row per
+draw x metric). `reference_halves` (sanity row): random halves of the reference set against
+each other, one split per seed."""
 from pathlib import Path
 
 import numpy as np
 
 from neumat.device import resolve_device
 from neumat.logs import script_logging
-from neumat.metrics import distances, evaluate
-from neumat.metrics.inception import load_fid_inception
+from neumat.metrics import distances, evaluate, materials
+from neumat.metrics import inception as inc
 
 
 def inception(path, device, log):
     """(model, reason): the FID network, or None with why it is unavailable."""
     if not path:
-        return None, "metrics.inception_weights not set"
+        try:
+            log.info("FID network: %s", inc.packaged_weights_path())
+            return inc.load_packaged_inception(device), ""
+        except (ModuleNotFoundError, FileNotFoundError) as e:
+            return None, str(e)
     if not Path(path).is_file():
         return None, f"Inception weights {path} not found (metrics.inception_weights)"
     log.info("FID network from %s", path)
-    return load_fid_inception(path, device), ""
+    return inc.load_fid_inception(path, device), ""
+
+
+def draws_of(smp, k, n_ref, log):
+    """k consecutive equal blocks of the sample set (written draw-major by the samplers)."""
+    n = len(smp) // k
+    if n < 2:
+        raise ValueError(f"{len(smp)} samples cannot make {k} draws (metrics.draws)")
+    if n != n_ref:
+        log.warning("draws of %d samples vs %d references", n, n_ref)
+    return [materials.rows(smp, slice(i * n, (i + 1) * n)) for i in range(k)]
 
 
 with script_logging(snakemake) as log:
-    p = snakemake.params
+    p, model = snakemake.params, snakemake.wildcards.model
     device = str(resolve_device(snakemake.config["device"]))
-    ref, smp = (np.load(f) for f in (snakemake.input.reference, snakemake.input.samples))
-    log.info("%s: %d samples vs %d references", snakemake.wildcards.model, len(smp), len(ref))
-    model, reason = inception(p.inception_weights, device, log)
-    table = evaluate.evaluate_fields(ref, smp, resolution=p.resolution,
-                                     bins=distances.brdf_sample(p.brdf_samples, p.seed),
-                                     activation=p.activation, fid_model=model,
-                                     fid_unavailable=reason, device=device)
+    ref = materials.load(snakemake.input.reference)
+    net, reason = inception(p.inception_weights, device, log)
+    kw = dict(resolution=p.resolution, bins=distances.brdf_sample(p.brdf_samples, p.seed),
+              activation=p.activation, fid_model=net, fid_unavailable=reason, device=device)
+    if model == "reference_halves":
+        halves = [np.random.default_rng(s).permutation(len(ref)) for s in p.halves_seeds]
+        h = len(ref) // 2
+        log.info("sanity: %d random halves of %d references", len(halves), len(ref))
+        table = evaluate.evaluate_draws(None, [materials.rows(ref, o[h:2 * h]) for o in halves],
+                                        refs=[materials.rows(ref, o[:h]) for o in halves], **kw)
+    else:
+        smp = materials.load(snakemake.input.samples)
+        log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
+        table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw)
     table.to_csv(snakemake.output[0], index=False, float_format="%.8g")
     log.info("metrics:\n%s", table.to_string(index=False))

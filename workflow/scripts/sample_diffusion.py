@@ -1,5 +1,6 @@
-"""Sample weight vectors from a trained model: unconditional (as many as the test reference
-set) or type-conditioned (`per_type` for each requested type, classifier-free guidance)."""
+"""Sample weight vectors from a trained model: unconditional (one draw as large as the test
+reference set per seed in `seeds`, draw-major, for Table 2's mean ± std) or type-conditioned
+(`per_type` for each requested type, classifier-free guidance)."""
 import time
 
 import numpy as np
@@ -14,19 +15,28 @@ with script_logging(snakemake) as log:
     s = p.cfg["sample"]
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
+    draw = None
     if p.mode == "uncond":
-        n, types, guidance = len(dataset.reference_rows(man)), None, 1.0
-        requested = [""] * n
+        n_ref, types, guidance = len(dataset.reference_rows(man)), None, 1.0
+        n, requested = n_ref * len(p.seeds), [""] * (n_ref * len(p.seeds))
+        draw = np.repeat(np.arange(len(p.seeds)), n_ref)
     else:
         train_types = man["type"].iloc[dataset.training_rows(man, "ours")]
         wanted = p.cfg["types"] or dataset.class_names(train_types)
         requested = [t for t in wanted for _ in range(p.cfg["per_type"])]
         n, types, guidance = len(requested), requested, s["guidance"]
     t0 = time.perf_counter()
-    w = sampler.sample(n, p.seed, types, s["steps"], s["eta"], guidance, s["batch_size"], s["clip"])
+    if draw is None:
+        w = sampler.sample(n, p.seed, types, s["steps"], s["eta"], guidance, s["batch_size"], s["clip"])
+    else:
+        w = np.concatenate([sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance,
+                                           s["batch_size"], s["clip"]) for seed in p.seeds])
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
-    pd.DataFrame({"sample": np.arange(n), "type": requested}).to_csv(out.table, sep="\t", index=False)
+    table = pd.DataFrame({"sample": np.arange(n), "type": requested})
+    if draw is not None:
+        table["draw"] = draw
+    table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
                    "steps": s["steps"], "eta": s["eta"], "guidance": guidance}]).to_csv(
         out.timing, sep="\t", index=False, float_format="%.6g")

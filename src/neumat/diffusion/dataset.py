@@ -61,11 +61,14 @@ def labels(types, names: list[str]) -> np.ndarray:
     return np.array([index[t] if t else -1 for t in types], dtype=np.int64)
 
 
-def training_subset(man: pd.DataFrame, seed: int) -> np.ndarray:
-    """Rows of a random train-split subset as large as the test split (Table 2 'Training set')."""
+def training_subset(man: pd.DataFrame, seed: int, draws: int = 1) -> np.ndarray:
+    """Rows of `draws` disjoint random train-split subsets, each as large as the test split
+    (Table 2 'Training set'), draw-major, each draw sorted. Too few training rows: the draws
+    shrink to len(train) // draws each."""
     train, n = training_rows(man, "ours"), len(reference_rows(man))
-    rng = np.random.default_rng(seed)
-    return np.sort(rng.choice(train, size=min(n, len(train)), replace=False))
+    n = min(n, len(train) // draws)
+    pick = np.random.default_rng(seed).choice(train, size=n * draws, replace=False)
+    return np.concatenate([np.sort(d) for d in pick.reshape(draws, n)])
 
 
 def nearest(a: torch.Tensor, b: torch.Tensor, chunk: int = 256) -> tuple[np.ndarray, np.ndarray]:

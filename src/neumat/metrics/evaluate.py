@@ -1,8 +1,10 @@
 """The Table-2 evaluation of one synthesized set against a reference set, and the table writer.
 
-`evaluate_fields` computes the 12 set metrics (MMD, COV, 1-NNA x BRDF-L1, RMSE, NegPSNR,
-NegSSIM) and FID, as a long table with columns metric, distance, value, note. `table2` lays
-several such tables out like M3ashy Table 2 (models as columns, display units as in the paper).
+`evaluate_sets` computes the 12 set metrics (MMD, COV, 1-NNA x BRDF-L1, RMSE, NegPSNR,
+NegSSIM) and FID (2048-d and 64-d), as a long table with columns metric, distance, value,
+note; `evaluate_draws` does so for several sample draws (a `draw` column). `table2` lays
+several such tables out like M3ashy Table 2 (models as columns, display units as in the
+paper, mean ± std over draws).
 """
 
 from __future__ import annotations
@@ -40,25 +42,65 @@ def set_metric_rows(matrices: dict[str, tuple]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=COLUMNS)
 
 
-def evaluate_fields(ref_weights, smp_weights, *, resolution: int, bins, activation="relu",
-                    fid_model=None, fid_unavailable: str = "", device="cpu") -> pd.DataFrame:
-    """All Table-2 metrics of neural-field set `smp_weights` against `ref_weights`.
+FID_DIMS = {2048: "Inception-v3", 64: "Inception-64"}  # rows of the FID block
 
-    `fid_model`: an `inception.FIDInception` (or None, with the reason in `fid_unavailable`)."""
-    t0 = time.time()
-    vals = [D.field_values(w, bins, activation) for w in (ref_weights, smp_weights)]
-    imgs = [sphere.to_srgb(sphere.render_fields(w, resolution, activation, device))
-            for w in (ref_weights, smp_weights)]
-    log.info("BRDF values and %d renders in %.1fs", len(imgs[0]) + len(imgs[1]), time.time() - t0)
-    table = set_metric_rows(distance_matrices(*vals, *imgs))
-    log.info("12 set metrics after %.1fs", time.time() - t0)
+
+def fid_rows(fid_model, ref_images, smp_images, unavailable: str = "", device="cpu",
+             ref_features=None) -> pd.DataFrame:
+    """FID on the standard 2048-d pool3 features and on the 64-d first max-pool features
+    (`pytorch_fid --dims 64`, what the released M3ashy code reports). `ref_features`: the
+    reference set's {dims: features}, to reuse across draws."""
     if fid_model is None:
-        fid = (np.nan, f"unavailable: {fid_unavailable or 'no Inception-v3 weights'}")
-    else:
-        from neumat.metrics import fid as fidlib
-        fid = (fidlib.fid(fid_model, *imgs, device=device), "Inception-v3 pool3, sRGB sphere renders")
-    fid_row = pd.DataFrame([("FID", "Inception-v3", *fid)], columns=COLUMNS)
-    return pd.concat([fid_row, table], ignore_index=True)
+        note = f"unavailable: {unavailable or 'no Inception-v3 weights'}"
+        return pd.DataFrame([("FID", d, np.nan, note) for d in FID_DIMS.values()], columns=COLUMNS)
+    from neumat.metrics import fid as fidlib
+    fr = ref_features or fidlib.features(fid_model, ref_images, device=device)
+    fs = fidlib.features(fid_model, smp_images, device=device)
+    return pd.DataFrame([("FID", name, fidlib.fid_from_features(fr[d], fs[d]),
+                          f"Inception-v3 {d}-d features, sRGB sphere renders")
+                         for d, name in FID_DIMS.items()], columns=COLUMNS)
+
+
+def evaluate_sets(ref, smp, *, resolution: int, bins, activation="relu", fid_model=None,
+                  fid_unavailable: str = "", device="cpu") -> pd.DataFrame:
+    """All Table-2 metrics of material set `smp` against `ref` (field or table sets, see
+    `neumat.metrics.materials`). `fid_model`: an `inception.FIDInception` (or None, with the
+    reason in `fid_unavailable`)."""
+    return evaluate_draws(ref, [smp], resolution=resolution, bins=bins, activation=activation,
+                          fid_model=fid_model, fid_unavailable=fid_unavailable,
+                          device=device).drop(columns="draw")
+
+
+def evaluate_fields(ref_weights, smp_weights, **kw) -> pd.DataFrame:
+    """`evaluate_sets` for two neural-field sets (N, 675)."""
+    return evaluate_sets(np.asarray(ref_weights), np.asarray(smp_weights), **kw)
+
+
+def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_model=None,
+                   fid_unavailable: str = "", device="cpu", refs=None) -> pd.DataFrame:
+    """Metrics of several sample draws (each a material set) against `ref`, or against
+    `refs[i]` per draw when given (the reference-vs-itself sanity row). Long table with a
+    `draw` column; references are rendered once when shared."""
+    from neumat.metrics import materials as M
+    t0 = time.time()
+
+    def prepare(s):
+        return M.brdf_values(s, bins, activation), M.renders(s, resolution, activation, device)
+
+    shared = prepare(ref) if refs is None else None
+    shared_fid = None
+    out = []
+    for i, smp in enumerate(draws):
+        rv, ri = shared if refs is None else prepare(refs[i])
+        sv, si = prepare(smp)
+        if fid_model is not None and refs is None and shared_fid is None:
+            from neumat.metrics import fid as fidlib
+            shared_fid = fidlib.features(fid_model, ri, device=device)
+        table = pd.concat([fid_rows(fid_model, ri, si, fid_unavailable, device, shared_fid),
+                           set_metric_rows(distance_matrices(rv, sv, ri, si))], ignore_index=True)
+        out.append(table.assign(draw=i))
+        log.info("draw %d: %d vs %d materials, %.1fs so far", i, len(sv), len(rv), time.time() - t0)
+    return pd.concat(out, ignore_index=True)[["draw", *COLUMNS]]
 
 
 # ----------------------------------------------------------------------------- Table 2
@@ -70,9 +112,13 @@ _SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
 ARROWS = {"FID": "↓", "MMD": "↓", "COV": "↑", "1-NNA": "↓"}
 
 
+ROW_ORDER = [("FID", d) for d in FID_DIMS.values()] + [(m, d) for m in SET_METRICS
+                                                       for d in D.DISTANCES]
+
+
 def _row_label(metric, distance):
     if metric == "FID":
-        return "FID (↓)", ""
+        return "FID (↓)", {"Inception-v3": "2048-d", "Inception-64": "64-d (as M³ashy code)"}[distance]
     factor = FACTORS.get((metric, distance))
     exp = round(np.log10(factor)) if factor else 0
     scale = "" if not factor else " ×10" + ("" if exp == 1 else str(exp).translate(_SUPERSCRIPT))
@@ -82,30 +128,56 @@ def _row_label(metric, distance):
 
 def table2(results: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """{model: metrics table} -> wide table: rows (metric, distance) in paper order, one column
-    per model, values x the paper's display factors; unavailable entries are 'n/a'."""
-    order = [("FID", "Inception-v3")] + [(m, d) for m in SET_METRICS for d in D.DISTANCES]
+    per model, values x the paper's display factors, mean ± std over the draws of a long table
+    (rows repeated per draw); unavailable entries are 'n/a'."""
     cols = {}
     for model, df in results.items():
-        missing = set(order) - set(zip(df["metric"], df["distance"]))
+        missing = set(ROW_ORDER) - set(zip(df["metric"], df["distance"]))
         if missing:
             raise ValueError(f"metrics of model {model!r} lack rows {sorted(missing)}")
-        v = df.set_index(["metric", "distance"])["value"]
-        cols[model] = [_display(m, d, v[(m, d)]) for m, d in order]
-    index = pd.MultiIndex.from_tuples([_row_label(m, d) for m, d in order], names=["metric", "distance"])
+        g = df.groupby(["metric", "distance"])["value"]
+        mean, std, n = g.mean(), g.std(ddof=1), g.count()
+        cols[model] = [_display(m, d, mean[(m, d)], std[(m, d)] if n[(m, d)] > 1 else None)
+                       for m, d in ROW_ORDER]
+    index = pd.MultiIndex.from_tuples([_row_label(m, d) for m, d in ROW_ORDER],
+                                      names=["metric", "distance"])
     return pd.DataFrame(cols, index=index)
 
 
-def _display(metric, distance, value):
+def _display(metric, distance, value, std=None):
+    """Displayed cell: value x factor, '± std' over draws when there are several."""
     if not np.isfinite(value):
         return "n/a"
-    if metric in ("COV", "1-NNA"):
-        value = 100 * value
-    value *= FACTORS.get((metric, distance), 1.0)
-    return f"{value:.3g}"
+    k = (100 if metric in ("COV", "1-NNA") else 1) * FACTORS.get((metric, distance), 1.0)
+    return f"{value * k:.3g}" + ("" if std is None or not np.isfinite(std) else f" ± {std * k:.2g}")
+
+
+# column headers of the paper's Table 2 (other model keys are shown as they are)
+MODEL_NAMES = {"training_set": "Training set", "pca_a": "PCA-A", "pca_n": "PCA-N",
+               "vae_a": "VAE-A", "vae_n": "VAE-N", "merl100": "MERL100", "ours": "ours",
+               "reference_halves": "Reference halves"}
+
+
+def sanity(halves: pd.DataFrame, training: pd.DataFrame | None = None,
+           band=(0.3, 0.7)) -> tuple[pd.DataFrame, list[str]]:
+    """Sanity rows: 1-NNA (mean, std over draws) of reference halves against each other and
+    of the Training-set column, and the problems found: the halves' 1-NNA must sit near 50 %
+    (inside `band`), or the protocol cannot tell distributions apart."""
+    rows, problems = [], []
+    for name, df in (("reference_halves", halves), ("training_set", training)):
+        if df is None:
+            continue
+        for d in D.DISTANCES:
+            v = df.loc[(df["metric"] == "1-NNA") & (df["distance"] == d), "value"]
+            rows.append((MODEL_NAMES[name], d, 100 * v.mean(), 100 * v.std(ddof=1) if len(v) > 1 else np.nan))
+            if name == "reference_halves" and not band[0] <= v.mean() <= band[1]:
+                problems.append(f"reference halves 1-NNA ({d}) = {100 * v.mean():.1f} %, outside "
+                                f"{100 * band[0]:.0f}-{100 * band[1]:.0f} %")
+    return pd.DataFrame(rows, columns=["set", "distance", "1-NNA mean (%)", "1-NNA std (%)"]), problems
 
 
 def write_table2(results: dict[str, pd.DataFrame], csv, md, html) -> pd.DataFrame:
-    t = table2(results)
+    t = table2(results).rename(columns=MODEL_NAMES)
     t.to_csv(csv)
     flat = t.reset_index()
     flat.loc[flat["metric"].duplicated(), "metric"] = ""  # paper style: label once per block

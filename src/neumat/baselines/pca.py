@@ -1,0 +1,136 @@
+"""PCA baselines of Table 2 (M3ashy §4.3): a Gaussian over PCA coefficients, sampled.
+
+* PCA-A: PCA of the AugMERL training tables in the log mapping of Nielsen, Jensen and
+  Ramamoorthi 2015 ("On optimal, minimal BRDF sampling for reflectance acquisition", §4):
+  observations are material x channel over the bins; cosMap = clip(cos θi cos θo, 0.01, 1);
+  ρ̃ = log((ρ cosMap + 0.001) / (median + 0.001)), median per bin over all observations;
+  PCA by SVD of ρ̃ - mean; unmap ρ = (exp(ρ̃)(median + 0.001) - 0.001) / cosMap. A material's
+  coefficients are its three channels' coefficients side by side (3k values), so the Gaussian
+  also models how the channels co-vary. Samples are unmapped and clamped at 0.
+* PCA-N: PCA of the NeuMERL training weight vectors (N, 675) and a Gaussian over its
+  coefficients; samples are weight vectors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from neumat.io import merl
+
+EPS = 0.001  # Nielsen et al.'s offset in the log mapping
+COS_FLOOR = 0.01
+
+
+class GaussianPCA:
+    """PCA with k components of rows X (n, D), and a full-covariance Gaussian over the rows'
+    coefficients. SVD of the (n, n) Gram matrix when n < D (float64), so D can be large."""
+
+    def __init__(self, k: int):
+        if k < 1:
+            raise ValueError(f"PCA needs at least one component, got {k}")
+        self.k = k
+
+    def fit(self, X: np.ndarray) -> "GaussianPCA":
+        X = np.asarray(X, dtype=np.float64)
+        n = len(X)
+        self.mean = X.mean(0)
+        Xc = X - self.mean
+        k = min(self.k, n - 1 if n > 1 else 1, X.shape[1])
+        evals, U = np.linalg.eigh(Xc @ Xc.T)  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
+        order = np.argsort(evals)[::-1][:k]
+        s = np.sqrt(np.clip(evals[order], 1e-300, None))
+        self.components = (U[:, order].T @ Xc) / s[:, None]  # rows = V^T, orthonormal
+        self.explained = evals[order].clip(0).sum() / max(evals.clip(0).sum(), 1e-300)
+        return self
+
+    def encode(self, X) -> np.ndarray:
+        return (np.asarray(X, dtype=np.float64) - self.mean) @ self.components.T
+
+    def decode(self, C) -> np.ndarray:
+        return np.asarray(C, dtype=np.float64) @ self.components + self.mean
+
+
+class CoefficientGaussian:
+    """Gaussian fitted to coefficient vectors (n, m); `sample(n, seed)` draws new ones."""
+
+    def __init__(self, C: np.ndarray):
+        C = np.asarray(C, dtype=np.float64)
+        self.mean = C.mean(0)
+        self.cov = np.cov(C, rowvar=False).reshape(C.shape[1], C.shape[1]) if len(C) > 1 \
+            else np.zeros((C.shape[1],) * 2)
+
+    def sample(self, n: int, seed) -> np.ndarray:
+        rng = np.random.default_rng(seed)
+        # eigh, not Cholesky: with fewer materials than dimensions the covariance is singular
+        evals, vecs = np.linalg.eigh(self.cov)
+        z = rng.standard_normal((n, len(self.mean)))
+        return self.mean + (z * np.sqrt(evals.clip(0))) @ vecs.T
+
+
+# ----------------------------------------------------------------------------- Nielsen mapping
+
+
+def cos_map(bins) -> np.ndarray:
+    """clip(cos θi cos θo, 0.01, 1) at the centres of flat MERL bins."""
+    th, td, pd = (a[np.asarray(bins)] for a in merl.grid_angles())
+    wi, wo = merl.half_diff_to_dirs(th, td, pd)
+    return np.clip(wi[:, 2] * wo[:, 2], COS_FLOOR, 1.0)
+
+
+def log_map(rho, median, cosmap):
+    return np.log((rho * cosmap + EPS) / (median + EPS))
+
+
+def unmap(mapped, median, cosmap):
+    return (np.exp(mapped) * (median + EPS) - EPS) / cosmap
+
+
+class NielsenPCA:
+    """PCA-A: fit on tables (n, 3, B) at flat MERL bins `bins`, sample new tables (n, 3, B)."""
+
+    def __init__(self, k: int, bins):
+        self.k, self.bins = k, np.asarray(bins)
+        self.cosmap = cos_map(self.bins)
+
+    def _observations(self, tables) -> np.ndarray:
+        t = np.clip(np.asarray(tables, dtype=np.float64), 0, None)
+        if t.ndim != 3 or t.shape[1:] != (3, len(self.bins)):
+            raise ValueError(f"tables must be (n, 3, {len(self.bins)}), got {t.shape}")
+        return t.reshape(-1, len(self.bins))  # material-major, channel-minor observations
+
+    def fit(self, tables) -> "NielsenPCA":
+        obs = self._observations(tables)
+        self.median = np.median(obs, 0)
+        self.pca = GaussianPCA(self.k).fit(log_map(obs, self.median, self.cosmap))
+        self.gauss = CoefficientGaussian(self.coefficients(tables))
+        return self
+
+    def coefficients(self, tables) -> np.ndarray:
+        """(n, 3k): each material's channel coefficients side by side."""
+        obs = self._observations(tables)
+        c = self.pca.encode(log_map(obs, self.median, self.cosmap))
+        return c.reshape(len(obs) // 3, -1)
+
+    def tables(self, coefs) -> np.ndarray:
+        """Coefficients (n, 3k) -> tables (n, 3, B), unmapped and clamped at 0."""
+        c = np.asarray(coefs).reshape(-1, self.pca.components.shape[0])
+        rho = unmap(self.pca.decode(c), self.median, self.cosmap)
+        return np.clip(rho, 0, None).reshape(-1, 3, len(self.bins))
+
+    def sample(self, n: int, seed) -> np.ndarray:
+        return self.tables(self.gauss.sample(n, seed))
+
+
+class WeightPCA:
+    """PCA-N: fit on weight vectors (n, 675), sample new ones."""
+
+    def __init__(self, k: int):
+        self.k = k
+
+    def fit(self, weights) -> "WeightPCA":
+        self.pca = GaussianPCA(self.k).fit(weights)
+        self.gauss = CoefficientGaussian(self.pca.encode(weights))
+        return self
+
+    def sample(self, n: int, seed) -> np.ndarray:
+        return self.pca.decode(self.gauss.sample(n, seed)).astype(np.float32)

@@ -1,0 +1,85 @@
+import numpy as np
+import pytest
+import torch
+
+from neumat import nbrdf
+from neumat.baselines import pca, vae
+from neumat.io import merl
+
+
+def _tables(n, bins, seed=0):
+    """Plausible positive tables (n, 3, B): diffuse + a Blinn-like lobe, random per material."""
+    rng = np.random.default_rng(seed)
+    th = merl.grid_angles()[0][bins]
+    kd = rng.uniform(0.02, 0.3, (n, 3, 1))
+    ks = rng.uniform(0, 2, (n, 1, 1))
+    e = rng.uniform(5, 60, (n, 1, 1))
+    return kd / np.pi + ks * np.cos(th)[None, None] ** e
+
+
+BINS = np.sort(np.random.default_rng(0).choice(np.flatnonzero(merl.valid_mask()), 500, replace=False))
+
+
+def test_nielsen_map_round_trip():
+    t = _tables(4, BINS)
+    med, cm = np.median(t.reshape(-1, len(BINS)), 0), pca.cos_map(BINS)
+    assert ((cm >= 0.01) & (cm <= 1)).all()
+    np.testing.assert_allclose(pca.unmap(pca.log_map(t, med, cm), med, cm), t, rtol=1e-9, atol=1e-12)
+
+
+def test_pca_a_reconstructs_training_tables_and_samples_deterministically():
+    t = _tables(12, BINS)
+    f = pca.NielsenPCA(3 * 12, BINS).fit(t)  # as many components as observations - 1: exact
+    np.testing.assert_allclose(f.tables(f.coefficients(t)), t, rtol=1e-6, atol=1e-9)
+    few = pca.NielsenPCA(4, BINS).fit(t)  # 4 components: a close, not exact, reconstruction
+    err = np.abs(few.tables(few.coefficients(t)) - t).mean() / t.mean()
+    assert 0 < err < 0.2
+    s = few.sample(5, seed=3)
+    assert s.shape == (5, 3, len(BINS)) and (s >= 0).all() and np.isfinite(s).all()
+    np.testing.assert_array_equal(s, few.sample(5, seed=3))
+    assert not np.array_equal(s, few.sample(5, seed=4))
+
+
+def test_pca_n_shapes_determinism_and_round_trip():
+    w = nbrdf.init_weights(30, torch.Generator().manual_seed(0)).numpy()
+    f = pca.WeightPCA(29).fit(w)
+    np.testing.assert_allclose(f.pca.decode(f.pca.encode(w)), w, atol=1e-5)
+    s = f.sample(7, seed=1)
+    assert s.shape == (7, nbrdf.N_PARAMS) and s.dtype == np.float32
+    np.testing.assert_array_equal(s, f.sample(7, seed=1))
+    # the Gaussian matches the training moments
+    big = pca.WeightPCA(8).fit(w).sample(4000, seed=2)
+    assert np.abs(big.mean(0) - w.mean(0)).max() < 0.05
+
+
+def test_vae_n_trains_and_samples_deterministically(tmp_path):
+    w = nbrdf.init_weights(40, torch.Generator().manual_seed(0)).numpy()
+    kw = dict(latent=4, hidden=16, steps=30, batch_size=16, lr=1e-3, beta=1.0)
+    net, hist = vae.train_weight_vae(w, **kw, seed=0)
+    net2, _ = vae.train_weight_vae(w, **kw, seed=0)
+    assert len(hist) == 1 and hist[0]["step"] == 30
+    vae.save(tmp_path / "m.pt", net, "vae_n", {"latent": 4, "hidden": 16})
+    back = vae.load(tmp_path / "m.pt")
+    s = vae.prior_samples(back, 6, seed=5)
+    assert s.shape == (6, nbrdf.N_PARAMS) and np.isfinite(s).all()
+    np.testing.assert_array_equal(s, vae.prior_samples(net2, 6, seed=5))
+    assert not np.array_equal(s, vae.prior_samples(back, 6, seed=6))
+
+
+def test_vae_a_outputs_nbrdf_fields_and_learns(tmp_path):
+    t = _tables(6, BINS).astype(np.float32)
+    th, td, pd_ = (a[BINS] for a in merl.grid_angles())
+    x6, cos = merl.half_diff_cartesian(th, td, pd_), merl.cos_theta_i(th, td, pd_)
+    kw = dict(latent=8, hidden=32, batch_size=4, context=64, queries=128, lr=3e-3, beta=0.1)
+    _, short = vae.train_set_vae(t, x6, cos, steps=1, **kw, seed=0)
+    net, hist = vae.train_set_vae(t, x6, cos, steps=150, **kw, seed=0)
+    assert hist[-1]["rec"] < short[-1]["rec"]
+    vae.save(tmp_path / "a.pt", net, "vae_a", {"latent": 8, "hidden": 32})
+    s = vae.prior_samples(vae.load(tmp_path / "a.pt"), 5, seed=1)
+    assert s.shape == (5, nbrdf.N_PARAMS)
+    np.testing.assert_array_equal(s, vae.prior_samples(net, 5, seed=1))
+    f = nbrdf.forward(torch.as_tensor(s), torch.as_tensor(x6, dtype=torch.float32))
+    assert f.shape == (5, len(BINS), 3) and torch.isfinite(f).all()
+    with pytest.raises(ValueError, match="not a VAE"):
+        torch.save({"kind": "x"}, tmp_path / "b.pt")
+        vae.load(tmp_path / "b.pt")

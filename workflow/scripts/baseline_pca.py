@@ -1,0 +1,44 @@
+"""PCA-A (Nielsen-mapped AugMERL training tables) or PCA-N (NeuMERL training weights): fit,
+then one draw per seed of as many samples as the reference set (see neumat.baselines.pca)."""
+import time
+
+import numpy as np
+import pandas as pd
+
+from neumat import augment
+from neumat.baselines import pca
+from neumat.diffusion import dataset
+from neumat.io import merl
+from neumat.logs import script_logging
+from neumat.metrics import distances, materials
+
+with script_logging(snakemake) as log:
+    p, inp, out, model = snakemake.params, snakemake.input, snakemake.output, snakemake.wildcards.model
+    man = dataset.read_manifest(inp.manifest)
+    train, n_ref = dataset.training_rows(man, "ours"), len(dataset.reference_rows(man))
+    t0 = time.perf_counter()
+    if model == "pca_n":
+        weights = np.load(inp.weights)
+        fitted = pca.WeightPCA(p.components).fit(weights[train])
+        explained = fitted.pca.explained
+        draws = [fitted.sample(n_ref, s) for s in p.seeds]
+        materials.save(out.samples, np.concatenate(draws))
+    else:
+        # the table set holds the bins the metrics read; PCA over those in the common valid
+        # region of the sources, 0 elsewhere (below the horizon)
+        bins = materials.metric_bins(distances.brdf_sample(p.brdf_samples, p.brdf_seed), p.resolution)
+        paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in inp.tables}
+        aug = augment.AugMERL(inp.recipe, paths)
+        ok = np.isin(bins, aug.valid_bins) & merl.valid_mask()[bins]
+        log.info("PCA-A: %d training tables at %d of %d metric bins", len(train), ok.sum(), len(bins))
+        fitted = pca.NielsenPCA(p.components, bins[ok]).fit(aug.values(man["id"].iloc[train], bins[ok]))
+        explained = fitted.pca.explained
+        values = np.zeros((n_ref * len(p.seeds), 3, len(bins)), dtype=np.float32)
+        values[:, :, ok] = np.concatenate([fitted.sample(n_ref, s) for s in p.seeds])
+        materials.save(out.samples, materials.TableSet(bins, values))
+    dt = time.perf_counter() - t0
+    pd.DataFrame([{"model": model, "train_materials": len(train), "components": p.components,
+                   "explained_variance": explained, "draws": len(p.seeds), "per_draw": n_ref,
+                   "seconds": dt}]).to_csv(out.info, sep="\t", index=False, float_format="%.6g")
+    log.info("%s: %d components explain %.3f of the variance; %d x %d samples in %.1f s",
+             model, p.components, explained, len(p.seeds), n_ref, dt)

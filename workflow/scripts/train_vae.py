@@ -1,0 +1,48 @@
+"""Train a VAE baseline: VAE-N on NeuMERL training weights, VAE-A (set encoder -> latent ->
+hypernetwork -> NBRDF) on AugMERL training tables (see neumat.baselines.vae)."""
+import time
+
+import numpy as np
+import pandas as pd
+import torch
+
+from neumat import augment
+from neumat.baselines import vae
+from neumat.diffusion import dataset
+from neumat.io import merl
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p, inp, out, model = snakemake.params, snakemake.input, snakemake.output, snakemake.wildcards.model
+    man = dataset.read_manifest(inp.manifest)
+    train = dataset.training_rows(man, "ours")
+    c = dict(p.cfg)
+    t0 = time.perf_counter()
+    if model == "vae_n":
+        arch = {"latent": c.pop("latent"), "hidden": c.pop("hidden")}
+        net, history = vae.train_weight_vae(np.load(inp.weights)[train], **arch, **c,
+                                            seed=p.seed, log=log)
+    else:
+        # a fixed random subset of the stored bins of every training material, shard by shard
+        ids = set(man["id"].iloc[train])
+        rng = np.random.default_rng(p.seed)
+        values, pick = [], None
+        for f in inp.shards:
+            s = augment.load_shard(f)
+            if pick is None:
+                pick = np.sort(rng.choice(len(s["bins"]), min(c["bins"], len(s["bins"])), replace=False))
+                bins = s["bins"][pick]
+            keep = np.isin(s["ids"], list(ids))
+            values.append(s["values"][keep][:, :, pick])
+        values = np.concatenate(values)
+        th, td, pd_ = (a[bins] for a in merl.grid_angles())
+        log.info("VAE-A: %d training tables x %d bins", len(values), len(bins))
+        arch = {"latent": c.pop("latent"), "hidden": c.pop("hidden")}
+        c.pop("bins")
+        net, history = vae.train_set_vae(values, merl.half_diff_cartesian(th, td, pd_),
+                                         merl.cos_theta_i(th, td, pd_), **arch, **c,
+                                         seed=p.seed, activation=p.activation, log=log)
+    vae.save(out.model, net, model, arch)
+    pd.DataFrame(history).to_csv(out.history, sep="\t", index=False, float_format="%.6g")
+    log.info("%s trained in %.1f s (%d parameters)", model, time.perf_counter() - t0,
+             sum(q.numel() for q in net.parameters()))
