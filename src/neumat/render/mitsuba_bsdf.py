@@ -142,6 +142,25 @@ def bsdf_dict(material: Material) -> dict:
     return {"type": PLUGIN, "material": material.name}
 
 
+def _material_key(path, index: int) -> str:
+    return f"{os.path.abspath(path)}#{index}"
+
+
+def material_from_file(path, index: int = 0, activation: str = "relu") -> Material:
+    """A MERL `.binary` table, or row `index` of a weights `.npy` (N, 675) / (675,), as a Material
+    named by its absolute path and index (what a scene XML's `filename` entry loads)."""
+    path = str(path)
+    key = _material_key(path, index)
+    if path.endswith(".binary"):
+        return Material(key, table=merl.read_merl(path))
+    if path.endswith(".npy"):
+        w = np.load(path).reshape(-1, nbrdf.N_PARAMS)
+        if not 0 <= index < len(w):
+            raise ValueError(f"{path}: holds {len(w)} weight vectors, index {index} asked for")
+        return Material(key, weights=w[index].astype(np.float32), activation=activation)
+    raise ValueError(f"{path}: {PLUGIN} loads MERL .binary tables or NBRDF weights .npy files")
+
+
 # ----------------------------------------------------------------------------- plugin
 
 
@@ -167,7 +186,14 @@ def register():
     class NeumatBRDF(mi.BSDF):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
-            name = props["material"]
+            if "filename" in props:  # a scene XML: <string name="filename" value="x.binary|w.npy"/>
+                index = int(props["index"]) if "index" in props else 0
+                act = props["activation"] if "activation" in props else "relu"
+                # relative to the scene file (load_file puts its folder on the resolver)
+                path = str(mi.Thread.thread().file_resolver().resolve(props["filename"]))
+                name = bsdf_dict(material_from_file(path, index, act))["material"]
+            else:
+                name = props["material"]
             if name not in _MATERIALS:
                 raise ValueError(f"{PLUGIN}: unknown material {name!r}; build the scene "
                                  "entry with neumat.render.mitsuba_bsdf.bsdf_dict")
