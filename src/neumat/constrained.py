@@ -235,7 +235,7 @@ def derive_thresholds(stats: pd.DataFrame, types, mirror_quantile: float = 0.9,
     threshold, a sentence saying where it came from."""
     f = features(stats).assign(type=list(types), n_above=stats["n_above"].to_numpy(float),
                                 n_valid=stats["n_valid"].to_numpy(float))
-    f = f[np.isfinite(f[["peak", "body", "sharpness"]]).all(1) & (f["type"] != "")]
+    f = f[np.isfinite(f[["peak", "body", "sharpness"]]).all(axis=1) & (f["type"] != "")]
     med = f.groupby("type")[["peak", "body", "sharpness", "n_above", "n_valid"]].median()
     keep = (med["n_above"] >= e) & (med["n_above"] < med["n_valid"] - metallic_exceptions)
     med = med[keep]

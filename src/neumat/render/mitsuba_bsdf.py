@@ -190,7 +190,7 @@ def register():
                 index = int(props["index"]) if "index" in props else 0
                 act = props["activation"] if "activation" in props else "relu"
                 # relative to the scene file (load_file puts its folder on the resolver)
-                path = str(mi.Thread.thread().file_resolver().resolve(props["filename"]))
+                path = str(mi.file_resolver().resolve(props["filename"]))
                 name = bsdf_dict(material_from_file(path, index, act))["material"]
             else:
                 name = props["material"]
