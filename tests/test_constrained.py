@@ -58,10 +58,11 @@ def test_near_mirror_ggx_is_mirror(synthetic_thresholds):
 def test_eq9_eq10_boundaries():
     th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
                       medium_peak=1e9)
-    st = C.field_stats(np.stack([constant_field(0.3), constant_field(0.33)]), ["below", "above"])
+    st = C.field_stats(np.stack([constant_field(0.3), constant_field(0.33), constant_field(0.0)]),
+                       ["below", "above", "black"])
     # 0.3 < 1/pi < 0.33: no bin above (diffuse) vs every bin above (metallic, eq. 10)
-    assert list(st["n_above"]) == [0, st["n_valid"].iloc[1]]
-    assert list(C.classify(st, th)) == ["diffuse", "metallic"]
+    assert list(st["n_above"]) == [0, st["n_valid"].iloc[1], 0]
+    assert list(C.classify(st, th)) == ["diffuse", "metallic", "diffuse"]
     st.loc[0, "n_above"] = th.e  # eq. 9 is strict: e exceptions are one too many
     assert C.classify(st, th)[0] == "low-specular"
 

@@ -155,9 +155,9 @@ def features(stats: pd.DataFrame) -> pd.DataFrame:
     mx = stats[["max_r", "max_g", "max_b"]].to_numpy(float)
     peak, body = mx.max(1), mean.max(1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return pd.DataFrame({
-            "peak": peak, "body": body, "sharpness": peak / body,
-            "tint_peak": (peak - mx.min(1)) / peak,
+        return pd.DataFrame({  # a black material (all zero) has sharpness and tint 0
+            "peak": peak, "body": body, "sharpness": np.where(peak > 0, peak / body, 0.0),
+            "tint_peak": np.where(peak > 0, (peak - mx.min(1)) / peak, 0.0),
             "share_above": stats["n_above"].to_numpy(float) / stats["n_valid"].to_numpy(float),
         }, index=stats.index)
 

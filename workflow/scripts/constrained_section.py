@@ -71,7 +71,8 @@ with script_logging(snakemake) as log:
           report.md_table(purity[purity["set"] == "source"].drop(columns="set")),
           "Acceptance per category (rejection sampling of `ours`; a category with "
           "complete = False was not produced within the budget and is not padded):",
-          report.md_table(acc), fig,
+          report.md_table(acc),
+          "Not produced within the budget: " + (", ".join(missing) if missing else "none") + ".", fig,
           f"Rendered with Mitsuba 3 ({variant})."]
     with open(out.section, "w") as f:
         f.write("\n\n".join(md) + "\n")
