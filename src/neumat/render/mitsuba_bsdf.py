@@ -13,6 +13,10 @@ and the specular probability is the estimated specular albedo 4 pi alpha^2 (f(0)
 total, clipped to [0.05, 0.95]; alpha is clipped to [0.005, 0.6] (rougher GGX lobes send
 much of their mass below the horizon, and the cosine lobe covers such materials). MIS with emitter sampling is done by Mitsuba's path tracer.
 
+Scene XML: `<bsdf type="neumat_brdf"><string name="filename" value="x.binary|w.npy"/>
+<integer name="index" value="0"/></bsdf>` loads a MERL table or one row of a weights file
+(relative to the scene's folder); `select_variant()` registers the plugin before `load_file`.
+
 Variant: `select_variant()` picks `llvm_ad_rgb` when a libLLVM >= 16 is found (Dr.Jit's LLVM
 backend crashes with 14/15) and falls back to `scalar_rgb` with a warning (slow: the Python BSDF
 is then called per ray, so keep resolution x spp small).
