@@ -86,6 +86,33 @@ def test_tiny_config_runs_every_stage(tiny_run):
 
 
 @pytest.mark.slow
+def test_tiny_constrained_synthesis_and_cli(tiny_run, tmp_path):
+    res = tiny_run / "results/tiny"
+    rules = pd.read_csv(res / "constrained/rules.tsv", sep="\t")
+    assert {"e", "metallic_exceptions", "mirror_peak", "plastic_sharpness"} <= set(rules["threshold"])
+    classes = pd.read_csv(res / "constrained/classes.tsv", sep="\t", keep_default_na=False)
+    assert (classes["set"] == "neumerl").sum() == 64 and (classes["set"] == "source").sum() == 8
+    acc = pd.read_csv(res / "constrained/acceptance.tsv", sep="\t")
+    assert len(acc) == 7 and (acc["drawn"] <= 16).all()
+    samples = pd.read_csv(res / "samples/constrained/samples.tsv", sep="\t")
+    assert len(np.load(res / "samples/constrained/weights.npy")) == len(samples)
+    assert samples.groupby("category").size().to_dict() == \
+        acc.set_index("category")["accepted"][lambda a: a > 0].to_dict()
+    md = (res / "report/index.md").read_text()
+    assert "Constrained synthesis" in md
+    # the command on the tiny run's output
+    cli = [sys.executable, "-m", "neumat.cli"]
+    out = tmp_path / "cli"
+    r = subprocess.run([*cli, "sample", "--run", str(res), "-n", "1", "--steps", "5",
+                        "--out", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (out / "sample_000.binary").stat().st_size == 34_992_012
+    assert (out / "scene.xml").exists() and (out / "sample_000.png").exists()
+    r = subprocess.run([*cli, "info", str(res)], capture_output=True, text=True)
+    assert r.returncode == 0 and "seed 0" in r.stdout and "constrained acceptance" in r.stdout
+
+
+@pytest.mark.slow
 def test_rerun_is_a_no_op(tiny_run):
     res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr

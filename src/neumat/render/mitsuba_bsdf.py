@@ -13,6 +13,10 @@ and the specular probability is the estimated specular albedo 4 pi alpha^2 (f(0)
 total, clipped to [0.05, 0.95]; alpha is clipped to [0.005, 0.6] (rougher GGX lobes send
 much of their mass below the horizon, and the cosine lobe covers such materials). MIS with emitter sampling is done by Mitsuba's path tracer.
 
+Scene XML: `<bsdf type="neumat_brdf"><string name="filename" value="x.binary|w.npy"/>
+<integer name="index" value="0"/></bsdf>` loads a MERL table or one row of a weights file
+(relative to the scene's folder); `select_variant()` registers the plugin before `load_file`.
+
 Variant: `select_variant()`, the one place Mitsuba is first imported, picks `llvm_ad_rgb` when a
 libLLVM >= 16 is found (Dr.Jit's LLVM backend crashes with 14/15): the system's, else the PyPI
 wheel karellen-llvm-core installed with neumat. Without one it falls back to `scalar_rgb` with a
@@ -160,6 +164,25 @@ def bsdf_dict(material: Material) -> dict:
     return {"type": PLUGIN, "material": material.name}
 
 
+def _material_key(path, index: int) -> str:
+    return f"{os.path.abspath(path)}#{index}"
+
+
+def material_from_file(path, index: int = 0, activation: str = "relu") -> Material:
+    """A MERL `.binary` table, or row `index` of a weights `.npy` (N, 675) / (675,), as a Material
+    named by its absolute path and index (what a scene XML's `filename` entry loads)."""
+    path = str(path)
+    key = _material_key(path, index)
+    if path.endswith(".binary"):
+        return Material(key, table=merl.read_merl(path))
+    if path.endswith(".npy"):
+        w = np.load(path).reshape(-1, nbrdf.N_PARAMS)
+        if not 0 <= index < len(w):
+            raise ValueError(f"{path}: holds {len(w)} weight vectors, index {index} asked for")
+        return Material(key, weights=w[index].astype(np.float32), activation=activation)
+    raise ValueError(f"{path}: {PLUGIN} loads MERL .binary tables or NBRDF weights .npy files")
+
+
 # ----------------------------------------------------------------------------- plugin
 
 
@@ -185,7 +208,14 @@ def register():
     class NeumatBRDF(mi.BSDF):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
-            name = props["material"]
+            if "filename" in props:  # a scene XML: <string name="filename" value="x.binary|w.npy"/>
+                index = int(props["index"]) if "index" in props else 0
+                act = props["activation"] if "activation" in props else "relu"
+                # relative to the scene file (load_file puts its folder on the resolver)
+                path = str(mi.file_resolver().resolve(props["filename"]))
+                name = bsdf_dict(material_from_file(path, index, act))["material"]
+            else:
+                name = props["material"]
             if name not in _MATERIALS:
                 raise ValueError(f"{PLUGIN}: unknown material {name!r}; build the scene "
                                  "entry with neumat.render.mitsuba_bsdf.bsdf_dict")

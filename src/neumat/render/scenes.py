@@ -135,3 +135,18 @@ def write_png(path: str | os.PathLike, img: np.ndarray, exposure: float = 0.0) -
     """Linear RGB -> 8-bit sRGB PNG preview (`sphere.tonemap`)."""
     from PIL import Image
     Image.fromarray(tonemap(img, exposure)).save(path)
+
+
+def render_spheres(weights, names, cfg: dict, activation: str = "relu", seed: int = 0,
+                   progress=None) -> list[np.ndarray]:
+    """Neural fields (N, 675) as spheres under the generated sky, one linear-RGB image each.
+    `cfg` holds resolution, spp and envmap_size (config render.mitsuba); the caller picks the
+    variant first (`mitsuba_bsdf.select_variant`)."""
+    env = sky_envmap(cfg["envmap_size"])
+    images = []
+    for k, (n, w) in enumerate(zip(names, weights)):
+        m = mb.Material(str(n), weights=np.nan_to_num(np.asarray(w, np.float32)), activation=activation)
+        images.append(render(sphere_scene(m, cfg["resolution"], cfg["spp"], env), seed=seed))
+        if progress:
+            progress(k + 1, len(weights))
+    return images

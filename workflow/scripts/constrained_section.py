@@ -1,0 +1,79 @@
+"""Report section: the seven category rules with their thresholds, the classification of the
+source and NeuMERL materials (counts, MERL names, type purity), the acceptance rate per
+category, and the Fig. 6 gallery of accepted samples rendered with Mitsuba 3."""
+import json
+
+import numpy as np
+import pandas as pd
+
+from neumat import constrained, report
+from neumat.logs import script_logging
+from neumat.render import mitsuba_bsdf as mb
+from neumat.render import scenes
+from neumat.render.gallery import gallery
+
+RULES = """| category | rule (first that holds, in this order) |
+| --- | --- |
+| metallic | n_above >= n_valid - metallic_exceptions (paper eq. 10) |
+| diffuse | n_above < e (paper eq. 9) |
+| mirror | peak >= mirror_peak and body >= mirror_body |
+| plastic | sharpness >= plastic_sharpness |
+| high-specular | peak >= high_peak |
+| medium-specular | peak >= medium_peak |
+| low-specular | otherwise |
+
+n_above = bins of the 90 x 90 x 180 grid with max-channel reflectance > f_diffuse = 1/pi;
+peak = max over channels of the per-channel max; body = max over channels of the per-channel
+mean; sharpness = peak / body (all over the valid bins, physical units)."""
+
+with script_logging(snakemake) as log:
+    inp, out, p = snakemake.input, snakemake.output, snakemake.params
+    rules = pd.read_csv(inp.rules, sep="\t", keep_default_na=False)
+    classes = pd.read_csv(inp.classes, sep="\t", keep_default_na=False)
+    purity = pd.read_csv(inp.purity, sep="\t", keep_default_na=False)
+    acc = pd.read_csv(inp.acceptance, sep="\t", keep_default_na=False)
+    table = pd.read_csv(inp.table, sep="\t", keep_default_na=False)
+    weights = np.load(inp.weights)
+
+    counts = (classes.groupby(["category", "set"]).size().unstack(fill_value=0)
+              .reindex(constrained.CATEGORIES, fill_value=0).reset_index())
+    src = classes[classes["set"] == "source"]
+    names = pd.DataFrame({"category": constrained.CATEGORIES,
+                          "source materials": [", ".join(src.loc[src["category"] == c, "name"]) or "-"
+                                               for c in constrained.CATEGORIES]})
+    pur = purity.pivot_table(index="set", values="purity", aggfunc="mean")
+    missing = acc.loc[~acc["complete"].astype(str).isin(["True", "true"]), "category"].tolist()
+
+    # Fig. 6: a row per produced category
+    variant = mb.select_variant(p.mitsuba["variant"])
+    picks, labels = [], []
+    for cat in p.categories:
+        idx = np.flatnonzero(table["category"] == cat)[:p.gallery_count]
+        picks += idx.tolist()
+        labels += [f"{cat} #{i}" for i in idx]
+    if picks:
+        imgs = scenes.render_spheres(weights[picks], [f"c{i}" for i in picks], p.mitsuba,
+                                     p.activation, p.seed)
+        title = "not produced within budget: " + (", ".join(missing) if missing else "none")
+        gallery(imgs, labels, out.gallery, ncols=p.gallery_count, title=title)
+        fig = "![Constrained synthesis gallery](figures/constrained_gallery.png)"
+    else:
+        gallery([np.full((32, 32, 3), 255, np.uint8)], ["no category produced"], out.gallery)
+        fig = "No category was produced within the budget, so there is no gallery."
+
+    md = ["## Constrained synthesis (M³ashy §4.5, Fig. 6)", RULES,
+          "Thresholds (`constrained/rules.tsv`; config `constrained.thresholds` overrides):",
+          report.md_table(rules), "Materials per category:", report.md_table(counts),
+          "Source materials per category:", report.md_table(names),
+          "How cleanly each type falls into one category (purity = share of the type's "
+          "materials in its most common category; mean purity per set: "
+          + ", ".join(f"{s} {v:.2f}" for s, v in pur["purity"].items()) + "):",
+          report.md_table(purity[purity["set"] == "source"].drop(columns="set")),
+          "Acceptance per category (rejection sampling of `ours`; a category with "
+          "complete = False was not produced within the budget and is not padded):",
+          report.md_table(acc),
+          "Not produced within the budget: " + (", ".join(missing) if missing else "none") + ".", fig,
+          f"Rendered with Mitsuba 3 ({variant})."]
+    with open(out.section, "w") as f:
+        f.write("\n\n".join(md) + "\n")
+    log.info("section written; %d gallery images, missing: %s", len(picks), missing)

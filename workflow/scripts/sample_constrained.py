@@ -1,0 +1,38 @@
+"""Constrained synthesis: for each category, draw from the `ours` model in batches until
+`per_category` samples fall into it or `budget` draws are spent -> samples/constrained/
+(weights.npy, samples.tsv with each sample's category and statistics) and
+constrained/acceptance.tsv (acceptance rate per category; incomplete categories say so)."""
+import numpy as np
+import pandas as pd
+
+from neumat import constrained
+from neumat.diffusion import Sampler
+from neumat.fit import save_npy
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    inp, p, out = snakemake.input, snakemake.params, snakemake.output
+    cfg = p.cfg
+    th = constrained.Thresholds.from_tsv(inp.rules, cfg["thresholds"])
+    sampler = Sampler(inp.model, p.device)
+    classes = pd.read_csv(inp.classes, sep="\t", keep_default_na=False)
+    src = classes[classes["set"] == "source"]
+    guides = constrained.category_types(src["type"], src["category"])
+    bins = constrained.grid_bins(cfg["bins"], p.seed)
+    rows, weights, tables = [], [], []
+    for k, cat in enumerate(cfg["categories"]):
+        types = [t for t in guides[cat] if t in sampler.class_names] if cfg["guide"] == "auto" else []
+        r = constrained.sample_category(sampler, cat, th, cfg["per_category"], cfg["budget"],
+                                        cfg["batch"], p.seed + 10_000_000 * k, p.sample, types,
+                                        bins, p.activation)
+        row = constrained.acceptance_row(r, cfg["per_category"])
+        rows.append(row)
+        log.info("%s", row)
+        weights.append(r.weights)
+        tables.append(r.stats.drop(columns="name").assign(category=cat, guide=r.guide))
+    w = np.concatenate(weights).astype(np.float32)
+    save_npy(out.weights, w)
+    table = pd.concat(tables, ignore_index=True)
+    table.insert(0, "sample", np.arange(len(table)))
+    table.to_csv(out.table, sep="\t", index=False, float_format="%.6g")
+    pd.DataFrame(rows).to_csv(out.acceptance, sep="\t", index=False, float_format="%.4g")
