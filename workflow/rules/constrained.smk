@@ -5,13 +5,6 @@
 #   -> sample_constrained (+ diffusion/ours) -> constrained_section
 
 CONS = config["constrained"]
-CONS_STAGE = 7  # seed stream of this stage
-
-
-def constrained_seed(*items):
-    """Seed of one stochastic step of this stage (one place to switch to common.smk's
-    seed_for("constrained", ...) once it lands)."""
-    return SEED + 1000 * CONS_STAGE + sum(100 ** k * int(i) for k, i in enumerate(items))
 
 
 rule constrained_rules:
@@ -52,7 +45,7 @@ rule constrained_classify:
     params:
         thresholds=CONS["thresholds"],
         bins=CONS["bins"],
-        seed=constrained_seed(1),
+        seed=seed_for("constrained_classify"),
         activation=config["fit"]["activation"],
     log:
         log("constrained_classify"),
@@ -78,12 +71,11 @@ rule sample_constrained:
         table=out("samples/constrained/samples.tsv"),
         acceptance=out("constrained/acceptance.tsv"),
     params:
-        cfg={k: CONS[k] for k in ("categories", "per_category", "budget", "batch", "guide", "bins",
-                                  "thresholds")},
-        sample=DIFF["sample"],
-        seed=constrained_seed(2),
+        cfg=settings("constrained", ["categories", "per_category", "budget", "batch", "guide",
+                                     "bins", "thresholds"]),
+        sample=settings("diffusion.sample"),
+        seed=seed_for("sample_constrained"),
         activation=config["fit"]["activation"],
-        device=config["device"],
     log:
         log("sample_constrained"),
     benchmark:
@@ -116,7 +108,7 @@ rule constrained_section:
         gallery_count=CONS["gallery_count"],
         categories=CONS["categories"],
         activation=config["fit"]["activation"],
-        seed=constrained_seed(3),
+        seed=seed_for("constrained_section"),
     log:
         log("constrained_section"),
     benchmark:
@@ -130,5 +122,3 @@ rule constrained_section:
     script:
         "../scripts/constrained_section.py"
 
-
-REPORT_SECTIONS.append(out("report/sections/45_constrained.md"))

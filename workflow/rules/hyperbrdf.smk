@@ -51,7 +51,6 @@ rule train_hyperbrdf:
     params:
         cfg={k: HB[k] for k in ("model", "train", "train_bins")},
         seed=seed_for("train_hyperbrdf"),  # the same init for both training sets
-        device=config["device"],
         checkpoint=out("hyperbrdf/{model}/checkpoint.pt"),
     wildcard_constraints:
         model="|".join(HB_MODELS),
@@ -90,7 +89,6 @@ rule hyperbrdf_eval:
         resolution=HB["resolution"],
         activation=config["fit"]["activation"],
         seed=seed_for("hyperbrdf_eval"),
-        device=config["device"],
     log:
         log("hyperbrdf_eval"),
     benchmark:

@@ -15,7 +15,7 @@ from neumat.render import sphere
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
-    dev = str(resolve_device(p.device))
+    dev = str(resolve_device(snakemake.config["device"]))
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     orig = man["operation"] == "original"
     test = man[orig & (man["split"] == "test")]

@@ -14,7 +14,7 @@ with script_logging(snakemake) as log:
     inp, p, out = snakemake.input, snakemake.params, snakemake.output
     cfg = p.cfg
     th = constrained.Thresholds.from_tsv(inp.rules, cfg["thresholds"])
-    sampler = Sampler(inp.model, p.device)
+    sampler = Sampler(inp.model, snakemake.config["device"])
     classes = pd.read_csv(inp.classes, sep="\t", keep_default_na=False)
     src = classes[classes["set"] == "source"]
     guides = constrained.category_types(src["type"], src["category"])

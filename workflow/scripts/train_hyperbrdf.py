@@ -37,7 +37,7 @@ with script_logging(snakemake) as log:
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     bundle = hb.train(values, bins, median, hb.HyperConfig(**p.cfg["model"]),
                       hb.HyperTrainConfig(**p.cfg["train"]), snakemake.output.model,
-                      p.checkpoint, p.seed, p.device)
+                      p.checkpoint, p.seed, snakemake.config["device"])
     pd.DataFrame(bundle["history"], columns=hb.HISTORY_COLUMNS).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)
