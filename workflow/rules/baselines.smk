@@ -73,7 +73,7 @@ rule train_vae:
     wildcard_constraints:
         model="vae_a|vae_n",
     params:
-        cfg=lambda wc: BASE[wc.model],
+        cfg=lambda wc: settings(f"baselines.{wc.model}"),
         seed=lambda wc: seed_for("train_baseline", wc.model),
         activation=config["fit"]["activation"],
     log:

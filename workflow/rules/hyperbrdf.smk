@@ -49,7 +49,7 @@ rule train_hyperbrdf:
         model=out("hyperbrdf/{model}/model.pt"),
         history=out("hyperbrdf/{model}/history.tsv"),
     params:
-        cfg={k: HB[k] for k in ("model", "train", "train_bins")},
+        cfg=settings("hyperbrdf", ["model", "train", "train_bins"]),
         seed=seed_for("train_hyperbrdf"),  # the same init for both training sets
         checkpoint=out("hyperbrdf/{model}/checkpoint.pt"),
     wildcard_constraints:
