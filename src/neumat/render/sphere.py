@@ -72,7 +72,8 @@ class SphereView:
       bins   (N,) int64 - flat MERL bin index of each row (nearest bin)
     """
 
-    def __init__(self, resolution: int, device: str | torch.device = "cpu"):
+    def __init__(self, resolution: int, device: str | torch.device = "cpu",
+                 light: tuple[float, float, float] | None = None):
         if resolution < 2:
             raise ValueError(f"sphere resolution must be >= 2, got {resolution}")
         self.resolution, self.device = resolution, torch.device(device)
@@ -88,13 +89,17 @@ class SphereView:
         t /= np.linalg.norm(t, axis=-1, keepdims=True)
         frame = np.stack([t, np.cross(n, t), n], 1)  # (P, 3, 3): rows = local axes
 
-        to_light = LIGHT_POS - n
+        # other light positions (image-encoder training) keep the metric view's irradiance
+        # convention: pi at the sphere point nearest the light
+        light_pos = LIGHT_POS if light is None else np.asarray(light, dtype=np.float64)
+        intensity = float(np.pi * (np.linalg.norm(light_pos) - 1.0) ** 2)
+        to_light = light_pos - n
         dist2 = np.sum(to_light ** 2, -1)
         wi = np.einsum("pij,pj->pi", frame, to_light / np.sqrt(dist2)[:, None])
         wo = frame[:, :, 2].copy()  # the camera direction (world +z) in the local frame
         lit = wi[:, 2] > 0
         pixels = np.flatnonzero(mask.ravel())
-        weight = (LIGHT_INTENSITY / dist2 * wi[:, 2])[lit]
+        weight = (intensity / dist2 * wi[:, 2])[lit]
 
         theta_o, awi, awo, aw = albedo_quadrature()
         wi = np.concatenate([wi[lit], awi])
@@ -133,9 +138,10 @@ class SphereView:
 
 
 @functools.lru_cache(maxsize=8)
-def sphere_view(resolution: int, device: str = "cpu") -> SphereView:
-    """Cached `SphereView` (the geometry is the same for every call)."""
-    return SphereView(resolution, device)
+def sphere_view(resolution: int, device: str = "cpu", light: tuple | None = None) -> SphereView:
+    """Cached `SphereView` (the geometry is the same for every call); `light` (x, y, z) moves
+    the point light (None: the metric view's LIGHT_POS)."""
+    return SphereView(resolution, device, light)
 
 
 def _chunks(n: int, size: int):
@@ -155,13 +161,14 @@ def render_fn(fn, B: int, resolution: int = 128, device: str = "cpu") -> torch.T
 
 
 def render_fields(weights, resolution: int = 128, activation: str = "relu",
-                  device: str = "cpu", chunk: int | None = None) -> torch.Tensor:
+                  device: str = "cpu", chunk: int | None = None,
+                  light: tuple | None = None) -> torch.Tensor:
     """Neural fields (B, 675) -> linear HDR renders (B, H, W, 3) float32 (CPU tensor)."""
     w = torch.as_tensor(np.asarray(weights) if not torch.is_tensor(weights) else weights,
                         dtype=torch.float32)
     if w.dim() != 2 or w.shape[1] != nbrdf.N_PARAMS:
         raise ValueError(f"weights must have shape (B, {nbrdf.N_PARAMS}), got {tuple(w.shape)}")
-    view = sphere_view(resolution, str(device))
+    view = sphere_view(resolution, str(device), None if light is None else tuple(light))
     chunk = chunk or max(1, _CHUNK_FLOATS // (len(view) * 21))
     out = torch.empty(len(w), resolution, resolution, 3)
     with torch.no_grad():
