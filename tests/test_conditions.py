@@ -149,3 +149,20 @@ def test_toy_text_and_image_conditioning_hit_the_mode(tmp_path):
         x = sample(s, 40, seed=1, conditions={name: dirs[want]}, guidance={name: 2.0}, steps=20)
         hit = (np.linalg.norm(x[:, None] - centres[None], axis=-1).argmin(1) == want).mean()
         assert hit >= 0.9, (name, hit)
+
+
+def test_colour_words_and_chromaticity():
+    from neumat.conditions import evaluate as ev
+    assert ev.colour_of("a Red plastic") == "red" and ev.colour_of("highly specular material") == ""
+    assert ev.colour_of("dark blue paint") == "blue"  # 'dark' has no fixed chromaticity
+    assert ev.colour_matches(np.array([0.8, 0.1, 0.1]), "red")
+    assert not ev.colour_matches(np.array([0.8, 0.1, 0.1]), "green")
+    assert ev.colour_matches(np.array([0.1, 0.6, 0.15]), "green")
+    assert ev.colour_matches(np.array([0.1, 0.2, 0.7]), "blue")
+    assert ev.colour_matches(np.array([0.5, 0.5, 0.5]), "white")
+    assert not ev.colour_matches(np.array([0.5, 0.5, 0.5]), "red")  # grey is no colour
+    # mean colour over the sphere of a red diffuse render
+    from neumat.render import sphere
+    alb = torch.tensor([0.7, 0.1, 0.08])
+    img = sphere.render_fn(lambda wi, wo: (alb / np.pi).expand(1, len(wi), 3), 1, 16)
+    assert ev.colour_matches(ev.mean_colour(img)[0], "red")
