@@ -89,8 +89,10 @@ def cmd_encoder(a):
         dt = ((q[:, None] - e_tr[None, :, 0]) ** 2).sum(-1)
         if name == "train":
             np.fill_diagonal(dt, np.inf)
-        res[f"{name}_nearest_type_hit"] = float((types_tr[dt.argmin(1)] == man["type"].iloc[rows].to_numpy()).mean())
-        # nearest in BRDF space under the same look-up, for comparison
+        own = man["type"].iloc[rows].to_numpy()
+        ok = np.isin(own, types_tr)  # types some training material has
+        res[f"{name}_nearest_type_hit"] = float((types_tr[dt.argmin(1)] == own)[ok].mean())
+        res[f"{name}_materials_with_a_training_type"] = int(ok.sum())
     print(json.dumps(res, indent=1))
     json.dump(res, open(OUT / f"encoder_{cfg.objective}.json", "w"), indent=1)
 
@@ -118,12 +120,13 @@ def cmd_train(a):
 def summarise(name, want, colours, samples, ts, seed):
     near = ts.nearest(samples)
     hit = near["nearest_type"].to_numpy() == want
+    typed = ts.scorable(want)
     rgb = ev.mean_colour(sphere.render_fields(np.nan_to_num(samples), 64))
     cm = np.array([bool(c) and ev.colour_matches(x, c) for x, c in zip(rgb, colours)])
     has_c = np.array([bool(c) for c in colours])
-    typed = want != ""
     return {"set": name, "samples": len(samples),
             "type hits": float(hit[typed].mean()) if typed.any() else np.nan,
+            "samples with a training type": int(typed.sum()),
             "colour match": float(cm[has_c].mean()) if has_c.any() else np.nan,
             "coloured samples": int(has_c.sum()),
             "median BRDF-L1 to nearest training": float(near["brdf_l1"].median()),
@@ -139,29 +142,39 @@ def cmd_evaluate(a):
     txt, img = np.load(OUT / "text.npy"), np.load(OUT / f"image_{a.objective}.npy")
     te = dataset.reference_rows(man)
     tests = man.iloc[te].drop_duplicates("description")
+    # descriptions whose type some training material has first: only they can score a hit
+    tests = tests.iloc[np.argsort(~ts.scorable(tests["type"]), kind="stable")]
+    ns = int(ts.scorable(tests["type"]).sum())
     prompts = list(tests["description"]) + UNSEEN
     ptypes = np.array(list(tests["type"]) + [""] * len(UNSEEN))
     pcols = [ev.colour_of(q) for q in prompts]
     k, g = a.per, a.guidance
     rep = lambda x: np.repeat(np.asarray(x), k, 0)  # noqa: E731
     nt = len(tests)
+    print(f"{len(prompts)} prompts; {nt} test descriptions, {ns} with a type in training: "
+          f"{list(tests['description'][:ns])}")
     rows, t0 = [], time.perf_counter()
     ptxt = text.embed(prompts)
     s_text = sample(sampler, len(prompts) * k, a.seed, {"text": rep(ptxt)}, {"text": g}, smp["steps"])
     rows.append(summarise("text (all prompts)", rep(ptypes), rep(pcols), s_text, ts, a.seed))
-    rows.append(summarise("text (test descriptions)", rep(ptypes[:nt]), rep(pcols[:nt]), s_text[:nt * k], ts, a.seed))
+    rows.append(summarise("text (test descriptions, type in training)", rep(ptypes[:ns]),
+                          rep(pcols[:ns]), s_text[:ns * k], ts, a.seed))
     rows.append(summarise("text (unseen prompts)", rep(ptypes[nt:]), rep(pcols[nt:]), s_text[nt * k:], ts, a.seed))
-    s_type = sample(sampler, nt * k, a.seed + 1, {"type": list(rep(ptypes[:nt]))}, {"type": g}, smp["steps"])
-    rows.append(summarise("type (test descriptions' types)", rep(ptypes[:nt]), rep(pcols[:nt]), s_type, ts, a.seed))
+    s_type = sample(sampler, ns * k, a.seed + 1, {"type": list(rep(ptypes[:ns]))}, {"type": g}, smp["steps"])
+    rows.append(summarise("type (same descriptions' types)", rep(ptypes[:ns]), rep(pcols[:ns]), s_type, ts, a.seed))
     s_unc = sample(sampler, len(prompts) * k, a.seed + 2, {}, {}, smp["steps"])
-    rows.append(summarise("unconditional vs test descriptions", rep(ptypes[:nt]), rep(pcols[:nt]), s_unc[:nt * k], ts, a.seed))
+    rows.append(summarise("unconditional vs the same descriptions", rep(ptypes[:ns]), rep(pcols[:ns]),
+                          s_unc[:ns * k], ts, a.seed))
     rows.append(summarise("unconditional vs all prompts", rep(ptypes), rep(pcols), s_unc, ts, a.seed))
     # image: every test-split field (5 sources x 6 permutations) in the metric view
     s_img = sample(sampler, len(te) * k, a.seed + 3, {"image": rep(img[te, 0])}, {"image": g}, smp["steps"])
     rows.append(summarise("image (test split)", rep(man["type"].iloc[te]), [""] * len(te) * k, s_img, ts, a.seed))
     ref_near = ts.nearest(weights[te])
+    own = man["type"].iloc[te].to_numpy()
+    ok = ts.scorable(own)
     rows.append({"set": "reference: real test split", "samples": len(te),
-                 "type hits": float((ref_near["nearest_type"].to_numpy() == man["type"].iloc[te].to_numpy()).mean()),
+                 "type hits": float((ref_near["nearest_type"].to_numpy() == own)[ok].mean()),
+                 "samples with a training type": int(ok.sum()),
                  "median BRDF-L1 to nearest training": float(ref_near["brdf_l1"].median()),
                  "share clamping negatives": float(ev.negative_share(weights[te], 20000, a.seed, "relu").mean())})
     rows.append({"set": "reference: training fits", "samples": len(ts.rows),
@@ -188,15 +201,19 @@ def cmd_evaluate(a):
     res.to_csv(OUT / f"image_{a.objective}.tsv", sep="\t", index=False)
 
     # guidance sweep
+    k = a.sweep_per
     sweep = []
-    for name, cond, want in (("type", {"type": list(rep(ptypes[:nt]))}, rep(ptypes[:nt])),
-                             ("text", {"text": rep(ptxt[:nt])}, rep(ptypes[:nt])),
-                             ("image", {"image": rep(img[te, 0])}, rep(man["type"].iloc[te]))):
+    te_ok = te[ts.scorable(man["type"].iloc[te])]
+    for name, cond, want in (("type", {"type": list(rep(ptypes[:ns]))}, rep(ptypes[:ns])),
+                             ("text", {"text": rep(ptxt[:ns])}, rep(ptypes[:ns])),
+                             ("image", {"image": rep(img[te_ok, 0])}, rep(man["type"].iloc[te_ok]))):
         for sc in a.scales:
             w = sample(sampler, len(want), a.seed + 4, cond, {name: sc}, smp["steps"])
             near = ts.nearest(w)
+            ok = ts.scorable(want)
             sweep.append({"modality": name, "scale": sc, "samples": len(w),
-                          "type hits": float((near["nearest_type"].to_numpy() == want).mean()),
+                          "samples with a training type": int(ok.sum()),
+                          "type hits": float((near["nearest_type"].to_numpy() == want)[ok].mean()),
                           "median BRDF-L1": float(near["brdf_l1"].median()),
                           "share clamping negatives": float(ev.negative_share(w, 20000, a.seed, "relu").mean())})
     sweep = pd.DataFrame(sweep)
@@ -214,6 +231,7 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=7000)
     ap.add_argument("--per", type=int, default=8, help="samples per condition")
     ap.add_argument("--guidance", type=float, default=2.0)
+    ap.add_argument("--sweep-per", type=int, default=2, help="samples per condition in the sweep")
     ap.add_argument("--scales", type=float, nargs="+", default=[0.0, 1.0, 2.0, 4.0])
     a = ap.parse_args()
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "1")))

@@ -20,10 +20,10 @@ def set_name(path):
 
 
 def summarise(df, name):
-    typed, coloured = df[df["type"] != ""], df[df["colour"] != ""]
+    typed, coloured = df[df["scorable"]], df[df["colour"] != ""]
     return {"set": name, "samples": len(df),
             "type hits": typed["type_hit"].mean() if len(typed) else np.nan,
-            "typed samples": len(typed),
+            "samples with a training type": len(typed),
             "colour match": coloured["colour_match"].mean() if len(coloured) else np.nan,
             "coloured samples": len(coloured),
             "median BRDF-L1 to nearest training": df["brdf_l1"].median(),
@@ -46,7 +46,8 @@ with script_logging(snakemake) as log:
         df = pd.concat([t[["sample", "condition", "kind", "prompt", "source", "type", "colour"]],
                         ts.nearest(w)], axis=1)
         df.insert(0, "set", name)
-        df["type_hit"] = (df["type"] == df["nearest_type"]) & (df["type"] != "")
+        df["scorable"] = ts.scorable(df["type"])
+        df["type_hit"] = (df["type"] == df["nearest_type"]) & df["scorable"]
         rgb = ev.mean_colour(sphere.render_fields(np.nan_to_num(w), p.resolution, p.activation))
         df["colour_match"] = [bool(c) and ev.colour_matches(x, c) for x, c in zip(rgb, df["colour"])]
         df["negative"] = neg(w)
@@ -63,9 +64,10 @@ with script_logging(snakemake) as log:
     test = dataset.reference_rows(man)
     near = ts.nearest(weights[test])
     own = man["type"].iloc[test].to_numpy()
+    ok = ts.scorable(own)
     rows.append({"set": "reference: real test-split materials", "samples": len(test),
-                 "type hits": (near["nearest_type"].to_numpy() == own)[own != ""].mean(),
-                 "typed samples": int((own != "").sum()),
+                 "type hits": (near["nearest_type"].to_numpy() == own)[ok].mean() if ok.any() else np.nan,
+                 "samples with a training type": int(ok.sum()),
                  "median BRDF-L1 to nearest training": near["brdf_l1"].median(),
                  "share clamping negatives": neg(weights[test]).mean()})
     rows.append({"set": "reference: training fits", "samples": len(ts.rows),

@@ -69,7 +69,8 @@ with script_logging(snakemake) as log:
         report.md_table(cost),
         "### Type hits, colour, distance, negative clamping",
         "Type hit: the nearest typed training material (BRDF-L1) has the prompt's (or "
-        "conditioning material's) type. Colour match: the render's mean chromaticity matches "
+        "conditioning material's) type, counted over samples whose asked type some training "
+        "material has (a test-split source may have a type found nowhere in training). Colour match: the render's mean chromaticity matches "
         "the prompt's colour word (hue within 40 degrees, saturation >= 0.15; achromatic words: "
         "saturation below). `mm_type` and `mm_uncond` are type-conditioned and unconditional "
         "samples of the same model for the test descriptions' types (chance level). Goal: type "

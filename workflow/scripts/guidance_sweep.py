@@ -19,10 +19,11 @@ with script_logging(snakemake) as log:
     man = dataset.read_manifest(inp.manifest, len(weights))
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
     prompts = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
-    test_prompts = prompts["kind"].to_numpy() == "test"
+    # conditions whose type some training material has: the others cannot score a hit
+    test_prompts = (prompts["kind"].to_numpy() == "test") & ts.scorable(prompts["type"])
     text_emb = np.load(inp.prompt_embeddings)[test_prompts]
     test = dataset.reference_rows(man)
-    test = test[man["type"].iloc[test].to_numpy() != ""]
+    test = test[ts.scorable(man["type"].iloc[test])]
     k = p.per_prompt
     modalities = {
         "type": ({"type": list(np.repeat(prompts["type"][test_prompts].to_numpy(), k))},
@@ -41,8 +42,11 @@ with script_logging(snakemake) as log:
             w = sample(sampler, len(want), p.seed, cond, {name: scale}, s["steps"], s["eta"],
                        s["batch_size"], s["clip"])
             near = ts.nearest(w)
+            ok = ts.scorable(want)  # asked types that some training material has
+            hits = near["nearest_type"].to_numpy()[ok] == want[ok]
             rows.append({"modality": name, "scale": scale, "samples": len(w),
-                         "type hits": float((near["nearest_type"].to_numpy() == want).mean()),
+                         "samples with a training type": int(ok.sum()),
+                         "type hits": float(hits.mean()) if ok.any() else float("nan"),
                          "median BRDF-L1 to nearest training": float(near["brdf_l1"].median()),
                          "share clamping negatives": float(
                              ev.negative_share(w, p.angles, p.seed + 1, p.activation).mean()),

@@ -43,7 +43,7 @@ with script_logging(snakemake) as log:
         tt = man["type"].iloc[train].to_numpy()
         own = man["type"].iloc[idx].to_numpy()
         dt[:, tt == ""] = np.inf
-        typed = own != ""
+        typed = np.isin(own, tt[tt != ""])  # types some training material has
         hit = float((tt[dt.argmin(1)] == own)[typed].mean()) if typed.any() else float("nan")
         rows.append({"split": name, "materials": len(q), "objective": cfg.objective,
                      "identification_across_lights": ident, "nearest_typed_type_hit": hit,

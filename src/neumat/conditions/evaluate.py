@@ -63,6 +63,12 @@ class TrainingSet:
         self.values = self.fv(weights[self.rows])
         self.typed_values = self.values[np.searchsorted(self.rows, self.typed)]
 
+    def scorable(self, types) -> np.ndarray:
+        """Which asked types can score a hit: non-empty and present among the typed training
+        materials (a test-split source may have a type no training material has)."""
+        have = set(self.types)
+        return np.array([t != "" and t in have for t in types], dtype=bool)
+
     def fv(self, w):
         return distances.field_values(np.nan_to_num(w), self.bins, self.activation)
 
