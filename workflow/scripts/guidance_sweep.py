@@ -19,11 +19,17 @@ with script_logging(snakemake) as log:
     man = dataset.read_manifest(inp.manifest, len(weights))
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
     prompts = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
-    # conditions whose type some training material has: the others cannot score a hit
-    test_prompts = (prompts["kind"].to_numpy() == "test") & ts.scorable(prompts["type"])
+    # conditions whose type some training material has (the others cannot score a hit); when
+    # there are none (e.g. the tiny config), all test conditions, and the hits are n/a
+    test_prompts = prompts["kind"].to_numpy() == "test"
+    if (test_prompts & ts.scorable(prompts["type"])).any():
+        test_prompts &= ts.scorable(prompts["type"])
+    else:
+        log.warning("no test prompt has a type found in training: type hits unavailable")
     text_emb = np.load(inp.prompt_embeddings)[test_prompts]
     test = dataset.reference_rows(man)
-    test = test[ts.scorable(man["type"].iloc[test])]
+    ok = ts.scorable(man["type"].iloc[test])
+    test = test[ok] if ok.any() else test
     k = p.per_prompt
     modalities = {
         "type": ({"type": list(np.repeat(prompts["type"][test_prompts].to_numpy(), k))},
