@@ -54,7 +54,7 @@ with script_logging(snakemake) as log:
             padded.append(imgs[k] if j < len(x) else np.zeros_like(imgs[0]))
             plabels.append(labels[k] if j < len(x) else "")
             k += j < len(x)
-    gallery(padded, plabels, out.text, ncols=ncols,
+    gallery(padded, plabels, out.text, ncols=ncols, min_cell=120,
             title="text-conditioned samples (row label: prompt)")
 
     t = pd.read_csv(inp.image_table, sep="\t", keep_default_na=False)
@@ -66,12 +66,12 @@ with script_logging(snakemake) as log:
     for c, x in zip(conds, pick):
         ref = Image.fromarray(sphere.tonemap(cond[c])).resize((res, res), Image.NEAREST)
         grid.append(np.asarray(ref))
-        glabels.append(f"condition: {t.loc[x[0], 'source']}")
+        glabels.append(f"image: {t.loc[x[0], 'source']}")
         for j in range(per_row):
             grid.append(imgs[k] if j < len(x) else np.zeros_like(imgs[0]))
             glabels.append("sample" if j < len(x) else "")
             k += j < len(x)
-    gallery(grid, glabels, out.image, ncols=per_row + 1,
+    gallery(grid, glabels, out.image, ncols=per_row + 1, min_cell=120,
             title="image-conditioned samples (first column: conditioning image, metric view)")
     info = {"variant": variant, "seconds": round(time.time() - t0, 1),
             "resolution": p.cfg["resolution"], "spp": p.cfg["spp"]}
