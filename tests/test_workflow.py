@@ -113,6 +113,27 @@ def test_tiny_constrained_synthesis_and_cli(tiny_run, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.slow
+def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
+    res = tiny_run / "results/tiny"
+    assert "Multi-modal conditioning" in (res / "report/index.md").read_text()
+    man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
+    assert np.load(res / "conditions/text.npy").shape == (len(man), 384)
+    prompts = pd.read_csv(res / "conditions/prompts.tsv", sep="\t", keep_default_na=False)
+    assert {"test", "unseen"} == set(prompts["kind"]) and "red plastic" in set(prompts["prompt"])
+    for s, n in (("text", 2 * len(prompts)), ("image", 2 * 3)):  # 2 test renders + 1 user PNG
+        w = np.load(res / f"samples/{s}/weights.npy")
+        assert w.shape == (n, 675) and np.isfinite(w).all(), s
+    t = pd.read_csv(res / "samples/image/samples.tsv", sep="\t", keep_default_na=False)
+    assert "config/tiny_reference.png" in set(t["source"])
+    summary = pd.read_csv(res / "conditions/eval_summary.tsv", sep="\t")
+    assert {"text", "image", "mm_type", "mm_uncond"} <= set(summary["set"])
+    sweep = pd.read_csv(res / "conditions/guidance_sweep.tsv", sep="\t")
+    assert set(sweep["modality"]) == {"type", "text", "image"}
+    for f in ("conditions_text.png", "conditions_image.png", "conditions_guidance.png"):
+        assert (res / "report/figures" / f).stat().st_size > 1000
+
+
 def test_rerun_is_a_no_op(tiny_run):
     res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr

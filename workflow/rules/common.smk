@@ -163,6 +163,7 @@ REPORT_SECTIONS = [
     out("report/sections/20_neumerl.md"),  # fit.smk: neumerl_section
     out("report/sections/30_rendering.md"),  # render.smk: render_section
     out("report/sections/40_diffusion.md"),  # diffusion.smk: diffusion_section
+    out("report/sections/42_conditions.md"),  # conditions.smk: conditions_section
     out("report/sections/45_constrained.md"),  # constrained.smk: constrained_section
     out("report/sections/50_table2.md"),  # metrics.smk: metrics_table
     out("report/sections/55_hyperbrdf.md"),  # hyperbrdf.smk: hyperbrdf_table

@@ -8,7 +8,8 @@ to that tensor's size and the pieces are concatenated to the 675-vector again.
 Conditions plug in as modules that turn a batch of condition values into one (B, d) token and
 own a learned "null" token for classifier-free guidance:
   - `ClassCondition`: integer labels (material type; -1 = no label),
-  - `VectorCondition`: fixed-size embeddings (text / image encoders later; NaN rows = no value).
+  - `VectorCondition`: fixed-size embeddings (text: `neumat.conditions.text`, image:
+    `neumat.conditions.image`; NaN rows = no value).
 The denoiser takes `cond: dict[name, tensor]`; a missing name means null for the whole batch.
 """
 

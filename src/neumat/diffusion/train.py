@@ -63,9 +63,11 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, step: int, decay: f
         e.copy_(b)
 
 
-def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs) -> str:
+def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | None = None) -> str:
     h = hashlib.sha256(np.ascontiguousarray(weights, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
+    for k in sorted(vectors or {}):
+        h.update(k.encode() + np.ascontiguousarray(vectors[k], dtype=np.float32).tobytes())
     h.update(json.dumps([asdict(c) for c in cfgs], sort_keys=True).encode())
     return h.hexdigest()
 
@@ -79,9 +81,14 @@ def atomic_save(obj, path: Path) -> None:
 def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
           model_cfg: DenoiserConfig, sched_cfg: ScheduleConfig, cfg: TrainConfig,
           out_path: str | os.PathLike, checkpoint_path: str | os.PathLike, seed: int,
-          device: str = "auto", on_step=None) -> dict:
+          device: str = "auto", on_step=None, vectors: dict | None = None) -> dict:
     """Train on weight vectors (N, 675) with type labels (N,) (-1 = untyped) and write the
     final model (EMA weights, normaliser, configs, loss log) to `out_path`. Returns that dict.
+
+    `vectors` name -> (N, D) or (N, K, D) embeddings feed the model's vector conditions (text,
+    image; NaN rows = no value); with K alternatives per material (e.g. K renders) one is drawn
+    per example. Every condition is dropped independently with probability `cond_drop`, so
+    classifier-free guidance works for each one and for any subset.
 
     `on_step(step, loss)` is called after every optimiser step (tests use it to simulate a kill)."""
     weights = np.asarray(weights, dtype=np.float32)
@@ -94,9 +101,10 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         raise ValueError("training weights contain NaN or inf")
     if model_cfg.n_classes != len(class_names):
         raise ValueError(f"{len(class_names)} class names for n_classes={model_cfg.n_classes}")
+    vectors = check_vectors(vectors, model_cfg, len(weights))
     dev = resolve_device(device)
     ckpt_path, out_path = Path(checkpoint_path), Path(out_path)
-    fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg)
+    fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg, vectors=vectors)
 
     torch.manual_seed(seed)  # model initialisation (and dropout, if enabled)
     norm = Normalizer.fit(torch.from_numpy(weights)).to(dev)
@@ -122,6 +130,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
 
     x_all = norm.encode(torch.from_numpy(weights).to(dev))
     y_all = torch.from_numpy(labels).to(dev)
+    v_all = {k: torch.from_numpy(v).to(dev) for k, v in vectors.items()}
 
     def checkpoint():
         atomic_save({"fingerprint": fp, "model": model.state_dict(), "ema": ema.state_dict(),
@@ -136,8 +145,16 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
             g["lr"] = lr_at(step, cfg)
         idx = torch.randint(0, len(x_all), (cfg.batch_size,), generator=gen).to(dev)
         drop = (torch.rand(cfg.batch_size, generator=gen) < cfg.cond_drop).to(dev)
-        cond = {"type": y_all[idx]} if model_cfg.n_classes else None
-        loss = diffusion.loss(model, x_all[idx], cond, {"type": drop} if cond else None, gen)
+        cond = {"type": y_all[idx]} if model_cfg.n_classes else {}
+        drops = {"type": drop} if cond else {}
+        for k, v in v_all.items():  # drawn only with vector conditions: type-only runs unchanged
+            drops[k] = (torch.rand(cfg.batch_size, generator=gen) < cfg.cond_drop).to(dev)
+            if v.dim() == 3:
+                view = torch.randint(0, v.shape[1], (cfg.batch_size,), generator=gen).to(dev)
+                cond[k] = v[idx, view]
+            else:
+                cond[k] = v[idx]
+        loss = diffusion.loss(model, x_all[idx], cond or None, drops or None, gen)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip:
@@ -165,6 +182,19 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
               "seed": seed, "fingerprint": fp}
     atomic_save(result, out_path)
     return result
+
+
+def check_vectors(vectors: dict | None, model_cfg: DenoiserConfig, n: int) -> dict:
+    """Vector-condition arrays as float32, checked against the model's conditions."""
+    vectors = {k: np.asarray(v, dtype=np.float32) for k, v in (vectors or {}).items()}
+    if set(vectors) != set(model_cfg.vector_conditions):
+        raise ValueError(f"vector conditions {sorted(vectors)} given for a model with "
+                         f"{sorted(model_cfg.vector_conditions)}")
+    for k, v in vectors.items():
+        if v.ndim not in (2, 3) or len(v) != n or v.shape[-1] != model_cfg.vector_conditions[k]:
+            raise ValueError(f"condition {k!r}: expected ({n}, [K,] "
+                             f"{model_cfg.vector_conditions[k]}) embeddings, got {v.shape}")
+    return vectors
 
 
 class Sampler:

@@ -163,13 +163,14 @@ def render_fn(fn, B: int, resolution: int = 128, device: str = "cpu") -> torch.T
 
 
 def render_fields(weights, resolution: int = 128, activation: str = "relu",
-                  device: str = "cpu", chunk: int | None = None) -> torch.Tensor:
+                  device: str = "cpu", chunk: int | None = None,
+                  light: tuple | None = None) -> torch.Tensor:
     """Neural fields (B, 675) -> linear HDR renders (B, H, W, 3) float32 (CPU tensor)."""
     w = torch.as_tensor(np.asarray(weights) if not torch.is_tensor(weights) else weights,
                         dtype=torch.float32)
     if w.dim() != 2 or w.shape[1] != nbrdf.N_PARAMS:
         raise ValueError(f"weights must have shape (B, {nbrdf.N_PARAMS}), got {tuple(w.shape)}")
-    view = sphere_view(resolution, str(device))
+    view = sphere_view(resolution, str(device), None if light is None else tuple(light))
     chunk = chunk or max(1, _CHUNK_FLOATS // (len(view) * 21))
     out = torch.empty(len(w), resolution, resolution, 3)
     with torch.no_grad():

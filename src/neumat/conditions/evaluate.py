@@ -1,0 +1,99 @@
+"""Measures of conditioned samples (M3ashy §4.4): type hits against the nearest typed training
+material, colour-word chromaticity, image agreement in the conditioning view, the distance to
+the nearest training material and the share of samples whose output clamps negative values.
+
+Colour match: a render's mean linear RGB over the sphere -> hue angle (HSV) and saturation; a
+chromatic colour word matches when the hue lies within `HUE_TOLERANCE` degrees of the word's
+hue and the saturation is at least `MIN_SATURATION`; achromatic words (white, black, gray,
+silver) match when the saturation is below it. Words with no fixed chromaticity (dark, light,
+beige, maroon...) are not scored.
+"""
+
+from __future__ import annotations
+
+import colorsys
+
+import numpy as np
+import pandas as pd
+import torch
+
+from neumat.diffusion import dataset
+from neumat.diffusion.plausibility import plausibility
+from neumat.metrics import distances
+from neumat.render import sphere
+
+HUES = {"red": 0.0, "orange": 30.0, "gold": 45.0, "yellow": 55.0, "green": 120.0,
+        "blue": 225.0, "violet": 275.0, "purple": 285.0, "pink": 330.0}
+ACHROMATIC = {"white", "black", "gray", "silver"}
+HUE_TOLERANCE = 40.0
+MIN_SATURATION = 0.15
+
+
+def colour_of(prompt: str) -> str:
+    """The first scorable colour word of a prompt, or ''."""
+    for w in prompt.lower().replace(",", " ").split():
+        if w in HUES or w in ACHROMATIC:
+            return w
+    return ""
+
+
+def mean_colour(renders: torch.Tensor) -> np.ndarray:
+    """(B, H, W, 3) linear renders -> (B, 3) mean RGB over the sphere's pixels."""
+    mask = sphere.sphere_view(renders.shape[1]).mask.cpu()
+    return renders[:, mask].mean(1).numpy()
+
+
+def colour_matches(rgb: np.ndarray, colour: str) -> bool:
+    r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
+    h, s, _ = colorsys.rgb_to_hsv(r, g, b)
+    if colour in ACHROMATIC:
+        return s < MIN_SATURATION
+    d = abs((h * 360.0 - HUES[colour] + 180.0) % 360.0 - 180.0)
+    return s >= MIN_SATURATION and d <= HUE_TOLERANCE
+
+
+class TrainingSet:
+    """BRDF values of the training materials at a fixed bin sample, for nearest look-ups."""
+
+    def __init__(self, weights: np.ndarray, man: pd.DataFrame, bins: np.ndarray, activation: str):
+        self.rows = dataset.training_rows(man, "ours")
+        self.typed = self.rows[man["type"].iloc[self.rows].to_numpy() != ""]
+        self.types = man["type"].iloc[self.typed].to_numpy()
+        self.bins, self.activation = bins, activation
+        self.values = self.fv(weights[self.rows])
+        self.typed_values = self.values[np.searchsorted(self.rows, self.typed)]
+
+    def scorable(self, types) -> np.ndarray:
+        """Which asked types can score a hit: non-empty and present among the typed training
+        materials (a test-split source may have a type no training material has)."""
+        have = set(self.types)
+        return np.array([t != "" and t in have for t in types], dtype=bool)
+
+    def fv(self, w):
+        return distances.field_values(np.nan_to_num(w), self.bins, self.activation)
+
+    def nearest(self, samples: np.ndarray) -> pd.DataFrame:
+        """Per sample: BRDF-L1 to the nearest training material and the nearest typed one's type."""
+        f = self.fv(samples)
+        _, dist = dataset.nearest(f, self.values)
+        tidx, _ = dataset.nearest(f, self.typed_values)
+        return pd.DataFrame({"brdf_l1": dist, "nearest_type": self.types[tidx]})
+
+
+def negative_share(samples: np.ndarray, angles: int, seed: int, activation: str) -> np.ndarray:
+    """Per sample: does the field produce any negative value (clamped to 0) on `angles` bins."""
+    df = plausibility(samples, n_angles=angles, seed=seed, activation=activation,
+                      albedo_kw={"n_theta_o": 1, "n_theta_h": 2, "n_phi_h": 2})
+    return (df["negative_share"] > 0).to_numpy()
+
+
+def image_scores(samples: np.ndarray, targets: torch.Tensor, resolution: int,
+                 activation: str) -> pd.DataFrame:
+    """PSNR / SSIM (sRGB, data range 1, as Table 2) of each sample's metric-view render against
+    its conditioning image (targets (B, H, W, 3) linear HDR in the same view)."""
+    a = sphere.to_srgb(sphere.render_fields(np.nan_to_num(samples), resolution, activation))
+    b = sphere.to_srgb(targets)
+    mse = ((a - b) ** 2).flatten(1).mean(1).double().clamp_min(distances.PSNR_FLOOR_MSE)
+    ssim = torch.stack([distances.pairwise_ssim(a[i:i + 1], b[i:i + 1])[0, 0] for i in range(len(a))]) \
+        if len(a) else torch.zeros(0)
+    return pd.DataFrame({"psnr": (-10 * torch.log10(mse)).numpy(), "ssim": ssim.numpy()})

@@ -1,0 +1,267 @@
+"""Image condition: a small ResNet (He et al. 2016, CIFAR-style) that maps a sphere render to
+an embedding, trained here on renders of the AugMERL training materials.
+
+torchvision has no CPU build in this environment, so the network is written out (BasicBlocks,
+three stages). The paper used CLIP's image tower (CLIP-PAE), whose weights are not obtainable
+offline (DESIGN.md §5).
+
+Training data (`training_views`): each material is rendered by `neumat.render.sphere` under
+several point-light positions (the metric light plus `n_lights - 1` others; for a sphere seen
+orthographically, moving the light is the same as moving the camera up to an image rotation),
+and each training crop gets a random 90-degree rotation / flip, a random crop and an exposure
+jitter, so the encoder has to recognise the material and not the light, framing or brightness.
+
+Objectives (`ImageEncoderConfig.objective`):
+  * "weights": regress the standardised NeuMERL weight vector (675-d) from the image; the
+    embedding is the penultimate layer. Cheap, needs no text, and ties the embedding directly
+    to what the diffusion model generates.
+  * "text": CLIP-style symmetric InfoNCE between the projected image embedding and the
+    material's description embedding (all-MiniLM-L6-v2), temperature 0.07.
+The embedding (`embed_dim`) is what the diffusion model sees.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from neumat.render import sphere
+
+log = logging.getLogger(__name__)
+OBJECTIVES = ("weights", "text")
+
+
+@dataclass
+class ImageEncoderConfig:
+    resolution: int = 32  # render size; crops are `crop` pixels
+    crop: int = 28
+    width: int = 16  # channels of the first stage (doubled per stage)
+    blocks: int = 1  # BasicBlocks per stage
+    embed_dim: int = 64
+    n_lights: int = 6
+    objective: str = "weights"
+    exposure_jitter: float = 0.5  # stops, uniform in [-x, x]
+    steps: int = 2000
+    batch_size: int = 64
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+
+    def to_dict(self):
+        return asdict(self)
+
+
+def light_positions(n: int) -> list[tuple[float, float, float]]:
+    """The metric light first, then n - 1 lights spread in azimuth around the view axis at
+    elevations 30..60 degrees from it, all at the metric light's distance."""
+    d = float(np.linalg.norm(sphere.LIGHT_POS))
+    out = [tuple(float(v) for v in sphere.LIGHT_POS)]
+    for k in range(1, n):
+        phi = 2 * math.pi * k / max(n - 1, 1) + 0.3
+        theta = math.radians(30 + 30 * (k % 2))
+        out.append((d * math.sin(theta) * math.cos(phi), d * math.sin(theta) * math.sin(phi),
+                    d * math.cos(theta)))
+    return out
+
+
+def render_views(weights, resolution: int, n_lights: int, activation: str = "relu") -> torch.Tensor:
+    """(N, 675) fields -> (N, n_lights, H, W, 3) linear HDR renders; view 0 is the metric view."""
+    return torch.stack([sphere.render_fields(weights, resolution, activation, light=light)
+                        for light in light_positions(n_lights)], 1)
+
+
+def preprocess(img: torch.Tensor) -> torch.Tensor:
+    """Linear HDR (B, H, W, 3) -> network input (B, 3, H, W): log(1 + x), which compresses
+    specular highlights so diffuse colour still carries weight."""
+    return torch.log1p(img.clamp_min(0)).permute(0, 3, 1, 2).contiguous()
+
+
+def center_crop(x: torch.Tensor, size: int) -> torch.Tensor:
+    o0, o1 = (x.shape[-2] - size) // 2, (x.shape[-1] - size) // 2
+    return x[..., o0:o0 + size, o1:o1 + size]
+
+
+def augment(img: torch.Tensor, crop: int, jitter: float, gen: torch.Generator) -> torch.Tensor:
+    """Random exposure (2^U(-j, j)), random crop, random rotation by k * 90 degrees and flip;
+    (B, H, W, 3) linear HDR -> (B, 3, crop, crop) network input."""
+    b, h, w, _ = img.shape
+    scale = 2.0 ** ((torch.rand(b, generator=gen) * 2 - 1) * jitter)
+    x = preprocess(img * scale[:, None, None, None])
+    oy = torch.randint(0, h - crop + 1, (b,), generator=gen)
+    ox = torch.randint(0, w - crop + 1, (b,), generator=gen)
+    rot = torch.randint(0, 4, (b,), generator=gen)
+    flip = torch.rand(b, generator=gen) < 0.5
+    out = []
+    for i in range(b):
+        c = x[i, :, oy[i]:oy[i] + crop, ox[i]:ox[i] + crop]
+        c = torch.rot90(c, int(rot[i]), (1, 2))
+        out.append(torch.flip(c, (2,)) if flip[i] else c)
+    return torch.stack(out)
+
+
+class BasicBlock(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.c1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
+        self.n1 = nn.GroupNorm(min(8, cout), cout)  # batch-size independent (single images)
+        self.c2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
+        self.n2 = nn.GroupNorm(min(8, cout), cout)
+        self.skip = (nn.Identity() if stride == 1 and cin == cout else
+                     nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False),
+                                   nn.GroupNorm(min(8, cout), cout)))
+
+    def forward(self, x):
+        h = F.relu(self.n1(self.c1(x)))
+        return F.relu(self.n2(self.c2(h)) + self.skip(x))
+
+
+class ImageEncoder(nn.Module):
+    """ResNet: stem -> 3 stages (width, 2 width, 4 width; stride 1, 2, 2) -> global mean pool ->
+    embedding (embed_dim) -> head (675 standardised weights, or the 384-d text space)."""
+
+    def __init__(self, cfg: ImageEncoderConfig, head_dim: int):
+        super().__init__()
+        self.cfg = cfg
+        w = cfg.width
+        self.stem = nn.Sequential(nn.Conv2d(3, w, 3, 1, 1, bias=False), nn.GroupNorm(min(8, w), w),
+                                  nn.ReLU())
+        layers, cin = [], w
+        for i, cout in enumerate((w, 2 * w, 4 * w)):
+            for j in range(cfg.blocks):
+                layers.append(BasicBlock(cin, cout, 2 if (i > 0 and j == 0) else 1))
+                cin = cout
+        self.stages = nn.Sequential(*layers)
+        self.embed = nn.Linear(cin, cfg.embed_dim)
+        self.head = nn.Sequential(nn.SiLU(), nn.Linear(cfg.embed_dim, head_dim))
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """Network input (B, 3, h, w) -> embedding (B, embed_dim)."""
+        return self.embed(self.stages(self.stem(x)).mean((2, 3)))
+
+    def forward(self, x):
+        return self.head(self.features(x))
+
+
+def _targets(cfg, weights, text):
+    if cfg.objective == "weights":
+        w = torch.as_tensor(weights, dtype=torch.float32)
+        mean, std = w.mean(0), w.std(0).clamp_min(1e-6)
+        return (w - mean) / std
+    if cfg.objective == "text":
+        if text is None:
+            raise ValueError("image encoder objective 'text' needs the text embeddings")
+        return F.normalize(torch.as_tensor(text, dtype=torch.float32), dim=-1)
+    raise ValueError(f"conditions.image.objective: {cfg.objective!r} is not one of {OBJECTIVES}")
+
+
+def _loss(cfg, pred, target):
+    if cfg.objective == "weights":
+        return F.mse_loss(pred, target)
+    z = F.normalize(pred, dim=-1)
+    logits = z @ target.T / 0.07
+    # materials with the same description are positives of each other, not negatives
+    pos = (target @ target.T > 0.999).float()
+    pos = pos / pos.sum(1, keepdim=True)
+    return 0.5 * (torch.sum(-pos * F.log_softmax(logits, 1), 1).mean()
+                  + torch.sum(-pos * F.log_softmax(logits.T, 1), 1).mean())
+
+
+def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, seed: int,
+          text: np.ndarray | None = None) -> dict:
+    """Train on renders `views` (N, K, H, W, 3) of N materials with weights (N, 675) (and text
+    embeddings (N, 384) for objective 'text'). Returns a bundle (config, state, history)."""
+    if views.shape[2] != cfg.resolution:
+        raise ValueError(f"renders are {views.shape[2]} px, encoder resolution {cfg.resolution}")
+    if not cfg.crop <= cfg.resolution:
+        raise ValueError("conditions.image.crop must not exceed conditions.image.resolution")
+    target = _targets(cfg, weights, text)
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    model = ImageEncoder(cfg, target.shape[1])
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    n, k = views.shape[:2]
+    history, running, t0 = [], [], time.perf_counter()
+    for step in range(cfg.steps):
+        lr = cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps))  # cosine to 0
+        for g in opt.param_groups:
+            g["lr"] = lr
+        mi = torch.randint(0, n, (cfg.batch_size,), generator=gen)
+        vi = torch.randint(0, k, (cfg.batch_size,), generator=gen)
+        x = augment(views[mi, vi], cfg.crop, cfg.exposure_jitter, gen)
+        loss = _loss(cfg, model(x), target[mi])
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        running.append(loss.item())
+        if (step + 1) % max(1, cfg.steps // 20) == 0 or step + 1 == cfg.steps:
+            history.append((step + 1, float(np.mean(running))))
+            running = []
+            log.info("image encoder step %d/%d loss %.4f", step + 1, cfg.steps, history[-1][1])
+    return {"cfg": cfg.to_dict(), "head_dim": int(target.shape[1]),
+            "state": {k_: v.detach().clone() for k_, v in model.state_dict().items()},
+            "history": history, "train_seconds": time.perf_counter() - t0, "n_train": n,
+            "seed": seed}
+
+
+def load(bundle) -> ImageEncoder:
+    """An encoder from a `train` bundle or its file (weights_only: tensors and plain values)."""
+    if not isinstance(bundle, dict):
+        bundle = torch.load(bundle, map_location="cpu", weights_only=True)
+    model = ImageEncoder(ImageEncoderConfig(**bundle["cfg"]), bundle["head_dim"])
+    model.load_state_dict(bundle["state"])
+    return model.eval()
+
+
+@torch.no_grad()
+def embed(model: ImageEncoder, images, batch: int = 256) -> np.ndarray:
+    """Linear HDR renders (B, H, W, 3) at the encoder's resolution -> (B, embed_dim) float32;
+    deterministic (centre crop, no jitter)."""
+    img = torch.as_tensor(np.asarray(images), dtype=torch.float32)
+    r = model.cfg.resolution
+    if img.dim() != 4 or img.shape[1:] != (r, r, 3):
+        raise ValueError(f"images must be (B, {r}, {r}, 3) linear HDR, got {tuple(img.shape)}")
+    out = [model.features(center_crop(preprocess(img[s:s + batch]), model.cfg.crop))
+           for s in range(0, len(img), batch)]
+    return torch.cat(out).numpy().astype(np.float32) if out else np.zeros((0, model.cfg.embed_dim),
+                                                                          np.float32)
+
+
+def embed_fields(model: ImageEncoder, weights, activation: str = "relu") -> np.ndarray:
+    """(N, 675) fields -> (N, n_lights, embed_dim): the embedding of each light's render."""
+    views = render_views(weights, model.cfg.resolution, model.cfg.n_lights, activation)
+    n, k = views.shape[:2]
+    return embed(model, views.reshape(n * k, *views.shape[2:])).reshape(n, k, -1)
+
+
+def load_image(path, resolution: int) -> np.ndarray:
+    """A user's reference image -> (resolution, resolution, 3) linear HDR.
+
+    EXR is read as linear radiance; PNG/JPEG as sRGB and decoded to linear. The image should
+    show one sphere filling the frame, like the metric view; it is centre-cropped to a square
+    and resized (area averaging) to the encoder's resolution."""
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"conditioning image {p} does not exist (config conditions.images)")
+    if p.suffix.lower() == ".exr":
+        from neumat.render.scenes import read_exr
+        img = read_exr(p)
+    else:
+        from PIL import Image
+        srgb = np.asarray(Image.open(p).convert("RGB"), dtype=np.float64) / 255.0
+        img = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+    img = np.asarray(img, dtype=np.float32)[..., :3]
+    h, w = img.shape[:2]
+    s = min(h, w)
+    img = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]
+    t = torch.as_tensor(img).permute(2, 0, 1)[None]
+    t = F.interpolate(t, size=(resolution, resolution), mode="area")
+    return t[0].permute(1, 2, 0).numpy()
+

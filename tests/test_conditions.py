@@ -1,0 +1,168 @@
+"""Text and image conditions: encoders offline and deterministic, classifier-free guidance per
+modality (null paths), and a toy where text and image conditioning must find the right mode."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import torch
+
+from neumat.conditions import image
+from neumat.diffusion import Denoiser, DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, guided, train
+from neumat.diffusion.sample import guided_multi, sample
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_text_encoder_loads_offline_and_is_deterministic():
+    """In a fresh interpreter with the hub offline and every proxy pointing nowhere: the packaged
+    model loads by path, embeds twice identically, and ranks a paraphrase above another material."""
+    code = textwrap.dedent("""
+        import numpy as np
+        from neumat.conditions import text
+        a = text.embed(["red plastic", "a red plastic material", "green metal"])
+        b = text.embed(["red plastic", "a red plastic material", "green metal"])
+        assert a.shape == (3, 384) and a.dtype == np.float32
+        assert np.array_equal(a, b)
+        assert np.allclose(np.linalg.norm(a, axis=1), 1, atol=1e-5)
+        assert a[0] @ a[1] > a[0] @ a[2] + 0.1, (a[0] @ a[1], a[0] @ a[2])
+        print("ok")
+    """)
+    dead = "http://127.0.0.1:9"
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "TRANSFORMERS_OFFLINE": "1", "HTTP_PROXY": dead,
+           "HTTPS_PROXY": dead, "http_proxy": dead, "https_proxy": dead, "OMP_NUM_THREADS": "1",
+           "HF_HOME": "/nonexistent-hf-home"}
+    r = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr[-2000:]
+
+
+def test_image_encoder_deterministic_and_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    w = (0.3 * rng.normal(size=(6, 675))).astype(np.float32)
+    cfg = image.ImageEncoderConfig(resolution=12, crop=10, width=4, embed_dim=8, n_lights=2,
+                                   steps=3, batch_size=4)
+    views = image.render_views(w, cfg.resolution, cfg.n_lights)
+    assert views.shape == (6, 2, 12, 12, 3)
+    # the second light differs from the metric view: the encoder sees different lighting
+    assert not torch.allclose(views[:, 0], views[:, 1])
+    b1 = image.train(views, w, cfg, seed=1)
+    b2 = image.train(views, w, cfg, seed=1)
+    for k in b1["state"]:
+        assert torch.equal(b1["state"][k], b2["state"][k]), k
+    torch.save(b1, tmp_path / "enc.pt")
+    enc = image.load(tmp_path / "enc.pt")  # weights_only load
+    e1 = image.embed(enc, views[:, 0])
+    e2 = image.embed(image.load(b1), views[:, 0])
+    assert e1.shape == (6, 8) and np.array_equal(e1, e2)
+    assert image.embed_fields(enc, w).shape == (6, 2, 8)
+    with pytest.raises(ValueError, match="linear HDR"):
+        image.embed(enc, views[:, 0, :8])
+
+
+def test_load_image_png_and_exr(tmp_path):
+    from PIL import Image
+
+    from neumat.render.scenes import write_exr
+    img = np.zeros((40, 60, 3), np.float32)
+    img[:, 10:50] = 0.5
+    write_exr(tmp_path / "a.exr", img)
+    srgb = (np.clip(img, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    Image.fromarray(srgb).save(tmp_path / "a.png")
+    a = image.load_image(tmp_path / "a.exr", 8)
+    b = image.load_image(tmp_path / "a.png", 8)
+    assert a.shape == b.shape == (8, 8, 3)
+    assert np.allclose(a, 0.5, atol=1e-6) and np.allclose(b, 0.5, atol=0.02)
+    with pytest.raises(FileNotFoundError, match="conditions.images"):
+        image.load_image(tmp_path / "missing.png", 8)
+
+
+MM = DenoiserConfig(width=32, depth=1, heads=4, mlp_ratio=2.0, n_classes=3,
+                    vector_conditions={"text": 6, "image": 4})
+
+
+def _mm_model():
+    torch.manual_seed(0)
+    m = Denoiser(MM)
+    for lin in m.embed_out:
+        torch.nn.init.normal_(lin.weight, std=0.1)
+    for p in m.conditions.parameters():  # non-zero null tokens, so null paths can differ
+        torch.nn.init.normal_(p, std=0.5)
+    return m.eval()
+
+
+def test_cfg_null_path_per_modality():
+    m = _mm_model()
+    x, t = torch.randn(4, 675), torch.tensor([1, 20, 40, 90])
+    cond = {"type": torch.tensor([0, 1, 2, 0]), "text": torch.randn(4, 6), "image": torch.randn(4, 4)}
+    with torch.no_grad():
+        uncond = m(x, t)
+        for k in cond:
+            alone = {k: cond[k]}
+            # a missing condition, a NaN embedding / label -1, and the dropout flag are one null
+            nan = {k: torch.full_like(cond[k], -1) if k == "type" else torch.full_like(cond[k], np.nan)}
+            drop = {k: torch.ones(4, dtype=torch.bool)}
+            assert torch.allclose(m(x, t, nan), uncond, atol=1e-6), k
+            assert torch.allclose(m(x, t, alone, drop), uncond, atol=1e-6), k
+            assert not torch.allclose(m(x, t, alone), uncond, atol=1e-4), k
+            # one modality: per-modality guidance is ordinary CFG
+            for s in (0.0, 1.0, 2.5):
+                assert torch.allclose(guided_multi(m, alone, {k: s})(x, t),
+                                      guided(m, alone, s)(x, t), atol=1e-5), (k, s)
+        # all scales 0: unconditional; several modalities: u + sum_m s_m (c_m - u)
+        assert torch.allclose(guided_multi(m, cond, {k: 0.0 for k in cond})(x, t), uncond)
+        sc = {"type": 1.5, "text": 2.0, "image": 0.5}
+        want = uncond + sum(s * (m(x, t, {k: cond[k]}) - uncond) for k, s in sc.items())
+        assert torch.allclose(guided_multi(m, cond, sc)(x, t), want, atol=1e-5)
+
+
+def test_toy_text_and_image_conditioning_hit_the_mode(tmp_path):
+    """Two modes; each material has a noisy text embedding and K = 3 noisy image embeddings
+    of its mode, and no type label. Text alone and image alone must pick the mode."""
+    rng = np.random.default_rng(0)
+    n = 256
+    centres = rng.normal(size=(2, 675)).astype(np.float32)
+    mode = rng.integers(0, 2, n)
+    w = centres[mode] + 0.05 * rng.normal(size=(n, 675)).astype(np.float32)
+    t_dirs, i_dirs = rng.normal(size=(2, 6)), rng.normal(size=(2, 4))
+    text = t_dirs[mode] + 0.3 * rng.normal(size=(n, 6))
+    img = i_dirs[mode][:, None] + 0.3 * rng.normal(size=(n, 3, 4))
+    cfg = DenoiserConfig(width=64, depth=2, heads=4, mlp_ratio=2.0, n_classes=2,
+                         vector_conditions={"text": 6, "image": 4})
+    tc = TrainConfig(steps=400, batch_size=64, lr=2e-3, warmup_steps=20, ema_decay=0.99,
+                     cond_drop=0.2, checkpoint_every=400, log_every=50)
+    train(w, np.full(n, -1), ["a", "b"], cfg, ScheduleConfig(timesteps=100), tc,
+          tmp_path / "m.pt", tmp_path / "c.pt", seed=0, device="cpu",
+          vectors={"text": text, "image": img})
+    s = Sampler(tmp_path / "m.pt", device="cpu")
+    want = np.repeat([0, 1], 20)
+    for name, dirs in (("text", t_dirs), ("image", i_dirs)):
+        x = sample(s, 40, seed=1, conditions={name: dirs[want]}, guidance={name: 2.0}, steps=20)
+        hit = (np.linalg.norm(x[:, None] - centres[None], axis=-1).argmin(1) == want).mean()
+        assert hit >= 0.9, (name, hit)
+
+
+def test_colour_words_and_chromaticity():
+    from neumat.conditions import evaluate as ev
+    assert ev.colour_of("a Red plastic") == "red" and ev.colour_of("highly specular material") == ""
+    assert ev.colour_of("dark blue paint") == "blue"  # 'dark' has no fixed chromaticity
+    assert ev.colour_matches(np.array([0.8, 0.1, 0.1]), "red")
+    assert not ev.colour_matches(np.array([0.8, 0.1, 0.1]), "green")
+    assert ev.colour_matches(np.array([0.1, 0.6, 0.15]), "green")
+    assert ev.colour_matches(np.array([0.1, 0.2, 0.7]), "blue")
+    assert ev.colour_matches(np.array([0.5, 0.5, 0.5]), "white")
+    assert not ev.colour_matches(np.array([0.5, 0.5, 0.5]), "red")  # grey is no colour
+    # mean colour over the sphere of a red diffuse render
+    from neumat.render import sphere
+    alb = torch.tensor([0.7, 0.1, 0.08])
+    img = sphere.render_fn(lambda wi, wo: (alb / np.pi).expand(1, len(wi), 3), 1, 16)
+    assert ev.colour_matches(ev.mean_colour(img)[0], "red")

@@ -1,0 +1,349 @@
+# Multi-modal conditioning (paper §3.3, §4.4, Figs. 7-9): text and image encoders, one
+# diffusion model conditioned on type, text and image (each dropped independently in training),
+# text- and image-conditioned sampling, their measures against unconditional, type-conditioned
+# and retrieval baselines from the same model, a guidance-scale sweep, Mitsuba figures.
+#   neumerl -> text_embeddings, train_image_encoder -> image_embeddings -> train_multimodal
+#   -> sample_text / sample_image / sample_multimodal -> conditions_eval, guidance_sweep,
+#   conditions_mitsuba -> conditions_section
+
+COND = config["conditions"]
+COND_MODEL = "multimodal"
+COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
+
+
+def cond_seed(stage):
+    """Seed of one conditioning stage: the named stream ("conditions", stage)."""
+    return seed_for("conditions", stage)
+
+
+rule text_embeddings:
+    input:
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        text=out("conditions/text.npy"),
+        prompts=out("conditions/prompts.tsv"),
+        prompt_embeddings=out("conditions/prompts.npy"),
+    params:
+        prompts=COND["text"]["prompts"],
+        test_prompts=COND["text"]["test_prompts"],
+    log:
+        log("text_embeddings"),
+    benchmark:
+        bench("text_embeddings")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=15,
+    script:
+        "../scripts/text_embeddings.py"
+
+
+rule train_image_encoder:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        text=out("conditions/text.npy"),
+    output:
+        model=out("conditions/image_encoder.pt"),
+        history=out("conditions/image_encoder_history.tsv"),
+        evaluation=out("conditions/image_encoder_eval.tsv"),
+    params:
+        cfg=settings("conditions.image.encoder"),
+        seed=cond_seed("image_encoder"),
+        activation=DIFF_ACTIVATION,
+    log:
+        log("train_image_encoder"),
+    benchmark:
+        bench("train_image_encoder")
+    conda:
+        CONDA_ENV
+    threads: COND["threads"]
+    resources:
+        mem_mb=4000,
+        runtime=120,
+    script:
+        "../scripts/train_image_encoder.py"
+
+
+rule image_embeddings:
+    input:
+        model=out("conditions/image_encoder.pt"),
+        weights=out("neumerl/weights.npy"),
+    output:
+        out("conditions/image.npy"),
+    params:
+        activation=DIFF_ACTIVATION,
+    log:
+        log("image_embeddings"),
+    benchmark:
+        bench("image_embeddings")
+    conda:
+        CONDA_ENV
+    threads: COND["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=20,
+    script:
+        "../scripts/image_embeddings.py"
+
+
+rule train_multimodal:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        text=out("conditions/text.npy"),
+        image=out("conditions/image.npy"),
+    output:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        history=out(f"diffusion/{COND_MODEL}/history.tsv"),
+    params:
+        cfg=settings("diffusion", ["model", "schedule", "train"]),
+        cond_drop=COND["cond_drop"],
+        class_names=DIFF_CLASSES,
+        seed=cond_seed("train"),
+        checkpoint=out(f"diffusion/{COND_MODEL}/checkpoint.pt"),
+    log:
+        log("train_multimodal"),
+    benchmark:
+        bench("train_multimodal")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=diffusion_runtime(),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/train_multimodal.py"
+
+
+rule sample_text:
+    input:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        prompts=out("conditions/prompts.tsv"),
+        prompt_embeddings=out("conditions/prompts.npy"),
+    output:
+        weights=out("samples/text/weights.npy"),
+        table=out("samples/text/samples.tsv"),
+        timing=out("samples/text/timing.tsv"),
+    params:
+        sample=settings("diffusion.sample"),
+        per_prompt=COND["per_condition"],
+        guidance=COND["guidance"],
+        mode="text",
+        seed=cond_seed("text"),
+    log:
+        log("sample_text"),
+    benchmark:
+        bench("sample_text")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_conditions.py"
+
+
+rule sample_image:
+    input:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        encoder=out("conditions/image_encoder.pt"),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+        images=COND["image"]["images"],
+    output:
+        weights=out("samples/image/weights.npy"),
+        table=out("samples/image/samples.tsv"),
+        timing=out("samples/image/timing.tsv"),
+        conditioning=out("samples/image/conditioning.npy"),
+        embeddings=out("samples/image/conditioning_embeddings.npy"),
+    params:
+        sample=settings("diffusion.sample"),
+        per_prompt=COND["per_condition"],
+        guidance=COND["guidance"],
+        test_images=COND["image"]["test_images"],
+        resolution=config["report"]["sphere_resolution"],
+        activation=DIFF_ACTIVATION,
+        mode="image",
+        seed=cond_seed("image"),
+    log:
+        log("sample_image"),
+    benchmark:
+        bench("sample_image")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_conditions.py"
+
+
+rule sample_multimodal:
+    """Same-run baselines from the multimodal model: type-conditioned and unconditional
+    samples for the prompts' types (`mm_type`, `mm_uncond`)."""
+    input:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        prompts=out("conditions/prompts.tsv"),
+    output:
+        weights=out("samples/{set}/weights.npy"),
+        table=out("samples/{set}/samples.tsv"),
+        timing=out("samples/{set}/timing.tsv"),
+    params:
+        sample=settings("diffusion.sample"),
+        per_prompt=COND["per_condition"],
+        guidance=COND["guidance"],
+        mode=lambda w: w.set,
+        seed=lambda w: cond_seed(w.set),
+    wildcard_constraints:
+        set="mm_type|mm_uncond",
+    log:
+        log("sample_multimodal/{set}"),
+    benchmark:
+        bench("sample_multimodal/{set}")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_conditions.py"
+
+
+rule conditions_eval:
+    input:
+        samples=expand(out("samples/{set}/weights.npy"), set=COND_SETS),
+        tables=expand(out("samples/{set}/samples.tsv"), set=COND_SETS),
+        conditioning=out("samples/image/conditioning.npy"),
+        conditioning_embeddings=out("samples/image/conditioning_embeddings.npy"),
+        image_embeddings=out("conditions/image.npy"),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        per_sample=out("conditions/eval_per_sample.tsv"),
+        image=out("conditions/eval_image.tsv"),
+        summary=out("conditions/eval_summary.tsv"),
+    params:
+        bins=DIFF["nn_bins"],
+        angles=DIFF["plausibility_angles"],
+        resolution=config["report"]["sphere_resolution"],
+        seed=cond_seed("eval"),
+        activation=DIFF_ACTIVATION,
+    log:
+        log("conditions_eval"),
+    benchmark:
+        bench("conditions_eval")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=30,
+    script:
+        "../scripts/conditions_eval.py"
+
+
+rule guidance_sweep:
+    input:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        prompts=out("conditions/prompts.tsv"),
+        prompt_embeddings=out("conditions/prompts.npy"),
+        image_embeddings=out("conditions/image.npy"),
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        out("conditions/guidance_sweep.tsv"),
+    params:
+        sample=settings("diffusion.sample"),
+        scales=COND["sweep"]["scales"],
+        per_prompt=COND["sweep"]["per_condition"],
+        bins=DIFF["nn_bins"],
+        angles=DIFF["plausibility_angles"],
+        seed=cond_seed("sweep"),
+        activation=DIFF_ACTIVATION,
+    log:
+        log("guidance_sweep"),
+    benchmark:
+        bench("guidance_sweep")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=3000,
+        runtime=120,
+    script:
+        "../scripts/guidance_sweep.py"
+
+
+rule conditions_mitsuba:
+    input:
+        text=out("samples/text/weights.npy"),
+        text_table=out("samples/text/samples.tsv"),
+        image=out("samples/image/weights.npy"),
+        image_table=out("samples/image/samples.tsv"),
+        conditioning=out("samples/image/conditioning.npy"),
+    output:
+        text=report(out("report/figures/conditions_text.png"), category="Conditioning",
+                    caption="../report/conditions_text.rst"),
+        image=report(out("report/figures/conditions_image.png"), category="Conditioning",
+                     caption="../report/conditions_image.rst"),
+        info=out("render/mitsuba/conditions.json"),
+    params:
+        cfg=config["render"]["mitsuba"],
+        rows=COND["figure_rows"],
+        per_row=COND["figure_samples"],
+        activation=DIFF_ACTIVATION,
+        seed=cond_seed("mitsuba"),
+    log:
+        log("conditions_mitsuba"),
+    benchmark:
+        bench("conditions_mitsuba")
+    conda:
+        CONDA_ENV
+    threads: 2
+    resources:
+        mem_mb=4000,
+        runtime=120,
+    script:
+        "../scripts/conditions_mitsuba.py"
+
+
+rule conditions_section:
+    input:
+        per_sample=out("conditions/eval_per_sample.tsv"),
+        image=out("conditions/eval_image.tsv"),
+        summary=out("conditions/eval_summary.tsv"),
+        sweep=out("conditions/guidance_sweep.tsv"),
+        encoder_eval=out("conditions/image_encoder_eval.tsv"),
+        encoder=out("conditions/image_encoder.pt"),
+        history=out(f"diffusion/{COND_MODEL}/history.tsv"),
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        timings=expand(out("samples/{set}/timing.tsv"), set=COND_SETS),
+        benchmarks=[bench("text_embeddings"), bench("train_image_encoder"),
+                    bench("image_embeddings"), bench("train_multimodal")],
+        figures=[out("report/figures/conditions_text.png"),
+                 out("report/figures/conditions_image.png")],
+    output:
+        section=out("report/sections/42_conditions.md"),
+        sweep=report(out("report/figures/conditions_guidance.png"), category="Conditioning",
+                     caption="../report/conditions_guidance.rst"),
+    params:
+        guidance=COND["guidance"],
+    log:
+        log("conditions_section"),
+    benchmark:
+        bench("conditions_section")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=1500,
+        runtime=10,
+    script:
+        "../scripts/conditions_section.py"

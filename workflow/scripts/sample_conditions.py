@@ -1,0 +1,75 @@
+"""Sample the multimodal model under one condition: text prompts ('text'), conditioning images
+('image': test-split metric-view renders and config images), or the same-run baselines for the
+test prompts: their types ('mm_type') and no condition ('mm_uncond')."""
+import time
+
+import numpy as np
+import pandas as pd
+
+from neumat.conditions import image
+from neumat.diffusion import Sampler, dataset
+from neumat.diffusion.sample import sample
+from neumat.fit import save_npy
+from neumat.logs import script_logging
+from neumat.render import sphere
+
+
+def image_conditions(inp, p, enc):
+    """Test-split typed materials (evenly picked) and user images -> table, embeddings (M, D),
+    conditioning images (M, R, R, 3) linear HDR in the metric view."""
+    weights = np.load(inp.weights)
+    man = dataset.read_manifest(inp.manifest, len(weights))
+    test = dataset.reference_rows(man)
+    test = test[man["type"].iloc[test].to_numpy() != ""]
+    k = p.test_images or len(test)
+    test = test[np.unique(np.linspace(0, len(test) - 1, min(k, len(test))).round().astype(int))]
+    emb = [image.embed(enc, sphere.render_fields(weights[test], enc.cfg.resolution, p.activation))]
+    imgs = [sphere.render_fields(weights[test], p.resolution, p.activation).numpy()]
+    table = pd.DataFrame({"source": man["name"].iloc[test].to_numpy(), "id": test,
+                          "type": man["type"].iloc[test].to_numpy()})
+    paths = list(inp.images)
+    if paths:
+        emb.append(np.concatenate([image.embed(enc, image.load_image(f, enc.cfg.resolution)[None])
+                                   for f in paths]))
+        imgs.append(np.stack([image.load_image(f, p.resolution) for f in paths]))
+        table = pd.concat([table, pd.DataFrame({"source": paths, "id": -1, "type": ""})],
+                          ignore_index=True)
+    return table, np.concatenate(emb), np.concatenate(imgs).astype(np.float32)
+
+
+with script_logging(snakemake) as log:
+    p, inp, out = snakemake.params, snakemake.input, snakemake.output
+    s, k = p.sample, p.per_prompt
+    sampler = Sampler(inp.model, snakemake.config["device"])
+    if p.mode == "image":
+        conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder))
+        save_npy(out.conditioning, imgs)
+        save_npy(out.embeddings, emb.astype(np.float32))
+        conditions = {"image": np.repeat(emb, k, 0)}
+    else:
+        conds = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
+        if p.mode != "text":  # baselines for the test-split descriptions only
+            conds = conds[conds["kind"] == "test"]
+        if p.mode == "text":
+            emb = np.load(inp.prompt_embeddings)[conds.index.to_numpy()]
+            conditions = {"text": np.repeat(emb, k, 0)}
+        elif p.mode == "mm_type":
+            conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
+        else:
+            conditions = {}
+    table = conds.reset_index(drop=True).loc[np.repeat(np.arange(len(conds)), k)]
+    table.insert(0, "condition", np.repeat(np.arange(len(conds)), k))
+    table.insert(0, "sample", np.arange(len(table)))
+    name = "type" if p.mode == "mm_type" else p.mode
+    guidance = {name: p.guidance[name]} if name in p.guidance else {}
+    t0 = time.perf_counter()
+    w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
+               s["batch_size"], s["clip"])
+    dt = time.perf_counter() - t0
+    save_npy(out.weights, w.astype(np.float32))
+    table.to_csv(out.table, sep="\t", index=False)
+    pd.DataFrame([{"samples": len(table), "seconds": dt,
+                   "samples_per_second": len(table) / max(dt, 1e-9), "steps": s["steps"],
+                   "eta": s["eta"], "guidance": guidance.get(name, 1.0)}]).to_csv(
+        out.timing, sep="\t", index=False, float_format="%.6g")
+    log.info("%d samples (%s) in %.2f s", len(table), p.mode, dt)

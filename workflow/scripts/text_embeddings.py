@@ -1,0 +1,42 @@
+"""Embed every AugMERL description once (conditions/text.npy, manifest order) and the sampling
+prompts: test-split descriptions of typed materials plus config prompts never seen in training.
+Fails naming the package when the offline text encoder is not installed."""
+import time
+
+import numpy as np
+import pandas as pd
+
+from neumat.conditions import evaluate, text
+from neumat.diffusion import dataset
+from neumat.fit import save_npy
+from neumat.logs import script_logging
+
+with script_logging(snakemake) as log:
+    p, out = snakemake.params, snakemake.output
+    man = dataset.read_manifest(snakemake.input.manifest)
+    t0 = time.perf_counter()
+    text.load_encoder()
+    log.info("text encoder %s loaded from %s in %.1f s", text.PACKAGE, text.model_dir(),
+             time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    save_npy(out.text, text.embed(list(man["description"])))
+    log.info("%d descriptions (%d distinct) embedded in %.1f s", len(man),
+             man["description"].nunique(), time.perf_counter() - t0)
+
+    test = man[(man["split"] == "test") & (man["type"] != "")].drop_duplicates("description")
+    k = p.test_prompts or len(test)
+    pick = np.unique(np.linspace(0, len(test) - 1, min(k, len(test))).round().astype(int)) \
+        if len(test) else []
+    test = test.iloc[pick]
+    seen = set(man.loc[man["split"] == "train", "description"])
+    unseen = [q for q in p.prompts if q in seen]
+    if unseen:
+        log.warning("config prompts %s occur as training descriptions", unseen)
+    prompts = pd.DataFrame({
+        "prompt": list(test["description"]) + list(p.prompts),
+        "kind": ["test"] * len(test) + ["unseen"] * len(p.prompts),
+        "type": list(test["type"]) + [""] * len(p.prompts)})
+    prompts["colour"] = [evaluate.colour_of(q) for q in prompts["prompt"]]
+    prompts.to_csv(out.prompts, sep="\t", index=False)
+    save_npy(out.prompt_embeddings, text.embed(list(prompts["prompt"])))
+    log.info("%d prompts (%d test-split descriptions)", len(prompts), len(test))
