@@ -18,7 +18,7 @@ from pathlib import Path
 
 import torch
 
-from neumat.fit_kernel import _cpu_id
+from neumat.cbuild import cpu_id as _cpu_id
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("hpb_kernel.c")
