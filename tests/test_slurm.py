@@ -101,13 +101,13 @@ def slurm(tmp_path_factory):
     if not key.exists():
         subprocess.run(["mungekey", "--create", "--keyfile", str(key)], check=True)
         shutil.chown(key, "munge", "munge")
-    sock = Path("/run/munge/munge.socket.2")
-    if not sock.exists():
+    if subprocess.run(["munge", "-n"], capture_output=True).returncode != 0:  # no munged yet
         Path("/run/munge").mkdir(exist_ok=True)
         shutil.chown("/run/munge", "munge", "munge")
-        subprocess.run(["runuser", "-u", "munge", "--", _sbin("munged"), "--pid-file",
-                        str(d / "munged.pid")], check=True)
-        pids.append(d / "munged.pid")
+        pid = Path("/run/munge/munged.neumat-test.pid")  # a directory the munge user can write
+        subprocess.run(["runuser", "-u", "munge", "--", _sbin("munged"), "--force",
+                        "--pid-file", str(pid)], check=True)
+        pids.append(pid)
     try:
         for daemon in ("slurmctld", "slurmd"):
             subprocess.run([_sbin(daemon), "-f", str(conf)], check=True, env=env)
@@ -131,6 +131,7 @@ def slurm(tmp_path_factory):
 
 
 def _copy_workflow(dst: Path) -> Path:
+    dst.mkdir(parents=True)
     for item in ("Snakefile", "workflow", "config", "profiles", "src"):
         src = ROOT / item
         (shutil.copytree if src.is_dir() else shutil.copy)(src, dst / item)
