@@ -52,9 +52,15 @@ def _memory_mb() -> int:
     return kb // 1024 - 1024  # leave the OS some
 
 
+SYSTEM_CONF = Path("/etc/slurm/slurm.conf")
+
+
 def _slurm_conf(d: Path) -> Path:
+    """A minimal slurm.conf. At /etc/slurm/slurm.conf (removed at the end): srun inside a job
+    looks there, whatever SLURM_CONF the job was submitted with."""
     host = socket.gethostname().split(".")[0]
-    conf = d / "slurm.conf"
+    conf = SYSTEM_CONF
+    conf.parent.mkdir(exist_ok=True)
     conf.write_text(f"""ClusterName=neumattest
 SlurmctldHost={host}
 SlurmUser=root
@@ -92,6 +98,8 @@ def slurm(tmp_path_factory):
     reason = _missing()
     if reason:
         pytest.skip(reason)
+    if SYSTEM_CONF.exists():
+        pytest.skip(f"{SYSTEM_CONF} exists: a Slurm is configured here, the test does not touch it")
     d = tmp_path_factory.mktemp("slurm")
     conf = _slurm_conf(d)
     env = {**os.environ, "SLURM_CONF": str(conf)}
@@ -128,6 +136,7 @@ def slurm(tmp_path_factory):
                     os.kill(int(pid_file.read_text().split()[0]), signal.SIGTERM)
                 except (ProcessLookupError, ValueError):
                     pass
+        SYSTEM_CONF.unlink(missing_ok=True)
 
 
 def _copy_workflow(dst: Path) -> Path:
