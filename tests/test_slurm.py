@@ -160,10 +160,9 @@ def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
     subprocess.run([*cmd, "--cores", "2", "--configfile", "config/tiny.yaml"], cwd=local,
                    check=True, capture_output=True)
     local_s = time.time() - t0
-    done = re.findall(r"Finished job", text) or re.findall(r"\d+ of \d+ steps", text)
-    submitted = re.findall(r"submitted with SLURM jobid", text, re.I)
-    n_jobs = int(re.findall(r"(\d+) of (\d+) steps", text)[-1][1])
-    assert len(submitted) == n_jobs >= 10 and done, text[-3000:]
+    submitted = re.findall(r"submitted with SLURM jobid", text)
+    n_done = int(re.findall(r"(\d+) of \d+ steps", text)[-1])  # "10 of 57 steps": --until
+    assert len(submitted) == n_done >= 10, text[-3000:]  # every job went through sbatch
     files = sorted(p.relative_to(local) for p in (local / "results/tiny").rglob("*")
                    if p.is_file() and "/logs/" not in str(p) and "/benchmarks/" not in str(p))
     assert files
