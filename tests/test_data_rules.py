@@ -172,7 +172,8 @@ def test_dag_local_dir_missing_files(tmp_path, good):
 
 
 def test_dag_local_subset_uses_local_rule(tmp_path, good):
+    shutil.copy(good[0], good[0].parent / "gold-paint.binary")  # a run needs 2 materials
     r = snakemake_dry_run(tmp_path, f"merl:\n  source: local\n  local_dir: {good[0].parent}\n"
-                                    "  subset: [chrome]\n")
+                                    "  subset: [chrome, gold-paint]\n")
     out = r.stdout + r.stderr
     assert "local_merl" in out and "download_merl" not in out, out[-2000:]

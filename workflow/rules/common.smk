@@ -82,13 +82,13 @@ def settings(section, keys=None, drop=()):
 
 def substantive(d, path="", keep=()):
     """`d` (config or a section at `path`) without speed-only and cosmetic keys, at any depth."""
-    out = {}
+    kept = {}
     for k, v in d.items():
         key = f"{path}.{k}" if path else k
         if key in SPEED_KEYS or (key in COSMETIC_KEYS and key not in keep):
             continue
-        out[k] = substantive(v, key, keep) if isinstance(v, dict) else v
-    return out
+        kept[k] = substantive(v, key, keep) if isinstance(v, dict) else v
+    return kept
 
 
 def out(path):

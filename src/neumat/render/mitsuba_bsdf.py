@@ -69,38 +69,49 @@ def find_libllvm(min_version: int = 16) -> str | None:
 
 def _with_runtime(lib: str) -> str:
     """Load the LLVM C++ runtime that karellen-llvm-core ships beside its libLLVM
-    (<prefix>/lib/<triple>/lib{unwind,c++abi,c++}.so.1.0) into the global symbol namespace:
-    libLLVM needs it, and pip does not always create the .so.1 names it links against."""
+    (<prefix>/lib/<triple>/lib{unwind,c++abi,c++}.so.1.0): libLLVM needs libc++.so.1, and pip
+    does not always create the .so.1 names it links against; once loaded, the loader finds
+    them by soname. RTLD_LOCAL, never GLOBAL: a global libc++abi takes over C++ exceptions of
+    every later extension (matplotlib's pybind11 modules then abort on import)."""
     import ctypes
 
     real = os.path.realpath(lib)
     for name in ("libunwind", "libc++abi", "libc++"):
         hits = sorted(glob.glob(f"{os.path.dirname(real)}/*-linux-gnu/{name}.so.1*"))
         if hits:
-            ctypes.CDLL(hits[-1], mode=ctypes.RTLD_GLOBAL)  # .so.1.0 sorts last: the file itself
+            ctypes.CDLL(hits[-1], mode=ctypes.RTLD_LOCAL)  # .so.1.0 sorts last: the file itself
     return real
+
+
+# Dr.Jit reads DRJIT_LIBLLVM_PATH once, when it is imported, and with an LLVM it did not see then
+# its kernels fail to compile ("LLVM ERROR: Cannot select: fminimum"). So the library is found
+# here, when this module is imported (neumat.render.scenes imports it), before Mitsuba is.
+_DRJIT_FIRST = "drjit" in sys.modules and not os.environ.get("DRJIT_LIBLLVM_PATH")
+_LIBLLVM = None if _DRJIT_FIRST else find_libllvm()
+if _LIBLLVM:
+    os.environ["DRJIT_LIBLLVM_PATH"] = _LIBLLVM
 
 
 def select_variant(preference: str = "auto") -> str:
     """Set and return the Mitsuba variant (see module docstring). Call before building scenes."""
-    import mitsuba as mi
-
     if preference not in ("auto", "llvm_ad_rgb", "scalar_rgb"):
         raise ValueError(f"render.mitsuba.variant must be auto, llvm_ad_rgb or scalar_rgb, "
                          f"got {preference!r}")
     variant = preference
     if preference != "scalar_rgb":
-        lib = find_libllvm()
-        if lib:
-            os.environ["DRJIT_LIBLLVM_PATH"] = lib
+        why = ("Dr.Jit was imported before neumat.render (import it first, or set "
+               "DRJIT_LIBLLVM_PATH)" if _DRJIT_FIRST else
+               "no libLLVM >= 16 found (pip install karellen-llvm-core, apt-get install "
+               "libllvm19, or set DRJIT_LIBLLVM_PATH)")
+        if _LIBLLVM:
             variant = "llvm_ad_rgb"
         elif preference == "llvm_ad_rgb":
-            raise RuntimeError("render.mitsuba.variant = llvm_ad_rgb needs libLLVM >= 16 "
-                               "(e.g. apt-get install libllvm19) or DRJIT_LIBLLVM_PATH")
+            raise RuntimeError(f"render.mitsuba.variant = llvm_ad_rgb: {why}")
         else:
-            log.warning("no libLLVM >= 16 found (apt-get install libllvm19, or set "
-                        "DRJIT_LIBLLVM_PATH): falling back to the slow scalar_rgb variant")
+            log.warning("%s: falling back to the slow scalar_rgb variant", why)
             variant = "scalar_rgb"
+    import mitsuba as mi
+
     mi.set_variant(variant)
     register()
     return variant
