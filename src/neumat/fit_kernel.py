@@ -185,9 +185,10 @@ def _time_steps(kernel: str, batch: int, activation: str, march: str | None) -> 
     from neumat.io import merl
     c = CALIBRATION
     rng = np.random.default_rng(0)
-    bins = np.sort(rng.choice(merl.N_BINS, c["bins"], replace=False))
+    n_bins = max(c["bins"], 4 * batch)  # half of them training bins: a few minibatches
+    bins = np.sort(rng.choice(merl.N_BINS, n_bins, replace=False))
     x, cos = fit.bin_inputs(bins)
-    target = torch.as_tensor(rng.random((c["materials"], c["bins"], 3), dtype=np.float32))
+    target = torch.as_tensor(rng.random((c["materials"], n_bins, 3), dtype=np.float32))
     s = dataclasses.replace(fit.FitSettings(), batch=batch, activation=activation, kernel=kernel,
                             steps=10 ** 6, val_fraction=0.5)
     init = nbrdf.init_weights(c["materials"], torch.Generator().manual_seed(0))
