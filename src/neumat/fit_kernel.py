@@ -8,7 +8,7 @@ Materials are split over `threads` Python threads; ctypes releases the GIL durin
 so they run in parallel without touching torch's thread pool.
 
 Why C and not a library: no maintained library trains thousands of tiny independent MLPs on a
-CPU (tiny-cuda-nn is GPU-only), and torch.compile of the step gained <= 10 %.
+CPU (tiny-cuda-nn is GPU-only).
 
 The shared library is built and cached by `neumat.cbuild` for a target `-march` (default
 `native`, or `$NEUMAT_FIT_MARCH`, e.g. `x86-64-v3` for an AVX2 build on any x86 host);
@@ -76,7 +76,7 @@ class Stepper:
     """Runs K steps of `fit_step.c` on M materials, the materials split over `threads` threads.
 
     Each thread runs all K steps of its materials in one C call, so threads meet once per call,
-    not once per step (waking a thread costs ~100 us on these VMs, a step of 25 materials ~600).
+    not once per step (waking a thread costs a sizeable fraction of a step).
     xc_all (B, 7) inputs + cos and target (B, M * 3) of all bins are fixed at construction."""
 
     def __init__(self, xc_all: torch.Tensor, target: torch.Tensor, n: int, threads: int = 1,
