@@ -37,7 +37,7 @@ from neumat import cbuild, nbrdf
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("fit_step.c")
-VECTOR = 16  # floats per vector in fit_step.c: the minibatch must be a multiple
+VECTOR = 16  # the widest vector of fit_step.c (AVX-512), floats: the minibatch must be a multiple
 WORK_ROWS = 73  # scratch floats per sample per thread: inputs 7, 3 x 21 + 3 activations
 # (+ 3 per material of the thread: its targets)
 
