@@ -7,6 +7,9 @@ fraction of the bound per CPU-second is the load-independent one. Each figure li
 CPU and ISA. Paper anchor: 2.0 ms per frame on an RTX 4090.
 
     OMP_NUM_THREADS=2 python benchmarks/btf_query.py [--model results/<run>/btf/models/<m>/triple_plane.pt]
+                                                      [--march x86-64-v3]
+
+--march builds the fused query for another target (e.g. x86-64-v3: AVX2 on an AVX-512 host).
 """
 
 from __future__ import annotations
@@ -84,6 +87,7 @@ def main():
     ap.add_argument("--chunk", type=int, default=1 << 18)
     ap.add_argument("--unbatched", type=int, default=2000, help="queries timed one by one")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--march", default="native", help="-march of the fused C query")
     a = ap.parse_args()
     dev = torch.device(a.device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
@@ -95,7 +99,8 @@ def main():
           f"{m.n_params()} parameters")
 
     m.requires_grad_(False)  # inference: the fused query needs no autograd
-    where = machine.describe("native" if dev.type == "cpu" and query.supported(m, u) else None)
+    fused = dev.type == "cpu" and query.supported(m, u, march=a.march)
+    where = machine.describe(a.march if fused else None)
     if dev.type == "cuda":
         where += f"; GPU {torch.cuda.get_device_name(dev)}"
     print(f"machine: {where}")
@@ -107,12 +112,12 @@ def main():
     t1, _ = timed(lambda: unbatched(m, u[:n1], wi[:n1], wo[:n1]), repeat=1, sync=sync)
     assert torch.allclose(unbatched(m, u[:50], wi[:50], wo[:50]), ref[:50], rtol=1e-4, atol=1e-5)
     t_u = t1 * FRAME / n1
-    fused = dev.type == "cpu" and query.supported(m, u)
     if fused:
         with torch.no_grad():
-            query.query(m, u[:4096], wi[:4096], wo[:4096])                 # warm-up, build
-            t_f, c_f = timed(lambda: query.query(m, u, wi, wo))
-            diff = (query.query(m, u[:n1], wi[:n1], wo[:n1]) - ref).abs().max().item()
+            fq_ = lambda *q: query.query(m, *q, march=a.march)
+            fq_(u[:4096], wi[:4096], wo[:4096])                             # warm-up, build
+            t_f, c_f = timed(lambda: fq_(u, wi, wo))
+            diff = (fq_(u[:n1], wi[:n1], wo[:n1]) - ref).abs().max().item()
 
     fq = flops_per_query(m)
     n = 4096 if dev.type == "cuda" else 2048

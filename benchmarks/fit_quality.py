@@ -8,8 +8,12 @@ wall time, time per material, the extrapolated time of the config's AugMERL size
 memory (max RSS). Writes a per-material table with --out.
 
     OMP_NUM_THREADS=1 python benchmarks/fit_quality.py --tables /work/data/merl_decoded
+
+--march builds the C kernel for another target (e.g. x86-64-v3: AVX2 on an AVX-512 host). The
+CPU model, ISA and kernel are printed with the figures.
 """
 import argparse
+import os
 import resource
 import time
 from pathlib import Path
@@ -19,7 +23,7 @@ import pandas as pd
 import torch
 import yaml
 
-from neumat import fit, nbrdf
+from neumat import fit, fit_kernel, machine, nbrdf
 from neumat.io import merl
 
 
@@ -29,7 +33,11 @@ def main():
     ap.add_argument("--config", default="config/config.yaml")
     ap.add_argument("--limit", type=int, default=None, help="fit only the first N tables")
     ap.add_argument("--out", default=None, help="write the per-material table (TSV) here")
+    ap.add_argument("--march", default=None,
+                    help="-march of the C kernel (default: native, or $NEUMAT_FIT_MARCH)")
     args = ap.parse_args()
+    if args.march:  # before the first library load: the fitter builds for this target
+        os.environ["NEUMAT_FIT_MARCH"] = args.march
     cfg = yaml.safe_load(open(args.config))
     fcfg, n_bins, seed = cfg["fit"], cfg["augmerl"]["bins"], cfg.get("seed", 0) + 3000
     torch.set_num_threads(fcfg.get("threads", 1))
@@ -66,7 +74,10 @@ def main():
     n_aug, threads = cfg["augmerl"]["size"], fcfg.get("threads", 1)
     per, cper = t_fit / len(ids), c_fit / len(ids)
     print(df.sort_values("render_psnr").to_string(index=False))
-    print(f"\n{len(ids)} materials, {n_bins} bins, steps {s.steps}, batch {s.batch}, lr {s.lr}->"
+    kernel = fit.resolve_kernel(s, "cpu")
+    where = machine.describe(fit_kernel.default_march() if kernel == "c" else None)
+    print(f"\nmachine: {where}; fit kernel {kernel}")
+    print(f"{len(ids)} materials, {n_bins} bins, steps {s.steps}, batch {s.batch}, lr {s.lr}->"
           f"{s.lr_final}, {s.materials_per_batch} per batched model, {threads} thread(s)")
     print(f"render PSNR: median {np.median(psnr):.2f} dB, 10th percentile "
           f"{np.percentile(psnr, 10):.2f} dB, min {psnr.min():.2f} dB")
@@ -74,7 +85,8 @@ def main():
           f"{np.percentile(res['val_loss'], 90):.5f}; template val loss {tmpl['val_loss'][0]:.5f}")
     print(f"wall: template {t_tmpl:.1f} s, fits {t_fit:.1f} s ({per:.2f} s/material), "
           f"render PSNR {t_eval:.1f} s; peak RSS {rss:.0f} MB")
-    print(f"CPU time: template {c_tmpl:.1f} s, fits {c_fit:.1f} s ({cper:.2f} CPU-s/material)")
+    print(f"CPU time: template {c_tmpl:.1f} s, fits {c_fit:.1f} s ({cper:.2f} CPU-s/material)"
+          f"  [{where}; kernel {kernel}]")
     print(f"extrapolated {n_aug} fits: wall {n_aug * per / 3600:.2f} h on {threads} thread(s) at "
           f"this run's load; from CPU time {n_aug * cper / 3600:.2f} CPU-h = "
           f"{n_aug * cper / 3600 / 2:.2f} h with 2 such jobs on 2 free cores")

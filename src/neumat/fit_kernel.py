@@ -8,7 +8,7 @@ Materials are split over `threads` Python threads; ctypes releases the GIL durin
 so they run in parallel without touching torch's thread pool.
 
 Why C and not a library: no maintained library trains thousands of tiny independent MLPs on a
-CPU (tiny-cuda-nn is GPU-only), and torch.compile of the step gained <= 10 %.
+CPU (tiny-cuda-nn is GPU-only).
 
 The shared library is built and cached by `neumat.cbuild` for a target `-march` (default
 `native`, or `$NEUMAT_FIT_MARCH`, e.g. `x86-64-v3` for an AVX2 build on any x86 host);
@@ -37,7 +37,7 @@ from neumat import cbuild, nbrdf
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("fit_step.c")
-VECTOR = 16  # floats per vector in fit_step.c: the minibatch must be a multiple
+VECTOR = 16  # the widest vector of fit_step.c (AVX-512), floats: the minibatch must be a multiple
 WORK_ROWS = 73  # scratch floats per sample per thread: inputs 7, 3 x 21 + 3 activations
 # (+ 3 per material of the thread: its targets)
 
@@ -76,7 +76,7 @@ class Stepper:
     """Runs K steps of `fit_step.c` on M materials, the materials split over `threads` threads.
 
     Each thread runs all K steps of its materials in one C call, so threads meet once per call,
-    not once per step (waking a thread costs ~100 us on these VMs, a step of 25 materials ~600).
+    not once per step (waking a thread costs a sizeable fraction of a step).
     xc_all (B, 7) inputs + cos and target (B, M * 3) of all bins are fixed at construction."""
 
     def __init__(self, xc_all: torch.Tensor, target: torch.Tensor, n: int, threads: int = 1,
@@ -185,9 +185,10 @@ def _time_steps(kernel: str, batch: int, activation: str, march: str | None) -> 
     from neumat.io import merl
     c = CALIBRATION
     rng = np.random.default_rng(0)
-    bins = np.sort(rng.choice(merl.N_BINS, c["bins"], replace=False))
+    n_bins = max(c["bins"], 4 * batch)  # half of them training bins: a few minibatches
+    bins = np.sort(rng.choice(merl.N_BINS, n_bins, replace=False))
     x, cos = fit.bin_inputs(bins)
-    target = torch.as_tensor(rng.random((c["materials"], c["bins"], 3), dtype=np.float32))
+    target = torch.as_tensor(rng.random((c["materials"], n_bins, 3), dtype=np.float32))
     s = dataclasses.replace(fit.FitSettings(), batch=batch, activation=activation, kernel=kernel,
                             steps=10 ** 6, val_fraction=0.5)
     init = nbrdf.init_weights(c["materials"], torch.Generator().manual_seed(0))

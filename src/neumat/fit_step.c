@@ -7,7 +7,7 @@
  * extensions), chosen at compile time from what -march gives (see "Vector width and register
  * blocking" below): 16 floats on AVX-512, 8 on AVX2, 4 on SSE or NEON. A block's
  * accumulators must fit the register file: 16-float vectors blocked for 32 zmm registers spill
- * on every FMA when compiled for AVX2's 16 ymm registers (10x slower). torch's batched
+ * on every FMA when compiled for AVX2's 16 ymm registers. torch's batched
  * matmuls spend most of a step on per-matrix overhead at these sizes;
  * tests/test_fit_kernel.py checks every variant that builds against them.
  *

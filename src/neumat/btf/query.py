@@ -11,8 +11,9 @@ the caller's features, either a tensor (N, C_U) or a callable u -> (N, C_U) (e.g
 synthesised plane); u is then only passed to that callable. Everything else (directions,
 f_H, f_D, MLP) is unchanged.
 
-Falls back to the model's torch path (same results) for other models (NeuMIP), tensors off the
-CPU, autograd, or where the kernel cannot be built (no compiler; see neumat.cbuild).
+Falls back to the model's torch path (same results) for other models (NeuMIP, the classical
+ones), tensors off the CPU, autograd, or where the kernel cannot be built (no compiler; see
+neumat.cbuild).
 """
 
 from __future__ import annotations
@@ -78,8 +79,9 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
         features_u = features_u(u)
     if not supported(model, u, wi, wo, *([] if features_u is None else [features_u]),
                      march=march):
-        fu = model.features_u(u) if features_u is None else features_u
-        y = model.decode(fu, wi, wo)
+        if features_u is None:  # any model answering model(u, wi, wo) (neumat.btf.models)
+            return model.raw(u, wi, wo) if raw else model(u, wi, wo)
+        y = model.decode(features_u, wi, wo)
         return y if raw else torch.relu(torch.expm1(y))
     N = wi.shape[0]
     cu = model.kwargs["u_channels"]
