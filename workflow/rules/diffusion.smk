@@ -58,7 +58,6 @@ rule sample_uncond:
     params:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="uncond",
-        seed=DIFF_SEED + 100,
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
         device=config["device"],
     wildcard_constraints:
@@ -89,7 +88,6 @@ rule sample_type:
         cfg={k: DIFF[k] for k in ("sample", "types", "per_type")},
         mode="type",
         seed=DIFF_SEED + 200,
-        seeds=[],
         device=config["device"],
     log:
         log("sample_type"),
