@@ -220,3 +220,16 @@ def test_sanity_flags_separable_halves():
     assert problems == []
     _, problems = evaluate.sanity(df.assign(value=0.95))
     assert len(problems) == 4
+
+
+def test_novelty_rows_and_table():
+    train = torch.tensor([[0.0, 0.0], [10.0, 10.0]])
+    smp = torch.tensor([[1.0, 1.0], [10.0, 12.0], [0.0, 0.0]])  # nearest L1: 1, 1, 0 -> median 1
+    ref = torch.tensor([[2.0, 2.0], [6.0, 6.0]])  # 2, 4 -> median 3
+    rows = evaluate.novelty_rows(smp, train, ref)
+    v = rows.set_index("distance")["value"]
+    assert v["BRDF-L1"] == 1 and v["reference"] == 3
+    two = pd.concat([rows.assign(draw=0), rows.assign(draw=1, value=rows["value"] * 2)])
+    t = evaluate.novelty_table({"ours": two})
+    assert t.loc[0, "model"] == "ours" and t.loc[0, "median nearest BRDF-L1"] == 1.5
+    assert t.loc[0, "ratio to reference"] == pytest.approx(1.5 / 4.5)

@@ -56,7 +56,6 @@ rule sample_uncond:
     params:
         cfg={"sample": settings("diffusion.sample", drop=["guidance"])},  # unguided
         mode="uncond",
-        seed=seed_for("sample_uncond"),
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
@@ -86,7 +85,6 @@ rule sample_type:
         cfg=settings("diffusion", ["sample", "types", "per_type"]),
         mode="type",
         seed=seed_for("sample_type"),
-        seeds=[],
     log:
         log("sample_type"),
     benchmark:

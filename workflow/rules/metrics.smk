@@ -12,6 +12,8 @@ rule metrics:
     input:
         reference=REFERENCE_WEIGHTS,
         samples=lambda wc: model_weights(wc.model),
+        weights=out("neumerl/weights.npy"),  # training materials, for the novelty rows
+        manifest=out("neumerl/manifest.tsv"),
     output:
         out("metrics/{model}.csv"),
     wildcard_constraints:
@@ -23,6 +25,7 @@ rule metrics:
         activation=config["fit"]["activation"],
         seed=METRICS_SEED,
         draws=DRAWS,
+        novelty_bins=config["diffusion"]["nn_bins"],
         halves_seeds=lambda wc: draw_seeds("halves", wc.model) if wc.model == "reference_halves" else [],
     log:
         log("metrics/{model}"),
@@ -52,6 +55,7 @@ rule metrics_table:
         models=METRICS["models"],
         resolution=config["render"]["resolution"],
         brdf_samples=METRICS["brdf_samples"],
+        novelty_bins=config["diffusion"]["nn_bins"],
     log:
         log("metrics_table"),
     benchmark:

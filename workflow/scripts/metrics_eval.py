@@ -5,7 +5,10 @@ from pathlib import Path
 
 import numpy as np
 
+import pandas as pd
+
 from neumat.device import resolve_device
+from neumat.diffusion import dataset
 from neumat.logs import script_logging
 from neumat.metrics import distances, evaluate, materials
 from neumat.metrics import inception as inc
@@ -52,5 +55,18 @@ with script_logging(snakemake) as log:
         smp = materials.load(snakemake.input.samples)
         log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
         table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw)
+    # novelty: nearest NeuMERL training material at a subset of the BRDF-L1 bins (inside every
+    # table set), as diffusion_nearest does for the diffusion sets
+    weights = np.load(snakemake.input.weights)
+    train = dataset.training_rows(dataset.read_manifest(snakemake.input.manifest, len(weights)), "ours")
+    nb = kw["bins"][np.sort(np.random.default_rng(p.seed).choice(
+        len(kw["bins"]), min(p.novelty_bins, len(kw["bins"])), replace=False))]
+    f_train = materials.brdf_values(weights[train], nb, p.activation)
+    f_ref = materials.brdf_values(ref, nb, p.activation)
+    sets = ([materials.rows(ref, o[h:2 * h]) for o in halves] if model == "reference_halves"
+            else draws_of(smp, p.draws, len(ref), log))
+    nov = pd.concat([evaluate.novelty_rows(materials.brdf_values(s, nb, p.activation), f_train,
+                                           f_ref).assign(draw=i) for i, s in enumerate(sets)])
+    table = pd.concat([table, nov[table.columns]], ignore_index=True)
     table.to_csv(snakemake.output[0], index=False, float_format="%.8g")
     log.info("metrics:\n%s", table.to_string(index=False))

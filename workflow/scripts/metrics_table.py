@@ -38,6 +38,13 @@ with script_logging(snakemake) as log:
         "FID: " + "; ".join(n for n in notes if n) + ". The 64-d row is the variant of the "
         "released M³ashy code (`pytorch_fid --dims 64`), the only one comparable with the "
         "paper's FID values.",
+        "### Novelty",
+        f"Median BRDF-L1 (over {p.novelty_bins} of the BRDF-L1 bins) from each sample to its "
+        "nearest NeuMERL training material, mean over draws, against the same for the "
+        "reference set (real materials the models never saw). Ratio near 1: new materials as "
+        "far from the training set as real unseen ones; near 0: near-copies; far above 1: "
+        "off the training manifold.",
+        evaluate.novelty_table(results).to_markdown(index=False, floatfmt=".4g"),
         "### Sanity rows",
         "Reference halves: random halves of the reference set scored against each other "
         "(1-NNA should be near 50 %). Training set: train-split materials against the test "
