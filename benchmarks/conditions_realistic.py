@@ -137,7 +137,8 @@ def cmd_evaluate(a):
     man, weights = build()
     OUT.mkdir(parents=True, exist_ok=True)
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(20000, a.seed), "relu")
-    smp = dr.settings(1)[3]
+    smp = dict(dr.settings(1)[3])
+    smp["steps"] = a.sample_steps or smp["steps"]
     sampler = Sampler(torch.load(OUT / f"multimodal_{a.objective}.pt", weights_only=False), "cpu")
     txt, img = np.load(OUT / "text.npy"), np.load(OUT / f"image_{a.objective}.npy")
     te = dataset.reference_rows(man)
@@ -219,7 +220,8 @@ def cmd_evaluate(a):
     sweep = pd.DataFrame(sweep)
     print(sweep.to_markdown(index=False, floatfmt=".3g"))
     sweep.to_csv(OUT / f"sweep_{a.objective}.tsv", sep="\t", index=False)
-    print(f"evaluation {time.perf_counter() - t0:.0f} s on {machine()}")
+    print(f"evaluation {time.perf_counter() - t0:.0f} s ({smp['steps']} DDIM steps, guidance {g}) "
+          f"on {machine()}")
 
 
 if __name__ == "__main__":
@@ -231,6 +233,7 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=7000)
     ap.add_argument("--per", type=int, default=8, help="samples per condition")
     ap.add_argument("--guidance", type=float, default=2.0)
+    ap.add_argument("--sample-steps", type=int, default=None, help="DDIM steps (default: config)")
     ap.add_argument("--sweep-per", type=int, default=2, help="samples per condition in the sweep")
     ap.add_argument("--scales", type=float, nargs="+", default=[0.0, 1.0, 2.0, 4.0])
     a = ap.parse_args()

