@@ -10,6 +10,7 @@ become numpy SeedSequence spawn keys; the result fits in 32 bits, which every co
 (numpy, torch.manual_seed, Mitsuba)."""
 
 import hashlib
+import os
 
 import numpy as np
 
@@ -27,4 +28,8 @@ def seed_for(seed: int, stage: str, *items) -> int:
         raise ValueError("seed_for needs a stage name")
     # spawn_key is SeedSequence's own way to name child streams (kept apart from the entropy)
     ss = np.random.SeedSequence(int(seed), spawn_key=(_word(stage), *map(_word, items)))
-    return int(ss.generate_state(1, np.uint32)[0])
+    out = int(ss.generate_state(1, np.uint32)[0])
+    if os.environ.get("NEUMAT_SEED_LOG"):  # tests/test_seeds.py lists the streams of a DAG
+        with open(os.environ["NEUMAT_SEED_LOG"], "a") as f:
+            f.write("\t".join(map(str, (stage, *items, out))) + "\n")
+    return out

@@ -10,15 +10,6 @@ if SYN["methods"] and not SYN_PLANES:
                      "in btf.methods; add one or set btf_synthesis.methods: []")
 
 
-def syn_seed(*items):
-    """Seed of the synthesis of one (material, method): the named stream "btf_synthesis"."""
-    return seed_for("btf_synthesis", *items)
-
-
-def _syn_models(w):
-    return [out(f"btf/models/{w.material}/{m}.pt") for m in SYN_PLANES]
-
-
 rule btf_synthesize:
     wildcard_constraints:
         method=SYN_METHOD_RE,

@@ -25,11 +25,7 @@ SEED = config["seed"]
 def seed_for(stage, *items):
     """Seed of the named random stream `stage` (for `items`, e.g. a material) of this run; see
     neumat.seeds. Every stochastic rule takes its seed from here, never from SEED + offset."""
-    seed = _seeds.seed_for(SEED, stage, *items)
-    if os.environ.get("NEUMAT_SEED_LOG"):  # tests/test_seeds.py lists the streams of a DAG
-        with open(os.environ["NEUMAT_SEED_LOG"], "a") as f:
-            f.write("\t".join(map(str, (stage, *items, seed))) + "\n")
-    return seed
+    return _seeds.seed_for(SEED, stage, *items)  # logged where tests/test_seeds.py asks
 
 
 # ----------------------------------------------------------------------------- params by value
@@ -297,3 +293,41 @@ def _btf_fit_rule_params(method):
     return dict(method=method, roi=lambda w: btf_roi(w.material),
                 seed=lambda w: btf_seed(w.material, method),
                 settings=settings(f"btf.{method}") if method in BTF else {})
+
+
+# ----------------------------------------------------------------------------- conditions (conditions.smk)
+
+
+def cond_seed(stage):
+    """Seed of one conditioning stage: the named stream ("conditions", stage)."""
+    return seed_for("conditions", stage)
+
+
+# ----------------------------------------------------------------------------- Table 3 (hyperbrdf.smk)
+
+
+def hyperbrdf_runtime():
+    """Minutes for a train_hyperbrdf job: 0.25 s per material-step of 6000 samples (measured
+    0.19 s: 1.5 s per step of 8 materials x (4000 + 2000) samples, 1 thread, two jobs on a shared
+    2-core AMD EPYC), scaled by samples, x2 margin for slower cores (a GPU: assumed 20x faster)."""
+    t = config["hyperbrdf"]["train"]
+    per_step = 0.5 * t["materials_per_step"] * (t["context"] + t["query"]) / 6000
+    per_step /= 20 if config["device"] == "cuda" else 1
+    return 10 + math.ceil(t["steps"] * per_step / 60)
+
+
+# ----------------------------------------------------------------------------- BTF synthesis (btf_synthesis.smk)
+
+
+def syn_seed(*items):
+    """Seed of the synthesis of one (material, method): the named stream "btf_synthesis"."""
+    return seed_for("btf_synthesis", *items)
+
+
+def _syn_models(w):
+    return [out(f"btf/models/{w.material}/{m}.pt") for m in syn_planes()]
+
+
+def syn_planes():
+    """The plane models (Triple Plane, NeuMIP) of btf.methods that synthesis applies to."""
+    return [m for m in ("triple_plane", "neumip") if m in BTF["methods"]]

@@ -11,11 +11,6 @@ COND_MODEL = "multimodal"
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 
 
-def cond_seed(stage):
-    """Seed of one conditioning stage: the named stream ("conditions", stage)."""
-    return seed_for("conditions", stage)
-
-
 rule text_embeddings:
     input:
         manifest=out("neumerl/manifest.tsv"),

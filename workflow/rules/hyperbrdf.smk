@@ -9,16 +9,6 @@ HB = config["hyperbrdf"]
 HB_MODELS = ["merl", "augmerl"]
 
 
-def hyperbrdf_runtime():
-    """Minutes for a train_hyperbrdf job: 0.25 s per material-step of 6000 samples (measured
-    0.19 s: 1.5 s per step of 8 materials x (4000 + 2000) samples, 1 thread, two jobs on a shared
-    2-core AMD EPYC), scaled by samples, x2 margin for slower cores (a GPU: assumed 20x faster)."""
-    t = HB["train"]
-    per_step = 0.5 * t["materials_per_step"] * (t["context"] + t["query"]) / 6000
-    per_step /= 20 if config["device"] == "cuda" else 1
-    return 10 + math.ceil(t["steps"] * per_step / 60)
-
-
 rule hyperbrdf_median:
     input:
         manifest=out("augmerl/manifest.tsv"),
