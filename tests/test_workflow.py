@@ -113,7 +113,6 @@ def test_tiny_constrained_synthesis_and_cli(tiny_run, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.slow
 def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
     res = tiny_run / "results/tiny"
     assert "Multi-modal conditioning" in (res / "report/index.md").read_text()
@@ -134,6 +133,7 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
         assert (res / "report/figures" / f).stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_rerun_is_a_no_op(tiny_run):
     res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr
