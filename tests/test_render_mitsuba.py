@@ -12,6 +12,12 @@ VARIANT = mb.select_variant("auto")
 JIT = VARIANT != "scalar_rgb"
 
 
+@pytest.fixture(autouse=True)
+def _variant():
+    """Each test in the variant measured above, whatever another test module set since."""
+    mb.select_variant(VARIANT)
+
+
 def ggx_table(alpha, kd=0.1, ks=0.25):
     """kd + ks * GGX D(theta_h), tinted per channel."""
     th = merl.grid_angles()[0].reshape(merl.SHAPE[1:])

@@ -44,8 +44,8 @@ def test_every_stream_of_a_config_is_distinct(tmp_path, configfile):
         streams[tuple(name)] = int(seed)
     stages = {name[0] for name in streams}
     # the stages of the default DAG that draw random numbers
-    assert {"augmerl", "fit", "train_diffusion", "sample_uncond", "metrics", "mitsuba_figure",
-            "btf"} <= stages, stages
+    assert {"augmerl", "fit", "train_diffusion", "sample", "metrics", "mitsuba_figure",
+            "btf", "train_hyperbrdf", "btf_synthesis", "conditions", "train_baseline"} <= stages, stages
     by_seed = {}
     for name, seed in streams.items():
         by_seed.setdefault(seed, []).append(name)

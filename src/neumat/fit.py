@@ -470,3 +470,20 @@ from neumat.fit_eval import display, export_merl, psnr, render_psnr  # noqa: E40
 from neumat.fit_merge import load_fits, merge_fits, save_fits  # noqa: E402,F401
 from neumat.fit_plots import plot_fit_quality  # noqa: E402,F401
 from neumat.io.atomic import save_npy  # noqa: E402,F401
+
+
+def calibration_fitter(kernel: str, batch: int, activation: str, materials: int,
+                       n_bins: int) -> "BatchFitter":
+    """A BatchFitter on random targets for `fit_kernel.auto_choice` to time (half the bins for
+    training: a few minibatches per epoch)."""
+    rng = np.random.default_rng(0)
+    bins = np.sort(rng.choice(merl.N_BINS, n_bins, replace=False))
+    x, cos = bin_inputs(bins)
+    target = torch.as_tensor(rng.random((materials, n_bins, 3), dtype=np.float32))
+    s = dataclasses.replace(FitSettings(), batch=batch, activation=activation, kernel=kernel,
+                            steps=10 ** 6, val_fraction=0.5)
+    init = nbrdf.init_weights(materials, torch.Generator().manual_seed(0))
+    return BatchFitter(x, cos, target, range(materials), init, s, seed=0)
+
+
+fit_kernel.FITTER = calibration_fitter

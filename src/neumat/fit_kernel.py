@@ -171,28 +171,20 @@ def _pool(threads: int) -> ThreadPoolExecutor:
 # ----------------------------------------------------------------------------- auto: C or torch
 
 CALIBRATION = dict(materials=16, bins=4096, steps=8, rounds=3)  # ~0.1-0.5 s on one core
+# make(kernel, batch, activation, materials, bins) -> a BatchFitter on random data; registered
+# by neumat.fit, which imports this module (so this module never imports it back)
+FITTER = None
 
 
 def _time_steps(kernel: str, batch: int, activation: str, march: str | None) -> float:
     """CPU seconds per material-step of the batched fitter's `kernel` path ("c" or "torch") on a
     small random problem, one thread (this one: CPU time of the thread, not wall time, so that
     other processes on a shared machine do not decide): the best of a few rounds."""
-    import dataclasses
-
-    import numpy as np
-
-    from neumat import fit  # here, not at the top: neumat.fit imports this module
-    from neumat.io import merl
+    if FITTER is None:
+        raise RuntimeError("fit_kernel.auto_choice needs neumat.fit imported (it registers the "
+                           "fitter the calibration times)")
     c = CALIBRATION
-    rng = np.random.default_rng(0)
-    n_bins = max(c["bins"], 4 * batch)  # half of them training bins: a few minibatches
-    bins = np.sort(rng.choice(merl.N_BINS, n_bins, replace=False))
-    x, cos = fit.bin_inputs(bins)
-    target = torch.as_tensor(rng.random((c["materials"], n_bins, 3), dtype=np.float32))
-    s = dataclasses.replace(fit.FitSettings(), batch=batch, activation=activation, kernel=kernel,
-                            steps=10 ** 6, val_fraction=0.5)
-    init = nbrdf.init_weights(c["materials"], torch.Generator().manual_seed(0))
-    f = fit.BatchFitter(x, cos, target, range(c["materials"]), init, s, seed=0)
+    f = FITTER(kernel, batch, activation, c["materials"], max(c["bins"], 4 * batch))
     if kernel == "c" and march is not None:  # the variant being calibrated
         f._c.lib = _library(march)
     f._run(2)  # warm-up: first-touch of buffers, torch's kernel selection
