@@ -2,7 +2,7 @@
 a noisy text embedding and 3 noisy image embeddings of its mode; train with dropout 0.1 and 0.5,
 sample with one modality at guidance 2, report mode hits and distance to the mode.
 Usage: OMP_NUM_THREADS=1 python benchmarks/conditions_dropout_toy.py"""
-import math, sys, tempfile, numpy as np, torch
+import math, tempfile, numpy as np, torch
 from pathlib import Path
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, train
 from neumat.diffusion.sample import sample
