@@ -109,6 +109,7 @@ def cmd_train(a):
     np.save(OUT / "text.npy", txt)
     np.save(OUT / f"image_{a.objective}.npy", img)
     m, s, t, _ = dr.settings(a.steps, a.batch)
+    t["cond_drop"] = a.cond_drop
     mcfg = DenoiserConfig(**m, n_classes=len(names), vector_conditions={"text": 384, "image": img.shape[-1]})
     b = train(weights[rows], dataset.labels(man["type"].iloc[rows], names), names, mcfg,
               ScheduleConfig(**s), TrainConfig(**t), OUT / f"multimodal_{a.objective}.pt",
@@ -233,6 +234,8 @@ if __name__ == "__main__":
     ap.add_argument("--seed", type=int, default=7000)
     ap.add_argument("--per", type=int, default=8, help="samples per condition")
     ap.add_argument("--guidance", type=float, default=2.0)
+    ap.add_argument("--cond-drop", type=float, default=0.5,
+                    help="per-modality dropout in training (the measured run used 0.1)")
     ap.add_argument("--sample-steps", type=int, default=None, help="DDIM steps (default: config)")
     ap.add_argument("--sweep-per", type=int, default=2, help="samples per condition in the sweep")
     ap.add_argument("--scales", type=float, nargs="+", default=[0.0, 1.0, 2.0, 4.0])
