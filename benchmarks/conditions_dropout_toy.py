@@ -4,9 +4,11 @@ sample with one modality at guidance 2, report mode hits and distance to the mod
 Usage: OMP_NUM_THREADS=1 python benchmarks/conditions_dropout_toy.py"""
 import math, tempfile, numpy as np, torch
 from pathlib import Path
+from neumat import machine
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, train
 from neumat.diffusion.sample import sample
 torch.set_num_threads(1)
+print(f"machine: {machine.describe()}", flush=True)
 rng = np.random.default_rng(0); n = 256
 centres = rng.normal(size=(4, 675)).astype(np.float32)
 mode = rng.integers(0, 4, n)

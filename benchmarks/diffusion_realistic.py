@@ -29,6 +29,7 @@ import pandas as pd
 import torch
 import yaml
 
+from neumat import machine
 from neumat.diffusion import (DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset,
                               plausibility, train)
 from neumat.metrics import distances
@@ -156,6 +157,7 @@ if __name__ == "__main__":
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--bins", type=int, default=20000)
     a = ap.parse_args()
+    print(f"machine: {machine.describe()}", flush=True)
     if a.cmd == "train":
         cmd_train(a.model, a.steps, a.seed, a.batch)
     else:

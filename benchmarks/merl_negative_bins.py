@@ -14,6 +14,7 @@ import argparse
 
 import numpy as np
 
+from neumat import machine
 from neumat.io import merl
 
 
@@ -21,6 +22,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("tables", nargs="+", help="MERL .binary files")
     args = ap.parse_args()
+    print(f"machine: {machine.describe()}", flush=True)
     shares = []
     for path in args.tables:
         count, n = merl.negative_bins(merl.read_merl(path))

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
+from neumat import machine
 from neumat.metrics import distances as D
 from neumat.metrics import evaluate, sets
 from neumat.render import gallery, sphere
@@ -109,6 +110,7 @@ def main():
     ap.add_argument("--mi-spp", type=int, default=64)
     ap.add_argument("--no-mitsuba", action="store_true")
     args = ap.parse_args()
+    print(f"machine: {machine.describe()}", flush=True)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
     outdir = ROOT / "benchmarks/out/render_metrics"
     outdir.mkdir(parents=True, exist_ok=True)
