@@ -51,8 +51,8 @@ rule btf_synthesis_eval:
     params:
         planes=SYN_PLANES,
         methods=SYN["methods"],
-        render=SYN["render"],
-        measure=SYN["measure"],
+        render=settings("btf_synthesis.render"),
+        measure=settings("btf_synthesis.measure"),
         lights=BTF["tiling"]["lights"],
         intensity=BTF["tiling"]["intensity"],
         seed=lambda w: syn_seed(w.material, "linear"),
@@ -77,8 +77,8 @@ rule btf_synthesis_section:
         md=out("report/sections/61_btf_synthesis.md"),
         table=out("btf_synthesize/synthesis.tsv"),
     params:
-        render=SYN["render"],
-        measure=SYN["measure"],
+        render=settings("btf_synthesis.render"),
+        measure=settings("btf_synthesis.measure"),
         quilt_scale=SYN["quilting"]["scale"],
         channels=BTF["triple_plane"]["u_channels"],
     log:

@@ -126,7 +126,7 @@ rule sample_text:
     params:
         sample=settings("diffusion.sample"),
         per_prompt=COND["per_condition"],
-        guidance=COND["guidance"],
+        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode="text",
         seed=cond_seed("text"),
     log:
@@ -159,7 +159,7 @@ rule sample_image:
     params:
         sample=settings("diffusion.sample"),
         per_prompt=COND["per_condition"],
-        guidance=COND["guidance"],
+        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         test_images=COND["image"]["test_images"],
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
@@ -192,7 +192,7 @@ rule sample_multimodal:
     params:
         sample=settings("diffusion.sample"),
         per_prompt=COND["per_condition"],
-        guidance=COND["guidance"],
+        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode=lambda w: w.set,
         seed=lambda w: cond_seed(w.set),
     wildcard_constraints:
@@ -290,7 +290,7 @@ rule conditions_mitsuba:
                      caption="../report/conditions_image.rst"),
         info=out("render/mitsuba/conditions.json"),
     params:
-        cfg=config["render"]["mitsuba"],
+        cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
         rows=COND["figure_rows"],
         per_row=COND["figure_samples"],
         activation=DIFF_ACTIVATION,
@@ -329,7 +329,7 @@ rule conditions_section:
         sweep=report(out("report/figures/conditions_guidance.png"), category="Conditioning",
                      caption="../report/conditions_guidance.rst"),
     params:
-        guidance=COND["guidance"],
+        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
     log:
         log("conditions_section"),
     benchmark:

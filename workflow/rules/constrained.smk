@@ -104,7 +104,7 @@ rule constrained_section:
         gallery=report(out("report/figures/constrained_gallery.png"),
                        caption="../report/constrained_gallery.rst", category="Diffusion"),
     params:
-        mitsuba=config["render"]["mitsuba"],
+        mitsuba=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
         gallery_count=CONS["gallery_count"],
         categories=CONS["categories"],
         activation=config["fit"]["activation"],

@@ -35,8 +35,9 @@ with script_logging(snakemake) as log:
     median = np.load(inp.median)[bins]
     log.info("model %s: %d training materials x %d bins", model, len(values), len(bins))
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
+    ckpt = snakemake.config["hyperbrdf"]["train"]["checkpoint_every"]  # speed-only: not a param
     bundle = hb.train(values, bins, median, hb.HyperConfig(**p.cfg["model"]),
-                      hb.HyperTrainConfig(**p.cfg["train"]), snakemake.output.model,
+                      hb.HyperTrainConfig(**p.cfg["train"], checkpoint_every=ckpt), snakemake.output.model,
                       p.checkpoint, p.seed, snakemake.config["device"])
     pd.DataFrame(bundle["history"], columns=hb.HISTORY_COLUMNS).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
