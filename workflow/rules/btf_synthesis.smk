@@ -20,7 +20,7 @@ rule btf_synthesize:
     params:
         planes=SYN_PLANES,
         seed=lambda w: syn_seed(w.material, w.method),
-        settings=lambda w: SYN.get(w.method, {}),
+        settings=lambda w: settings(f"btf_synthesis.{w.method}"),
     log:
         log("btf_synthesize/{material}/{method}"),
     benchmark:
