@@ -19,7 +19,7 @@ import time
 import torch
 
 import neumat.btf.synthesis as syn
-from neumat.btf import models
+from neumat.btf import models, query
 from neumat.btf.neural import fetch
 
 FRAME = 1920 * 1080
@@ -60,11 +60,19 @@ def main():
     c = a.chunk
     runs = {"plain query": lambda: chunked(lambda s: m(u32[s], w[s], w[s]), FRAME, c),
             "plain fetch": lambda: chunked(lambda s: fetch(m.f_u.detach(), u32[s], True), FRAME, c)}
+    with torch.no_grad():  # issue 19 fused C query, where it builds (not under autograd)
+        fused = query.supported(m, u32[:8], w[:8], w[:8])
+    if fused:
+        runs["fused query"] = lambda: chunked(lambda s: query.query(m, u32[s], w[s], w[s]), FRAME, c)
     for method in a.methods:
         st = {"scale": a.quilt_scale} if method == "quilting" else {}
         wrapped = syn.Synthesized(m, syn.build(m, method, 1, st))
         runs[f"{method} query"] = (lambda wr: lambda: chunked(lambda s: wr(u[s], w[s], w[s]), FRAME, c))(wrapped)
         runs[f"{method} synthesis"] = (lambda wr: lambda: chunked(lambda s: wr.synth(u[s]), FRAME, c))(wrapped)
+        if fused:  # the synthesised f_U fed to the fused query (its features_u hook)
+            runs[f"{method}+fused query"] = (lambda wr: lambda: chunked(
+                lambda s: query.query(m, u[s], w[s], w[s], features_u=wr.synth), FRAME, c))(wrapped)
+            runs[f"{method}+fused synthesis"] = runs[f"{method} synthesis"]
         if method == "hpb":   # the torch path of HPB beside its C kernel
             wt = syn.Synthesized(m, _Fn(wrapped.synth.torch_features))
             runs["hpb+torch path query"] = (lambda wr: lambda: chunked(lambda s: wr(u[s], w[s], w[s]), FRAME, c))(wt)
@@ -87,12 +95,15 @@ def main():
             best[k] = min(best[k], time.perf_counter() - t0)
     plain, f_plain = best["plain query"], best["plain fetch"]
     print(f"{'plain tiling':24s} query {plain * 1e3:9.1f} ms/frame   f_U fetch {f_plain * 1e3:8.1f} ms")
+    if fused:
+        print(f"{'plain tiling (fused)':24s} query {best['fused query'] * 1e3:9.1f} ms/frame")
     for k in runs:
-        if k.endswith(" query") and not k.startswith("plain"):
+        if k.endswith(" query") and not k.startswith(("plain", "fused")):
             name = k[:-len(" query")]
             base, _, how = name.partition("+")
             label = syn.LABELS[base] + (f" ({how})" if how else "")
-            report(label, best[k], best[f"{name} synthesis"], plain, f_plain)
+            ref = best["fused query"] if how == "fused" else plain  # against the same query path
+            report(label, best[k], best[f"{name} synthesis"], ref, f_plain)
 
 
 class _Fn:
