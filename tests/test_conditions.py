@@ -15,12 +15,7 @@ from neumat.diffusion import Denoiser, DenoiserConfig, Sampler, ScheduleConfig, 
 from neumat.diffusion.sample import guided_multi, sample
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def test_text_encoder_loads_offline_and_is_deterministic():

@@ -12,13 +12,7 @@ from neumat.diffusion import (Denoiser, DenoiserConfig, Diffusion, Normalizer, S
                               ScheduleConfig, TrainConfig, guided, train)
 from neumat.diffusion.plausibility import albedo_quadrature, directional_albedo, plausibility
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tiny models: one thread is fastest, and avoids spin-waiting on a shared 2-core box."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 SMALL = DenoiserConfig(width=32, depth=2, heads=4, mlp_ratio=2.0, n_classes=3)

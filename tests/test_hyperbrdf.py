@@ -11,12 +11,7 @@ from neumat.io import merl
 from neumat.metrics import reconstruction as rec
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 SMALL = hb.HyperConfig(latent=8, encoder_width=16, head_width=16, target_width=12)
