@@ -22,9 +22,7 @@ Outputs (and checkpoints: a killed `train` resumes) under benchmarks/out/hyperbr
 """
 
 import argparse
-import glob
 import json
-import os
 import platform
 import subprocess
 import time
@@ -39,28 +37,10 @@ from neumat.baselines import hyperbrdf as hb
 from neumat.io import merl
 from neumat.metrics import reconstruction as rec
 
+from diffusion_realistic import load_fits  # noqa: E402  (the published NBRDF fits; NBRDF_DIR)
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks/out/hyperbrdf_realistic"
-ZIP_DIR = Path(os.environ.get("NBRDF_DIR", "/tmp/i17_nbrdf/merl_nbrdf"))  # unzipped merl_nbrdf.zip
-
-
-def load_fits():
-    import h5py
-
-    files = sorted(glob.glob(str(ZIP_DIR / "*.h5")))
-    if len(files) != 100:
-        raise FileNotFoundError(f"{ZIP_DIR}: expected 100 .h5 NBRDF files, found {len(files)} "
-                                "(unzip ../shared/data/merl_nbrdf.zip, or set NBRDF_DIR)")
-    names, ws = [], []
-    for f in files:
-        with h5py.File(f, "r") as h:
-            parts = []
-            for n in ("dense_1", "dense_2", "dense_3"):
-                g = h[n][n]
-                parts += [g["kernel:0"][()].T.ravel(), g["bias:0"][()].ravel()]  # Keras (in,out)
-        names.append(Path(f).stem)
-        ws.append(np.concatenate(parts).astype(np.float32))
-    return names, np.stack(ws)
 
 
 def field_at(w, x6) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Build and cache the package's C kernels (`fit_step.c`, `btf/query_kernel.c`) for a target.
+"""Build and cache the package's C kernels (`fit_step.c`, `btf/query_kernel.c`,
+`btf/synthesis/hpb_kernel.c`) for a target.
 
 Each shared library is built with the system C compiler (`$CC`, default `cc`) for a `-march`
 (`native` by default; a named level such as `x86-64-v3` builds an AVX2 variant on any x86
@@ -35,8 +36,9 @@ def cpu_id() -> str:
         return platform.processor() + platform.machine()
 
 
-def flags(march: str) -> list[str]:
-    f = ["-O3", "-ffast-math", f"-march={march}", "-fPIC"]
+def flags(march: str, fast_math: bool = True) -> list[str]:
+    """Compile flags; fast_math=False keeps IEEE arithmetic (a kernel that must equal torch)."""
+    f = ["-O3", *(["-ffast-math"] if fast_math else []), f"-march={march}", "-fPIC"]
     if X86:
         f.append("-mprefer-vector-width=512")  # use zmm registers where -march has them
     return f
@@ -51,20 +53,20 @@ def runs_here(march: str) -> bool:
     return X86 and need in cpu_id().split()
 
 
-def library_path(source: Path, march: str) -> Path | None:
+def library_path(source: Path, march: str, fast_math: bool = True) -> Path | None:
     """Where the library of `source` for `march` is or will be cached; None without a compiler."""
     cc = os.environ.get("CC", "cc")
     if shutil.which(cc) is None:
         return None
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join([source.read_text(), version, " ".join(flags(march)),
+    key = hashlib.sha256("\0".join([source.read_text(), version, " ".join(flags(march, fast_math)),
                                     cpu_id() if march == "native" else ""]).encode())
     cache_dir = Path(os.environ.get("NEUMAT_CACHE", Path.home() / ".cache" / "neumat"))
     tag = "" if march == "native" else f"{march}-"
     return cache_dir / f"{source.stem}-{tag}{key.hexdigest()[:16]}.so"
 
 
-def _compile(cc: str, source: Path, march: str, out: Path) -> None:
+def _compile(cc: str, source: Path, march: str, out: Path, fast_math: bool = True) -> None:
     """Compile to a temporary name and rename: concurrent jobs never load a half-written file.
 
     -ffast-math only when compiling: linking a shared library with it would add crtfastmath,
@@ -72,7 +74,7 @@ def _compile(cc: str, source: Path, march: str, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         obj, lib = Path(tmp) / f"{source.stem}.o", Path(tmp) / out.name
-        for cmd in ([cc, *flags(march), "-c", str(source), "-o", str(obj)],
+        for cmd in ([cc, *flags(march, fast_math), "-c", str(source), "-o", str(obj)],
                     [cc, "-shared", str(obj), "-o", str(lib), "-lm"]):
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode:
@@ -80,10 +82,10 @@ def _compile(cc: str, source: Path, march: str, out: Path) -> None:
         os.replace(lib, out)
 
 
-def build(source: Path, march: str, fallback: str) -> Path | None:
+def build(source: Path, march: str, fallback: str, fast_math: bool = True) -> Path | None:
     """The built library of `source` for `march`, or None with the reason logged (no compiler,
     a target this CPU cannot run, a failed build); `fallback` says what runs instead."""
-    path = library_path(source, march)
+    path = library_path(source, march, fast_math)
     if path is None:
         log.warning("no C compiler (%s): %s", os.environ.get("CC", "cc"), fallback)
         return None
@@ -94,7 +96,7 @@ def build(source: Path, march: str, fallback: str) -> Path | None:
     if not path.exists():
         log.info("compiling %s -march=%s -> %s", source.name, march, path)
         try:
-            _compile(os.environ.get("CC", "cc"), source, march, path)
+            _compile(os.environ.get("CC", "cc"), source, march, path, fast_math)
         except (RuntimeError, OSError) as e:
             log.warning("%s; %s", e, fallback)
             return None

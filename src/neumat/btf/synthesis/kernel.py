@@ -1,54 +1,32 @@
-"""The CPU fast path of HPB: `hpb_kernel.c`, compiled on first use like the fitter's kernel
-(`neumat.fit_kernel`: system C compiler, -O3 -march=native, cached in $NEUMAT_CACHE by a hash
-of source, compiler and CPU). Without a compiler `hpb_features` returns None and HPB uses its
+"""The CPU fast path of HPB: `hpb_kernel.c`, compiled on first use by `neumat.cbuild` like the
+fitter's kernel (-march=native, cached in $NEUMAT_CACHE), but without -ffast-math. Without a compiler `hpb_features` returns None and HPB uses its
 torch path. Queries are split over torch's thread count (ctypes releases the GIL)."""
 
 from __future__ import annotations
 
 import ctypes
-import hashlib
 import logging
 import os
-import shutil
-import subprocess
-import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
 
 import torch
 
-from neumat.cbuild import cpu_id as _cpu_id
+from neumat import cbuild
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).with_name("hpb_kernel.c")
-FLAGS = ["-O3", "-march=native", "-fPIC"]   # no -ffast-math: same arithmetic as torch
 
 
 @cache
 def _library():
     if os.environ.get("NEUMAT_HPB_KERNEL", "1") == "0":
         return None
-    cc = os.environ.get("CC", "cc")
-    if shutil.which(cc) is None:
-        log.warning("no C compiler (%s): HPB uses its torch path", cc)
+    # no -ffast-math: the same arithmetic as the torch path (and the float64 reference)
+    path = cbuild.build(SOURCE, "native", "HPB uses its torch path", fast_math=False)
+    if path is None:
         return None
-    version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join([SOURCE.read_text(), version, " ".join(FLAGS),
-                                    _cpu_id()]).encode()).hexdigest()[:16]
-    cache_dir = Path(os.environ.get("NEUMAT_CACHE", Path.home() / ".cache" / "neumat"))
-    path = cache_dir / f"hpb_kernel-{key}.so"
-    if not path.exists():
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=cache_dir) as tmp:
-            lib = Path(tmp) / path.name
-            r = subprocess.run([cc, *FLAGS, "-shared", str(SOURCE), "-o", str(lib), "-lm"],
-                               capture_output=True, text=True)
-            if r.returncode:
-                log.warning("compiling %s failed (%s); HPB uses its torch path", SOURCE.name,
-                            r.stderr.strip()[-500:])
-                return None
-            os.replace(lib, path)
     lib = ctypes.CDLL(str(path))
     p, i = ctypes.c_void_p, ctypes.c_int
     lib.hpb_features.argtypes = [ctypes.c_int64, p, p, i, i, i, p, i, p, p, ctypes.c_uint32, p]
