@@ -314,7 +314,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if fixed:
         sampler = Composed(sampler, fixed, scales)
     info = {"model": model_path.parent.name, "text": args.text or "", "image": args.image or ""}
-    info.update({f"guidance_{m}": scales[m] for m in asked})
+    info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
     if args.image:
         info["image_encoder"] = str(enc_path)
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
