@@ -220,10 +220,14 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
     const uint32_t hs = mix(s->seed);
     double ux[T], uy[T], fx[T], fy[T], wd[3][T];
     uint32_t vx[3][T], vy[3][T];
-    for (int q = 0; q < T; q++) {
-        long i = t0 + q < N ? t0 + q : N - 1;
-        ux[q] = s->u[2 * i], uy[q] = s->u[2 * i + 1];
-    }
+    if (t0 + T <= N)
+        for (int q = 0; q < T; q++)
+            ux[q] = s->u[2 * (t0 + q)], uy[q] = s->u[2 * (t0 + q) + 1];
+    else
+        for (int q = 0; q < T; q++) {
+            long i = t0 + q < N ? t0 + q : N - 1;
+            ux[q] = s->u[2 * i], uy[q] = s->u[2 * i + 1];
+        }
     for (int q = 0; q < T; q++) {  /* grid.triangle_grid */
         double sty = uy[q] * K;
         double s0 = ux[q] * K - sty / S3, s1 = 2 * sty / S3;
@@ -261,17 +265,22 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
             p->w[v][q] = (float)wd[v][q];
         }
+    /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
+     * aligned); the lines' first and last floats then both need a prefetch */
+    int straddle = 64 % (4 * C) != 0;
     for (int k = 0; k < 12; k++)
-        for (int q = 0; q < T; q++) {
-            __builtin_prefetch(s->gauss + p->off[k][q]);
-            __builtin_prefetch(s->gauss + p->off[k][q] + C - 1);
-        }
+        for (int q = 0; q < T; q++)
+            __builtin_prefetch(s->gauss + p->off[k][q], 0, 2);
+    if (straddle)
+        for (int k = 0; k < 12; k++)
+            for (int q = 0; q < T; q++)
+                __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 2);
 }
 
 /* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
  * inlining (one vector of channels per texel for C = 8). */
 static inline __attribute__((always_inline)) IEEE void
-hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
+hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
     for (int q = 0; q < T; q++) {
         float acc[C], ww = 0;
@@ -292,7 +301,7 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
     }
     const int L = s->L;
     for (int c = 0; c < C; c++) {
-        const float *row = s->lut + (long)c * L;
+        const float *restrict row = s->lut + (long)c * L;
         for (int q = 0; q < T; q++) {  /* linear interpolation, clamped at both ends */
             float g = X[c * T + q];
             g = g < 0 ? 0 : g > 1 ? 1 : g;
