@@ -40,6 +40,9 @@ enum { AJ = 6, AS = 2 };
 #endif
 #define T 64        /* queries per tile: a multiple of AS * VL for every VL */
 #define MAXW 128    /* widest layer the scratch holds */
+#ifndef AHEAD
+#define AHEAD 2     /* tiles HPB's taps are prefetched ahead */
+#endif
 
 typedef float vf __attribute__((vector_size(4 * VL), aligned(4), may_alias));  /* may_alias: it reads and writes float arrays */
 typedef int vi __attribute__((vector_size(4 * VL), aligned(4), may_alias));
@@ -370,14 +373,16 @@ static void run(long N, const struct source *src, const float *wi, const float *
 {
     float bufa[MAXW * T], bufb[MAXW * T];  /* a tile's activations, ping-pong between layers */
     float wi_[3 * T], wo_[3 * T];
-    struct prepared pre[2];  /* this tile's f_U fetches and the next's */
-    int Cu = src->Cu;
-    if (N > 0)
-        prepare(src, 0, N, &pre[0]);
-    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile ^= 1) {
+    /* f_U fetches prepared (and prefetched) `ahead` tiles ahead: HPB's 12 taps a query need
+     * more time in flight than the plane fetch's 4 */
+    struct prepared pre[AHEAD + 1];
+    int Cu = src->Cu, ahead = src->hpb ? AHEAD : 1;
+    for (int k = 0; k < ahead && k * T < N; k++)
+        prepare(src, k * T, N, &pre[k]);
+    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile = tile == ahead ? 0 : tile + 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
-        if (t0 + T < N)
-            prepare(src, t0 + T, N, &pre[tile ^ 1]);
+        if (t0 + ahead * T < N)
+            prepare(src, t0 + ahead * T, N, &pre[tile == 0 ? ahead : tile - 1]);
         for (int q = 0; q < T; q++) {
             long i = t0 + (q < nt ? q : nt - 1);
             for (int k = 0; k < 3; k++)
