@@ -43,6 +43,9 @@ enum { AJ = 6, AS = 2 };
 #ifndef AHEAD
 #define AHEAD 2     /* tiles HPB's taps are prefetched ahead */
 #endif
+#ifndef DIST
+#define DIST 8      /* queries ahead HPB's taps are moved from L2 into L1 */
+#endif
 
 typedef float vf __attribute__((vector_size(4 * VL), aligned(4), may_alias));  /* may_alias: it reads and writes float arrays */
 typedef int vi __attribute__((vector_size(4 * VL), aligned(4), may_alias));
@@ -286,6 +289,9 @@ static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
     for (int q = 0; q < T; q++) {
+        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
+            for (int k = 0; k < 12; k++)
+                __builtin_prefetch(s->gauss + p->off[k][q + DIST]);
         float acc[C], ww = 0;
         for (int c = 0; c < C; c++)
             acc[c] = 0;
