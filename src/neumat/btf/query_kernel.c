@@ -202,6 +202,7 @@ struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texel
     int32_t off[12][T];     /* texel offsets (in floats) into gauss */
     float tw[12][T];        /* bilinear weights */
     float w[3][T];          /* blend weights */
+    float inv[T];           /* 1 / sqrt(sum of their squares) */
 };
 
 /* The grid, hash and taps without -ffast-math's reassociation: with it GCC formed the bilinear
@@ -271,6 +272,10 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
             p->w[v][q] = (float)wd[v][q];
         }
+    for (int q = 0; q < T; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
+        float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
+        p->inv[q] = (float)(1 / sqrt((double)ww));
+    }
     /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
      * aligned); the lines' first and last floats then both need a prefetch */
     int straddle = 64 % (4 * C) != 0;
@@ -292,7 +297,7 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
         if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
             for (int k = 0; k < 12; k++)
                 __builtin_prefetch(s->gauss + p->off[k][q + DIST]);
-        float acc[C], ww = 0;
+        float acc[C];
         for (int c = 0; c < C; c++)
             acc[c] = 0;
         for (int v = 0; v < 3; v++) {
@@ -300,19 +305,17 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
                         *d = s->gauss + p->off[4 * v + 2][q], *e = s->gauss + p->off[4 * v + 3][q];
             float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
                   t3 = p->tw[4 * v + 3][q], w = p->w[v][q];
-            ww += w * w;
-            for (int c = 0; c < C; c++)
-                acc[c] += (t0 * a[c] + t1 * b[c] + t2 * d[c] + t3 * e[c] - 0.5f) * w;
+            for (int c = 0; c < C; c++)  /* two short chains: more in flight */
+                acc[c] += ((t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]) - 0.5f) * w;
         }
-        float inv = (float)(1 / sqrt((double)ww));  /* not -ffast-math's approximate rsqrt */
         for (int c = 0; c < C; c++)
-            X[c * T + q] = acc[c] * inv + 0.5f;
+            X[c * T + q] = acc[c];
     }
     const int L = s->L;
     for (int c = 0; c < C; c++) {
         const float *restrict row = s->lut + (long)c * L;
         for (int q = 0; q < T; q++) {  /* linear interpolation, clamped at both ends */
-            float g = X[c * T + q];
+            float g = X[c * T + q] * p->inv[q] + 0.5f;
             g = g < 0 ? 0 : g > 1 ? 1 : g;
             float x = g * L - 0.5f;
             x = x < 0 ? 0 : x > L - 1 ? L - 1 : x;
