@@ -79,9 +79,10 @@ def supported(model, *tensors, march: str = "native") -> bool:
 
 
 def _hpb(features_u):
-    """features_u if it is an HPB synthesis the kernel can run, else None."""
-    from neumat.btf.synthesis.hpb import HPB
-    if not isinstance(features_u, HPB):
+    """features_u if it is an HPB synthesis (neumat.btf.synthesis.hpb.HPB, known by its
+    `method`: this module does not import the synthesis package, which imports it) the kernel
+    can run, else None."""
+    if getattr(features_u, "method", None) != "hpb":
         return None
     H, W, C = features_u.gauss.shape
     return features_u if H * W * C < 2 ** 31 else None  # int32 texel offsets
