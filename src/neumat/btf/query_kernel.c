@@ -13,6 +13,10 @@
  *   each layer in turn (nn.Linear layout), ReLU between layers
  *   out (N, 3): max(expm1(y), 0), or y itself (log(1 + RGB)) when raw
  *
+ * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
+ * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
+ * alone (neumat.btf.synthesis.kernel). Both share the tile code, so they agree exactly.
+ *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
  */
