@@ -15,7 +15,7 @@
  *
  * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
  * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
- * alone (neumat.btf.synthesis.kernel). Both share the tile code, so they agree exactly.
+ * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
