@@ -278,18 +278,26 @@ def build_recipe(manifest: pd.DataFrame, rows: pd.DataFrame, pairs, logs, source
 def mix_values(logs, row_src, row_perm, coef, cols, chunk: int = 1 << 15) -> np.ndarray:
     """expm1(coef @ log1p(rows)) at columns `cols` of `logs` -> (n, 3, len(cols)) float32.
 
-    Rows are (source, permutation) pairs; only rows with a non-zero coefficient are read."""
+    Rows are (source, permutation) pairs; only rows with a non-zero coefficient are read, and
+    each source channel they use is gathered once per chunk of columns (logs may be a memory
+    map: a job touches only the pages it needs)."""
     used = np.flatnonzero(np.abs(coef).sum(0) > 0)
     coef = coef[:, used].astype(np.float32)
     src, perm = row_src[used], row_perm[used]
+    # row j, output channel c reads source channel PERMS[perm_j][c]: flat row 3 src + that
+    need = src[None, :] * 3 + np.array([["rgb".index(PERMS[p][c]) for p in perm]
+                                        for c in range(3)])  # (3, rows)
+    uniq, inv = np.unique(need, return_inverse=True)
+    inv = inv.reshape(need.shape)
+    flat = logs.reshape(-1, logs.shape[-1])
     out = np.empty((len(coef), 3, len(cols)), dtype=np.float32)
-    for c in range(3):
-        # row j, channel c reads source channel PERMS[perm_j][c]
-        ch = np.array(["rgb".index(PERMS[p][c]) for p in perm])
-        for s in range(0, len(cols), chunk):
-            # (rows, chunk); only the used rows are touched (logs may be a memory map)
-            rows_c = logs[src[:, None], ch[:, None], cols[None, s:s + chunk]]
-            out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ rows_c), 0.0)
+    for s in range(0, len(cols), chunk):
+        cc = cols[s:s + chunk]
+        block = np.empty((len(uniq), len(cc)), dtype=np.float32)
+        for i, r in enumerate(uniq):
+            np.take(flat[r], cc, out=block[i])
+        for c in range(3):
+            out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ block[inv[c]]), 0.0)
     return out
 
 
