@@ -9,7 +9,9 @@ principal subspace, so every material is an exact linear mixture of the rows:
 
     log(1 + f_i) = sum_j C[i, j] log(1 + row_j)         (C one-hot for rows themselves)
 
-`recipe.npz` stores C; any material is rebuilt exactly from the source tables.
+`recipe.npz` stores C; any material is rebuilt exactly from the source tables, through their
+log1p cache (float32, written once per run by rule augmerl_log_tables and memory-mapped by
+every consumer: write_log_tables / open_log_tables).
 
 Splits are by source material: all rows of a source share its split, pairs are drawn inside a
 split, and each split gets its own PCA, so no test material leaks into a training one.
