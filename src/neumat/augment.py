@@ -125,7 +125,8 @@ def load_log_tables(paths: list[str | Path], negative: dict | None = None):
     """Read source tables -> (log1p values (M, 3, V) float32, valid flat bin indices (V,)).
 
     Valid = above the horizon at the bin centre and non-negative in every table. Tables are
-    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB. With a
+    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB (twice that
+    at the peak: above-horizon bins, then the common valid ones). With a
     `negative` dict, each table is checked (merl.check_negative: a warning with the count, an
     error for far more negative bins than real MERL tables have) and its count stored there.
 
