@@ -270,8 +270,8 @@ def test_tiny_run_used_the_fast_mitsuba_variant(tiny_run):
 # ----------------------------------------------------------------------------- caching
 
 # jobs that compute results (augmerl_figures, a report figure, is not one of them)
-HEAVY = ("fit_shard", "fit_template", "augmerl_pca", "augmerl_shard", "train_",
-         "btf_triple_plane", "btf_neumip", "btf_pca", "btf_sh", "btf_td")
+HEAVY = ("fit_shard", "fit_template", "augmerl_log_tables", "augmerl_pca", "augmerl_shard",
+         "train_", "btf_triple_plane", "btf_neumip", "btf_pca", "btf_sh", "btf_td")
 
 
 def _planned_jobs(wd: Path, configfile: str) -> list[str]:
