@@ -16,6 +16,8 @@
  * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
  * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
+ * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
+ * same grid, hash and taps (struct hpb with `hex` set), blended in hex_fill_c.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
@@ -195,11 +197,15 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane */
+    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane; hex: (H, W, C + 1)
+                               f_U with the luminance channel last */
     int H, W;
-    const float *lut;       /* (C, L) inverse LUT */
+    const float *lut;       /* (C, L) inverse LUT (HPB only) */
     int L;
     uint32_t seed;
+    int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
+    double rotation;
+    float contrast, exponent, gain;
 };
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
@@ -229,8 +235,9 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
     const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
     const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
     const uint32_t hs = mix(s->seed);
-    double ux[T], uy[T], fx[T], fy[T], wd[3][T];
+    double ux[T], uy[T], fx[T], fy[T], wd[3][T], bx[T], by[T];
     uint32_t vx[3][T], vy[3][T];
+    int upq[T];
     if (t0 + T <= N)
         for (int q = 0; q < T; q++)
             ux[q] = s->u[2 * (t0 + q)], uy[q] = s->u[2 * (t0 + q) + 1];
@@ -245,6 +252,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
         double b0 = floor(s0), b1 = floor(s1);
         double f0 = s0 - b0, f1 = s1 - b1, z = 1 - f0 - f1;
         int up = z > 0;
+        bx[q] = b0, by[q] = b1, upq[q] = up;
         uint32_t i0 = (uint32_t)(int64_t)b0, i1 = (uint32_t)(int64_t)b1;
         vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
         vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
@@ -257,9 +265,22 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
         for (int q = 0; q < T; q++) {  /* grid.vertex_hash, grid.wrap_fetch_coords, taps */
             uint32_t h = mix(vy[v][q] ^ mix(vx[v][q] ^ hs));
             h = mix(h ^ 0x9E3779B1u);
-            double px = fx[q] + h * (1.0 / 4294967296.0);
+            double px = h * (1.0 / 4294967296.0);
             h = mix(h ^ 0x9E3779B2u);
-            double py = fy[q] + h * (1.0 / 4294967296.0);
+            double py = h * (1.0 / 4294967296.0);
+            if (s->hex) {  /* hextile.HexTile: the patch rotated about its vertex */
+                h = mix(h ^ 0x9E3779B3u);
+                double a = (6.283185307179586 * (h * (1.0 / 4294967296.0)) -
+                             3.141592653589793) * s->rotation;
+                int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
+                    o1 = v == 0 ? !up : v == 1 ? up : !up;
+                double gx = bx[q] + o0, gy = by[q] + o1;  /* grid.vertex_uv, float64 */
+                double cx = (gx + gy / 2) / K, cy = gy * (S3 / 2) / K;
+                double dx = ux[q] - cx, dy = uy[q] - cy, cs = cos(a), sn = sin(a);
+                px += (cs * dx - sn * dy) + (cx - floor(cx));
+                py += (sn * dx + cs * dy) + (cy - floor(cy));
+            } else
+                px += fx[q], py += fy[q];
             px -= floor(px);
             py -= floor(py);
             float x = (float)px, y = (float)py;
@@ -276,7 +297,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
             p->w[v][q] = (float)wd[v][q];
         }
-    for (int q = 0; q < T; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
+    for (int q = 0; q < T && !s->hex; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
         float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
         p->inv[q] = (float)(1 / sqrt((double)ww));
     }
@@ -331,9 +352,75 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
     }
 }
 
+/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
+ * luminance (channel C of the texels), W_i = (1 + contrast (lum_i - 1)) w_i^exponent,
+ * normalised, hextile.gain3 unless gain = 0.5, then sum W_i c_i. */
+static inline __attribute__((always_inline)) IEEE void
+hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
+{
+    const float *g = s->gauss;
+    const float e = s->exponent, k = (float)(log(1.0 - s->gain) / log(0.5));
+    const int ie = e == floorf(e) && e >= 0 && e <= 16 ? (int)e : -1;  /* hextile._power */
+    float wt[3][T];
+    for (int q = 0; q < T; q++) {
+        float W[3], sum;
+        for (int v = 0; v < 3; v++) {
+            float lum = (p->tw[4 * v][q] * g[p->off[4 * v][q] + C] +
+                         p->tw[4 * v + 1][q] * g[p->off[4 * v + 1][q] + C]) +
+                        (p->tw[4 * v + 2][q] * g[p->off[4 * v + 2][q] + C] +
+                         p->tw[4 * v + 3][q] * g[p->off[4 * v + 3][q] + C]);
+            float w = p->w[v][q], pw = 1;
+            if (ie >= 0)
+                for (int i = 0; i < ie; i++)
+                    pw *= w;
+            else
+                pw = powf(w, e);
+            W[v] = (1 + s->contrast * (lum - 1)) * pw;
+        }
+        sum = W[0] + W[1] + W[2];
+        sum = sum > 1e-30f ? sum : 1e-30f;
+        for (int v = 0; v < 3; v++)
+            W[v] = W[v] / sum;
+        if (s->gain != 0.5f) {  /* hextile.gain3 */
+            for (int v = 0; v < 3; v++) {
+                float sg = W[v] >= 0.5f ? 2.f : 0.f, m = 2 * (1 - sg), b = sg + W[v] * m;
+                b = b > 1e-30f ? b : 1e-30f;
+                W[v] = 0.5f * sg + 0.25f * m * expf(k * logf(b));
+            }
+            sum = W[0] + W[1] + W[2];
+            for (int v = 0; v < 3; v++)
+                W[v] = W[v] / sum;
+        }
+        for (int v = 0; v < 3; v++)
+            wt[v][q] = W[v];
+    }
+    for (int q = 0; q < T; q++) {
+        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
+            for (int k = 0; k < 12; k++)
+                __builtin_prefetch(g + p->off[k][q + DIST]);
+        float acc[C];
+        for (int c = 0; c < C; c++)
+            acc[c] = 0;
+        for (int v = 0; v < 3; v++) {
+            const float *a = g + p->off[4 * v][q], *b = g + p->off[4 * v + 1][q],
+                        *d = g + p->off[4 * v + 2][q], *e = g + p->off[4 * v + 3][q];
+            float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
+                  t3 = p->tw[4 * v + 3][q], w = wt[v][q];
+            for (int c = 0; c < C; c++)
+                acc[c] += ((t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c])) * w;
+        }
+        for (int c = 0; c < C; c++)
+            X[c * T + q] = acc[c];
+    }
+}
+
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
 {
-    if (C == 8)
+    if (s->hex && C == 8)
+        hex_fill_c(8, s, p, X);
+    else if (s->hex)
+        hex_fill_c(C, s, p, X);
+    else if (C == 8)
         hpb_fill_c(8, s, p, X);
     else
         hpb_fill_c(C, s, p, X);
@@ -357,8 +444,8 @@ struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a
  * tile of 64 queries costs nothing measurable. */
 static __attribute__((noinline)) void prepare(const struct source *src, long t0, long N, struct prepared *p)
 {
-    if (src->hpb)
-        hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
+    if (src->hpb)  /* hex: texels of C + 1 floats, the luminance last */
+        hpb_prepare(src->hpb, src->Cu + src->hpb->hex, t0, N, &p->hpb);
     else if (!src->feat)
         prepare_u(src->u, t0, N, src->fu, src->Hu, src->Wu, src->Cu, p->off, p->w);
 }
@@ -445,6 +532,18 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           const int *dims, const float *params, float *out, int raw)
 {
     struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
+    run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
+}
+
+/* The query with hex-tiling's f_U at float64 u (plane: (H, W, Cu + 1), luminance last). */
+void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
+                          const float *plane, int H, int W, int Cu, uint32_t seed,
+                          double rotation, float contrast, float exponent, float gain,
+                          const float *fh, const float *fd, int R, int C, int L,
+                          const int *dims, const float *params, float *out, int raw)
+{
+    struct hpb s = {u, plane, H, W, NULL, 0, seed, 1, rotation, contrast, exponent, gain};
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
