@@ -229,8 +229,11 @@ static inline IEEE uint32_t mix(uint32_t x)  /* neumat.btf.synthesis.grid._mix *
 }
 
 /* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
- * compiler vectorises), then the texels prefetched while the previous tile runs its MLP. */
-static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+ * compiler vectorises), then the texels prefetched while the previous tile runs its MLP.
+ * `hex` is a constant after inlining (hpb_prepare, hex_prepare): a run-time branch in the
+ * vertex loop kept GCC from vectorising it and doubled HPB's cost. */
+static inline __attribute__((always_inline)) IEEE void
+grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, const int hex)
 {
     const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
     const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
@@ -268,7 +271,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             double px = h * (1.0 / 4294967296.0);
             h = mix(h ^ 0x9E3779B2u);
             double py = h * (1.0 / 4294967296.0);
-            if (s->hex) {  /* hextile.HexTile: the patch rotated about its vertex */
+            if (hex) {  /* hextile.HexTile: the patch rotated about its vertex */
                 h = mix(h ^ 0x9E3779B3u);
                 double a = (6.283185307179586 * (h * (1.0 / 4294967296.0)) -
                              3.141592653589793) * s->rotation;
@@ -297,7 +300,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
             p->w[v][q] = (float)wd[v][q];
         }
-    for (int q = 0; q < T && !s->hex; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
+    for (int q = 0; q < T && !hex; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
         float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
         p->inv[q] = (float)(1 / sqrt((double)ww));
     }
@@ -311,6 +314,18 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
         for (int k = 0; k < 12; k++)
             for (int q = 0; q < T; q++)
                 __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 2);
+}
+
+static IEEE __attribute__((noinline)) void
+hpb_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+{
+    grid_prepare(s, C, t0, N, p, 0);
+}
+
+static IEEE __attribute__((noinline)) void
+hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+{
+    grid_prepare(s, C, t0, N, p, 1);
 }
 
 /* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
@@ -444,8 +459,10 @@ struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a
  * tile of 64 queries costs nothing measurable. */
 static __attribute__((noinline)) void prepare(const struct source *src, long t0, long N, struct prepared *p)
 {
-    if (src->hpb)  /* hex: texels of C + 1 floats, the luminance last */
-        hpb_prepare(src->hpb, src->Cu + src->hpb->hex, t0, N, &p->hpb);
+    if (src->hpb && src->hpb->hex)  /* texels of C + 1 floats, the luminance last */
+        hex_prepare(src->hpb, src->Cu + 1, t0, N, &p->hpb);
+    else if (src->hpb)
+        hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (!src->feat)
         prepare_u(src->u, t0, N, src->fu, src->Hu, src->Wu, src->Cu, p->off, p->w);
 }
