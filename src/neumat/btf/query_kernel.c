@@ -228,6 +228,25 @@ static inline IEEE uint32_t mix(uint32_t x)  /* neumat.btf.synthesis.grid._mix *
     return x ^ (x >> 16);
 }
 
+/* sin and cos of a (double, |a| < 2^20) as plain arithmetic the compiler vectorises (libm's
+ * scalar sincos was a third of hex-tiling's cost): a = n pi/2 + r, |r| <= pi/4 (two-part
+ * pi/2), Taylor series to r^17 / r^18 (truncation < 1e-19), then the quadrant. */
+static inline IEEE void sincos_poly(double a, double *sn, double *cs)
+{
+    double n = floor(a * 0.6366197723675814 + 0.5);
+    double r = (a - n * 1.5707963267948966) - n * 6.123233995736766e-17, r2 = r * r;
+    double sp = r * (1 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (
+                    1.0 / 362880 + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800 + r2 * (
+                    -1.0 / 1307674368000 + r2 * (1.0 / 355687428096000)))))))));
+    double cp = 1 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (
+                    -1.0 / 3628800 + r2 * (1.0 / 479001600 + r2 * (-1.0 / 87178291200 + r2 * (
+                    1.0 / 20922789888000 + r2 * (-1.0 / 6402373705728000)))))))));
+    int k = (int)(n - 4 * floor(n / 4));  /* quadrant, 0 ... 3 */
+    double s0 = k & 1 ? cp : sp, c0 = k & 1 ? sp : cp;
+    *sn = k & 2 ? -s0 : s0;
+    *cs = (k + 1) & 2 ? -c0 : c0;
+}
+
 /* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
  * compiler vectorises), then the texels prefetched while the previous tile runs its MLP.
  * `hex` is a constant after inlining (hpb_prepare, hex_prepare): a run-time branch in the
@@ -279,7 +298,8 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
                     o1 = v == 0 ? !up : v == 1 ? up : !up;
                 double gx = bx[q] + o0, gy = by[q] + o1;  /* grid.vertex_uv, float64 */
                 double cx = (gx + gy / 2) / K, cy = gy * (S3 / 2) / K;
-                double dx = ux[q] - cx, dy = uy[q] - cy, cs = cos(a), sn = sin(a);
+                double dx = ux[q] - cx, dy = uy[q] - cy, cs, sn;
+                sincos_poly(a, &sn, &cs);
                 px += (cs * dx - sn * dy) + (cx - floor(cx));
                 py += (sn * dx + cs * dy) + (cy - floor(cy));
             } else
