@@ -390,45 +390,61 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
 /* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
  * luminance (channel C of the texels), W_i = (1 + contrast (lum_i - 1)) w_i^exponent,
  * normalised, hextile.gain3 unless gain = 0.5, then sum W_i c_i. */
+/* hex-tiling's blend weights of a tile from the bilinear luminance and the grid weights:
+ * W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then hextile.gain3 unless
+ * gain = 0.5. Without IEEE: plain loops over the tile's lanes that GCC vectorises, expf and
+ * logf included (libmvec), the same code for every lane. */
+static __attribute__((noinline)) void
+hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restrict w)[T],
+            float (*restrict wt)[T])
+{
+    const float e = s->exponent, k = (float)(log(1.0 - s->gain) / log(0.5)), ct = s->contrast;
+    const int ie = e == floorf(e) && e >= 0 && e <= 16 ? (int)e : -1;  /* hextile._power */
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {
+            float pw = 1;
+            if (ie >= 0)
+                for (int i = 0; i < ie; i++)
+                    pw *= w[v][q];
+            else
+                pw = powf(w[v][q], e);
+            wt[v][q] = (1 + ct * (lum[v][q] - 1)) * pw;
+        }
+    for (int q = 0; q < T; q++) {
+        float sum = wt[0][q] + wt[1][q] + wt[2][q];
+        sum = sum > 1e-30f ? sum : 1e-30f;
+        for (int v = 0; v < 3; v++)
+            wt[v][q] = wt[v][q] / sum;
+    }
+    if (s->gain == 0.5f)
+        return;
+    for (int v = 0; v < 3; v++)  /* hextile.gain3 */
+        for (int q = 0; q < T; q++) {
+            float x = wt[v][q], sg = x >= 0.5f ? 2.f : 0.f, m = 2 * (1 - sg), b = sg + x * m;
+            b = b > 1e-30f ? b : 1e-30f;
+            wt[v][q] = 0.5f * sg + 0.25f * m * expf(k * logf(b));
+        }
+    for (int q = 0; q < T; q++) {
+        float sum = wt[0][q] + wt[1][q] + wt[2][q];
+        for (int v = 0; v < 3; v++)
+            wt[v][q] = wt[v][q] / sum;
+    }
+}
+
+/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
+ * luminance (channel C of the texels), the weights (hex_weights), then sum W_i c_i. */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
     const float *g = s->gauss;
-    const float e = s->exponent, k = (float)(log(1.0 - s->gain) / log(0.5));
-    const int ie = e == floorf(e) && e >= 0 && e <= 16 ? (int)e : -1;  /* hextile._power */
-    float wt[3][T];
-    for (int q = 0; q < T; q++) {
-        float W[3], sum;
-        for (int v = 0; v < 3; v++) {
-            float lum = (p->tw[4 * v][q] * g[p->off[4 * v][q] + C] +
+    float lum[3][T], wt[3][T];
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++)
+            lum[v][q] = (p->tw[4 * v][q] * g[p->off[4 * v][q] + C] +
                          p->tw[4 * v + 1][q] * g[p->off[4 * v + 1][q] + C]) +
                         (p->tw[4 * v + 2][q] * g[p->off[4 * v + 2][q] + C] +
                          p->tw[4 * v + 3][q] * g[p->off[4 * v + 3][q] + C]);
-            float w = p->w[v][q], pw = 1;
-            if (ie >= 0)
-                for (int i = 0; i < ie; i++)
-                    pw *= w;
-            else
-                pw = powf(w, e);
-            W[v] = (1 + s->contrast * (lum - 1)) * pw;
-        }
-        sum = W[0] + W[1] + W[2];
-        sum = sum > 1e-30f ? sum : 1e-30f;
-        for (int v = 0; v < 3; v++)
-            W[v] = W[v] / sum;
-        if (s->gain != 0.5f) {  /* hextile.gain3 */
-            for (int v = 0; v < 3; v++) {
-                float sg = W[v] >= 0.5f ? 2.f : 0.f, m = 2 * (1 - sg), b = sg + W[v] * m;
-                b = b > 1e-30f ? b : 1e-30f;
-                W[v] = 0.5f * sg + 0.25f * m * expf(k * logf(b));
-            }
-            sum = W[0] + W[1] + W[2];
-            for (int v = 0; v < 3; v++)
-                W[v] = W[v] / sum;
-        }
-        for (int v = 0; v < 3; v++)
-            wt[v][q] = W[v];
-    }
+    hex_weights(s, lum, p->w, wt);
     for (int q = 0; q < T; q++) {
         if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
             for (int k = 0; k < 12; k++)
