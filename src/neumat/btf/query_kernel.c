@@ -387,9 +387,6 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
     }
 }
 
-/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
- * luminance (channel C of the texels), W_i = (1 + contrast (lum_i - 1)) w_i^exponent,
- * normalised, hextile.gain3 unless gain = 0.5, then sum W_i c_i. */
 /* hex-tiling's blend weights of a tile from the bilinear luminance and the grid weights:
  * W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then hextile.gain3 unless
  * gain = 0.5. Without IEEE: plain loops over the tile's lanes that GCC vectorises, expf and
@@ -432,37 +429,32 @@ hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restric
 }
 
 /* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
- * luminance (channel C of the texels), the weights (hex_weights), then sum W_i c_i. */
+ * fetch of the C + 1 channels (the last the luminance) in one pass over the texels, the
+ * weights (hex_weights), then sum W_i c_i. */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
     const float *g = s->gauss;
-    float lum[3][T], wt[3][T];
-    for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++)
-            lum[v][q] = (p->tw[4 * v][q] * g[p->off[4 * v][q] + C] +
-                         p->tw[4 * v + 1][q] * g[p->off[4 * v + 1][q] + C]) +
-                        (p->tw[4 * v + 2][q] * g[p->off[4 * v + 2][q] + C] +
-                         p->tw[4 * v + 3][q] * g[p->off[4 * v + 3][q] + C]);
-    hex_weights(s, lum, p->w, wt);
+    float lum[3][T], wt[3][T], bil[3][T][C + 1];
     for (int q = 0; q < T; q++) {
         if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
             for (int k = 0; k < 12; k++)
                 __builtin_prefetch(g + p->off[k][q + DIST]);
-        float acc[C];
-        for (int c = 0; c < C; c++)
-            acc[c] = 0;
         for (int v = 0; v < 3; v++) {
             const float *a = g + p->off[4 * v][q], *b = g + p->off[4 * v + 1][q],
                         *d = g + p->off[4 * v + 2][q], *e = g + p->off[4 * v + 3][q];
             float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
-                  t3 = p->tw[4 * v + 3][q], w = wt[v][q];
-            for (int c = 0; c < C; c++)
-                acc[c] += ((t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c])) * w;
+                  t3 = p->tw[4 * v + 3][q];
+            for (int c = 0; c <= C; c++)
+                bil[v][q][c] = (t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]);
+            lum[v][q] = bil[v][q][C];
         }
-        for (int c = 0; c < C; c++)
-            X[c * T + q] = acc[c];
     }
+    hex_weights(s, lum, p->w, wt);
+    for (int q = 0; q < T; q++)
+        for (int c = 0; c < C; c++)
+            X[c * T + q] = (bil[0][q][c] * wt[0][q] + bil[1][q][c] * wt[1][q]) +
+                           bil[2][q][c] * wt[2][q];
 }
 
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
