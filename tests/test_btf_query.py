@@ -201,3 +201,14 @@ def test_fused_hextile_query_is_a_pure_function_of_u_and_seed():
     assert torch.equal(a, query.query(m, u, wi, wo, features_u=s, threads=3))
     assert not torch.allclose(
         a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hextile", 10)))
+
+
+def test_fused_hextile_other_widths():
+    """A plane of 5 channels (the kernel's generic path; 8 has its own instance)."""
+    from neumat.btf import synthesis
+    m = model(u_channels=5, dir_res=9, dir_channels=3, hidden=19, layers=3)
+    u, wi, wo = hpb_queries(700, 12)
+    s = synthesis.build(m, "hextile", 4)
+    raw = m.decode(s(u), wi, wo)
+    got = query.query(m, u, wi, wo, features_u=s, raw=True)
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
