@@ -330,8 +330,9 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     for (int k = 0; k < 12; k++)
         for (int q = 0; q < T; q++)
             __builtin_prefetch(s->gauss + p->off[k][q], 0, 2);
-    if (straddle)
-        for (int k = 0; k < 12; k++)
+    if (straddle)  /* for each pair (x0, x1) of a row only x1's last float: x0 ends one float
+                      before x1 starts, so in x1's first line or x0's (not at the wrap) */
+        for (int k = 1; k < 12; k += 2)
             for (int q = 0; q < T; q++)
                 __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 2);
 }
