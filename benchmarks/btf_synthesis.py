@@ -5,9 +5,10 @@ CPU time of this process (the load-independent one on a shared machine); goal <=
 < 0.2 ms synthesis vs 2.0 ms query on an RTX 4090).
 
 Rows, each against the plain query of the same path:
-  fused C   `Synthesized(model, synth)(u, wi, wo)` on the CPU: HPB runs inside the query kernel
-            (`neumat/btf/query_kernel.c`, btf_triple_plane_hpb), other methods feed their
-            features to it; against the fused plain query `query.query(model, u, wi, wo)`.
+  fused C   `Synthesized(model, synth)(u, wi, wo)` on the CPU: HPB and hex-tiling run inside
+            the query kernel (`neumat/btf/query_kernel.c`, btf_triple_plane_hpb and _hex),
+            other methods feed their features to it; against the fused plain query
+            `query.query(model, u, wi, wo)`.
   hook      HPB's features computed first (its C `hpb_features`) and fed to the fused query
             through `features_u` (what the fused query did before HPB ran inside it).
   torch     `Synthesized.torch_forward`, synthesis on its torch path; against eager
@@ -127,11 +128,11 @@ def main():
             ow, oc = wall[k] / wall[r] - 1, cpu[k] / cpu[r] - 1
             line += f"   {ow * 100:+7.1f} %  {oc * 100:+7.1f} %   vs {r}"
         print(line, flush=True)
-    if fused and "hpb" in a.methods:
-        r, k = "plain (fused C)", "hpb (fused C)"
+    for method in [x for x in ("hpb", "hextile") if fused and x in a.methods]:
+        r, k = "plain (fused C)", f"{method} (fused C)"
         ow, oc = wall[k] / wall[r] - 1, cpu[k] / cpu[r] - 1
         verdict = "met" if max(ow, oc) <= GOAL else "not met"
-        print(f"HPB synthesis overhead per frame, fused C: {ow * 100:+.1f} % wall, {oc * 100:+.1f} % "
+        print(f"{syn.LABELS[method]} synthesis overhead per frame, fused C: {ow * 100:+.1f} % wall, {oc * 100:+.1f} % "
               f"CPU ({(wall[k] - wall[r]) * 1e3:+.1f} ms, {(cpu[k] - cpu[r]) * 1e3:+.1f} CPU-ms) "
               f"against {wall[r] * 1e3:.1f} ms; goal <= {GOAL * 100:.0f} %: {verdict}  [{where}]")
 

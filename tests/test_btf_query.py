@@ -141,7 +141,7 @@ def test_fused_hpb_query_is_a_pure_function_of_u_and_seed():
 
 def test_synthesized_queries_use_the_fused_path(monkeypatch):
     """Synthesized(model, synth)(u, wi, wo) runs the kernel on the CPU and equals its torch
-    path, for HPB (inside the kernel) and a method that feeds features to it."""
+    path, for HPB and hex-tiling (both synthesised inside the kernel)."""
     from neumat.btf import synthesis
     m, (u, wi, wo) = model(), hpb_queries(600, 8)
     lib, calls = query._library(), []
@@ -150,5 +150,65 @@ def test_synthesized_queries_use_the_fused_path(monkeypatch):
         w = synthesis.Synthesized(m, synthesis.build(m, method, 2))
         ref = w.torch_forward(u, wi, wo)
         calls.clear()
-        torch.testing.assert_close(w(u, wi, wo), ref, rtol=1e-3, atol=1e-4 * ref.abs().max().item())
+        with monkeypatch.context() as mp:  # synthesised inside the kernel, not fed to it
+            mp.setattr(type(w.synth), "__call__", lambda self, u: pytest.fail(method))
+            got = w(u, wi, wo)
+        torch.testing.assert_close(got, ref, rtol=1e-3, atol=1e-4 * ref.abs().max().item())
         assert calls, method
+
+
+@pytest.mark.parametrize("march", MARCHES)
+@pytest.mark.parametrize("n", [3, 2000])
+def test_fused_hextile_query_matches_the_torch_synthesis(march, n, monkeypatch):
+    """Hex-tiling inside the kernel (HPB's grid, hash and taps, rotated about each vertex;
+    luminance-weighted, Gain3-sharpened blend) = decode(HexTile(u)), its torch path."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(n, 9)
+    s = synthesis.build(m, "hextile", 5)
+    raw = m.decode(s(u), wi, wo)
+    monkeypatch.setattr(type(s), "__call__", lambda self, u: pytest.fail("not fused"))
+    got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
+    scale = raw.abs().max().item()
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * scale)
+    rgb = query.query(m, u, wi, wo, features_u=s, march=march)
+    torch.testing.assert_close(rgb, torch.relu(torch.expm1(got)), rtol=1e-5, atol=1e-6)
+    if n > 3:  # u is used in float64: its float32 rounding moves the result at 1e5
+        off = query.query(m, u.float().double(), wi, wo, features_u=s, raw=True, march=march)
+        assert (off - raw)[: n // 3].abs().max() > 100 * (got - raw)[: n // 3].abs().max()
+
+
+@pytest.mark.parametrize("settings", [{"rotation": 0.0, "gain": 0.5},
+                                      {"exponent": 2.5, "contrast": 0.0, "gain": 0.9}])
+def test_fused_hextile_settings(settings):
+    """The blend's other branches: no rotation, no Gain3, a non-integer exponent (powf)."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(900, 10)
+    s = synthesis.build(m, "hextile", 3, settings)
+    raw = m.decode(s(u), wi, wo)
+    got = query.query(m, u, wi, wo, features_u=s, raw=True)
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
+
+
+def test_fused_hextile_query_is_a_pure_function_of_u_and_seed():
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(5000, 11)
+    s = synthesis.build(m, "hextile", 9)
+    a = query.query(m, u, wi, wo, features_u=s)
+    perm = torch.randperm(5000, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hextile", 9)))
+    assert torch.equal(a[perm], query.query(m, u[perm], wi[perm], wo[perm], features_u=s))
+    assert torch.equal(a[:10], query.query(m, u[:10], wi[:10], wo[:10], features_u=s))
+    assert torch.equal(a, query.query(m, u, wi, wo, features_u=s, threads=3))
+    assert not torch.allclose(
+        a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hextile", 10)))
+
+
+def test_fused_hextile_other_widths():
+    """A plane of 5 channels (the kernel's generic path; 8 has its own instance)."""
+    from neumat.btf import synthesis
+    m = model(u_channels=5, dir_res=9, dir_channels=3, hidden=19, layers=3)
+    u, wi, wo = hpb_queries(700, 12)
+    s = synthesis.build(m, "hextile", 4)
+    raw = m.decode(s(u), wi, wo)
+    got = query.query(m, u, wi, wo, features_u=s, raw=True)
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())

@@ -12,7 +12,9 @@ synthesised plane); u is then only passed to that callable. Everything else (dir
 f_H, f_D, MLP) is unchanged. An `HPB` synthesis (neumat.btf.synthesis.hpb) as `features_u`
 runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetches of its
 Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
-is folded into the first layer (`fold_pca`).
+is folded into the first layer (`fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
+inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
+plane with the luminance channel, and hex-tiling's blend).
 
 Falls back to the model's torch path (same results) for other models (NeuMIP, the classical
 ones), tensors off the CPU, autograd, or where the kernel cannot be built (no compiler; see
@@ -48,6 +50,10 @@ def _library(march: str = "native"):
     lib.btf_triple_plane_hpb.argtypes = [l, p, p, p, p, i, i, i, p, i, u32, p, p, i, i, i, p, p,
                                          p, i]
     lib.btf_triple_plane_hpb.restype = None
+    d, f = ctypes.c_double, ctypes.c_float
+    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
+                                         p, p, p, i]
+    lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
     lib.hpb_features.restype = None
     return lib
@@ -79,12 +85,13 @@ def supported(model, *tensors, march: str = "native") -> bool:
 
 
 def _hpb(features_u):
-    """features_u if it is an HPB synthesis (neumat.btf.synthesis.hpb.HPB, known by its
-    `method`: this module does not import the synthesis package, which imports it) the kernel
-    can run, else None."""
-    if getattr(features_u, "method", None) != "hpb":
+    """features_u if it is an HPB or hex-tiling synthesis (neumat.btf.synthesis.hpb.HPB,
+    .hextile.HexTile, known by their `method`: this module does not import the synthesis
+    package, which imports it) the kernel can run, else None."""
+    method = getattr(features_u, "method", None)
+    if method not in ("hpb", "hextile"):
         return None
-    H, W, C = features_u.gauss.shape
+    H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
     return features_u if H * W * C < 2 ** 31 else None  # int32 texel offsets
 
 
@@ -135,6 +142,21 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
                 n, u.data_ptr() + 2 * f4 * a, wi.data_ptr() + 3 * f4 * a,
                 wo.data_ptr() + 3 * f4 * a, None if feat is None else feat.data_ptr() + cu * f4 * a,
                 fu.data_ptr(), fu.shape[0], fu.shape[1], cu, fh.data_ptr(), fd.data_ptr(),
+                fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
+                out_ptr, int(raw))
+    elif hpb.method == "hextile":
+        u = u.detach().double().contiguous()
+        plane, st = _f32(hpb.plane_lum), hpb.s
+        if plane.shape[-1] != cu + 1:
+            raise ValueError(f"hex-tiling plane has {plane.shape[-1] - 1} channels, the model "
+                             f"{cu}")
+
+        def call(a, n, out_ptr):
+            lib.btf_triple_plane_hex(
+                n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
+                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), plane.shape[0], plane.shape[1],
+                cu, hpb.seed & 0xFFFFFFFF, float(st["rotation"]), float(st["contrast"]),
+                float(st["exponent"]), float(st["gain"]), fh.data_ptr(), fd.data_ptr(),
                 fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
                 out_ptr, int(raw))
     else:

@@ -16,6 +16,8 @@
  * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
  * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
+ * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
+ * same grid, hash and taps (struct hpb with `hex` set), blended in hex_fill_c.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
@@ -195,11 +197,15 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane */
+    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane; hex: (H, W, C + 1)
+                               f_U with the luminance channel last */
     int H, W;
-    const float *lut;       /* (C, L) inverse LUT */
+    const float *lut;       /* (C, L) inverse LUT (HPB only) */
     int L;
     uint32_t seed;
+    int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
+    double rotation;
+    float contrast, exponent, gain;
 };
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
@@ -222,15 +228,38 @@ static inline IEEE uint32_t mix(uint32_t x)  /* neumat.btf.synthesis.grid._mix *
     return x ^ (x >> 16);
 }
 
+/* sin and cos of a (double, |a| < 2^20) as plain arithmetic the compiler vectorises (libm's
+ * scalar sincos was a third of hex-tiling's cost): a = n pi/2 + r, |r| <= pi/4 (two-part
+ * pi/2), Taylor series to r^17 / r^18 (truncation < 1e-19), then the quadrant. */
+static inline IEEE void sincos_poly(double a, double *sn, double *cs)
+{
+    double n = floor(a * 0.6366197723675814 + 0.5);
+    double r = (a - n * 1.5707963267948966) - n * 6.123233995736766e-17, r2 = r * r;
+    double sp = r * (1 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (
+                    1.0 / 362880 + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800 + r2 * (
+                    -1.0 / 1307674368000 + r2 * (1.0 / 355687428096000)))))))));
+    double cp = 1 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (
+                    -1.0 / 3628800 + r2 * (1.0 / 479001600 + r2 * (-1.0 / 87178291200 + r2 * (
+                    1.0 / 20922789888000 + r2 * (-1.0 / 6402373705728000)))))))));
+    int k = (int)(n - 4 * floor(n / 4));  /* quadrant, 0 ... 3 */
+    double s0 = k & 1 ? cp : sp, c0 = k & 1 ? sp : cp;
+    *sn = k & 2 ? -s0 : s0;
+    *cs = (k + 1) & 2 ? -c0 : c0;
+}
+
 /* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
- * compiler vectorises), then the texels prefetched while the previous tile runs its MLP. */
-static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+ * compiler vectorises), then the texels prefetched while the previous tile runs its MLP.
+ * `hex` is a constant after inlining (hpb_prepare, hex_prepare): a run-time branch in the
+ * vertex loop kept GCC from vectorising it and doubled HPB's cost. */
+static inline __attribute__((always_inline)) IEEE void
+grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, const int hex)
 {
     const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
     const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
     const uint32_t hs = mix(s->seed);
-    double ux[T], uy[T], fx[T], fy[T], wd[3][T];
+    double ux[T], uy[T], fx[T], fy[T], wd[3][T], bx[T], by[T];
     uint32_t vx[3][T], vy[3][T];
+    int upq[T];
     if (t0 + T <= N)
         for (int q = 0; q < T; q++)
             ux[q] = s->u[2 * (t0 + q)], uy[q] = s->u[2 * (t0 + q) + 1];
@@ -245,6 +274,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
         double b0 = floor(s0), b1 = floor(s1);
         double f0 = s0 - b0, f1 = s1 - b1, z = 1 - f0 - f1;
         int up = z > 0;
+        bx[q] = b0, by[q] = b1, upq[q] = up;
         uint32_t i0 = (uint32_t)(int64_t)b0, i1 = (uint32_t)(int64_t)b1;
         vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
         vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
@@ -257,9 +287,23 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
         for (int q = 0; q < T; q++) {  /* grid.vertex_hash, grid.wrap_fetch_coords, taps */
             uint32_t h = mix(vy[v][q] ^ mix(vx[v][q] ^ hs));
             h = mix(h ^ 0x9E3779B1u);
-            double px = fx[q] + h * (1.0 / 4294967296.0);
+            double px = h * (1.0 / 4294967296.0);
             h = mix(h ^ 0x9E3779B2u);
-            double py = fy[q] + h * (1.0 / 4294967296.0);
+            double py = h * (1.0 / 4294967296.0);
+            if (hex) {  /* hextile.HexTile: the patch rotated about its vertex */
+                h = mix(h ^ 0x9E3779B3u);
+                double a = (6.283185307179586 * (h * (1.0 / 4294967296.0)) -
+                             3.141592653589793) * s->rotation;
+                int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
+                    o1 = v == 0 ? !up : v == 1 ? up : !up;
+                double gx = bx[q] + o0, gy = by[q] + o1;  /* grid.vertex_uv, float64 */
+                double cx = (gx + gy / 2) / K, cy = gy * (S3 / 2) / K;
+                double dx = ux[q] - cx, dy = uy[q] - cy, cs, sn;
+                sincos_poly(a, &sn, &cs);
+                px += (cs * dx - sn * dy) + (cx - floor(cx));
+                py += (sn * dx + cs * dy) + (cy - floor(cy));
+            } else
+                px += fx[q], py += fy[q];
             px -= floor(px);
             py -= floor(py);
             float x = (float)px, y = (float)py;
@@ -276,7 +320,7 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
             p->w[v][q] = (float)wd[v][q];
         }
-    for (int q = 0; q < T; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
+    for (int q = 0; q < T && !hex; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
         float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
         p->inv[q] = (float)(1 / sqrt((double)ww));
     }
@@ -286,10 +330,23 @@ static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int 
     for (int k = 0; k < 12; k++)
         for (int q = 0; q < T; q++)
             __builtin_prefetch(s->gauss + p->off[k][q], 0, 2);
-    if (straddle)
-        for (int k = 0; k < 12; k++)
+    if (straddle)  /* for each pair (x0, x1) of a row only x1's last float: x0 ends one float
+                      before x1 starts, so in x1's first line or x0's (not at the wrap) */
+        for (int k = 1; k < 12; k += 2)
             for (int q = 0; q < T; q++)
                 __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 2);
+}
+
+static IEEE __attribute__((noinline)) void
+hpb_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+{
+    grid_prepare(s, C, t0, N, p, 0);
+}
+
+static IEEE __attribute__((noinline)) void
+hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+{
+    grid_prepare(s, C, t0, N, p, 1);
 }
 
 /* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
@@ -331,9 +388,83 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
     }
 }
 
+/* hex-tiling's blend weights of a tile from the bilinear luminance and the grid weights:
+ * W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then hextile.gain3 unless
+ * gain = 0.5. Without IEEE: plain loops over the tile's lanes that GCC vectorises, expf and
+ * logf included (libmvec), the same code for every lane. */
+static __attribute__((noinline)) void
+hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restrict w)[T],
+            float (*restrict wt)[T])
+{
+    const float e = s->exponent, k = (float)(log(1.0 - s->gain) / log(0.5)), ct = s->contrast;
+    const int ie = e == floorf(e) && e >= 0 && e <= 16 ? (int)e : -1;  /* hextile._power */
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {
+            float pw = 1;
+            if (ie >= 0)
+                for (int i = 0; i < ie; i++)
+                    pw *= w[v][q];
+            else
+                pw = powf(w[v][q], e);
+            wt[v][q] = (1 + ct * (lum[v][q] - 1)) * pw;
+        }
+    for (int q = 0; q < T; q++) {
+        float sum = wt[0][q] + wt[1][q] + wt[2][q];
+        sum = sum > 1e-30f ? sum : 1e-30f;
+        for (int v = 0; v < 3; v++)
+            wt[v][q] = wt[v][q] / sum;
+    }
+    if (s->gain == 0.5f)
+        return;
+    for (int v = 0; v < 3; v++)  /* hextile.gain3 */
+        for (int q = 0; q < T; q++) {
+            float x = wt[v][q], sg = x >= 0.5f ? 2.f : 0.f, m = 2 * (1 - sg), b = sg + x * m;
+            b = b > 1e-30f ? b : 1e-30f;
+            wt[v][q] = 0.5f * sg + 0.25f * m * expf(k * logf(b));
+        }
+    for (int q = 0; q < T; q++) {
+        float sum = wt[0][q] + wt[1][q] + wt[2][q];
+        for (int v = 0; v < 3; v++)
+            wt[v][q] = wt[v][q] / sum;
+    }
+}
+
+/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
+ * fetch of the C + 1 channels (the last the luminance) in one pass over the texels, the
+ * weights (hex_weights), then sum W_i c_i. */
+static inline __attribute__((always_inline)) IEEE void
+hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
+{
+    const float *g = s->gauss;
+    float lum[3][T], wt[3][T], bil[3][T][C + 1];
+    for (int q = 0; q < T; q++) {
+        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
+            for (int k = 0; k < 12; k++)
+                __builtin_prefetch(g + p->off[k][q + DIST]);
+        for (int v = 0; v < 3; v++) {
+            const float *a = g + p->off[4 * v][q], *b = g + p->off[4 * v + 1][q],
+                        *d = g + p->off[4 * v + 2][q], *e = g + p->off[4 * v + 3][q];
+            float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
+                  t3 = p->tw[4 * v + 3][q];
+            for (int c = 0; c <= C; c++)
+                bil[v][q][c] = (t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]);
+            lum[v][q] = bil[v][q][C];
+        }
+    }
+    hex_weights(s, lum, p->w, wt);
+    for (int q = 0; q < T; q++)
+        for (int c = 0; c < C; c++)
+            X[c * T + q] = (bil[0][q][c] * wt[0][q] + bil[1][q][c] * wt[1][q]) +
+                           bil[2][q][c] * wt[2][q];
+}
+
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
 {
-    if (C == 8)
+    if (s->hex && C == 8)
+        hex_fill_c(8, s, p, X);
+    else if (s->hex)
+        hex_fill_c(C, s, p, X);
+    else if (C == 8)
         hpb_fill_c(8, s, p, X);
     else
         hpb_fill_c(C, s, p, X);
@@ -357,7 +488,9 @@ struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a
  * tile of 64 queries costs nothing measurable. */
 static __attribute__((noinline)) void prepare(const struct source *src, long t0, long N, struct prepared *p)
 {
-    if (src->hpb)
+    if (src->hpb && src->hpb->hex)  /* texels of C + 1 floats, the luminance last */
+        hex_prepare(src->hpb, src->Cu + 1, t0, N, &p->hpb);
+    else if (src->hpb)
         hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (!src->feat)
         prepare_u(src->u, t0, N, src->fu, src->Hu, src->Wu, src->Cu, p->off, p->w);
@@ -445,6 +578,18 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           const int *dims, const float *params, float *out, int raw)
 {
     struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
+    run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
+}
+
+/* The query with hex-tiling's f_U at float64 u (plane: (H, W, Cu + 1), luminance last). */
+void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
+                          const float *plane, int H, int W, int Cu, uint32_t seed,
+                          double rotation, float contrast, float exponent, float gain,
+                          const float *fh, const float *fd, int R, int C, int L,
+                          const int *dims, const float *params, float *out, int raw)
+{
+    struct hpb s = {u, plane, H, W, NULL, 0, seed, 1, rotation, contrast, exponent, gain};
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }

@@ -48,9 +48,9 @@ class Synthesized(torch.nn.Module):
 
     @torch.no_grad()
     def forward(self, u, wi, wo):
-        """On the CPU through the fused C query (`neumat.btf.query`: HPB runs inside its tile
-        loop, other methods feed their features to it), else `torch_forward`; the same
-        function to float32 rounding (tests/test_btf_query.py)."""
+        """On the CPU through the fused C query (`neumat.btf.query`: HPB and hex-tiling run
+        inside its tile loop, other methods feed their features to it), else `torch_forward`;
+        the same function to float32 rounding (tests/test_btf_query.py)."""
         return query.query(self.model, u, wi, wo, features_u=self.synth)
 
     @torch.no_grad()

@@ -8,7 +8,11 @@ output sum W_i c_i. Deviations, both forced by the setting: (1) the per-tile ang
 the integer vertex hash instead of |vx vy| + |vx + vy| + pi (that product of two ~3e5
 vertices is not representable in the shader's float32 at u = 1e5); (2) feature planes have no
 colour, so `luminance` is the decoded BTF's luminance at the texel, head-on light and view,
-scaled to [0, 1] (`luminance` below), stored as one extra channel fetched with the taps."""
+scaled to [0, 1] (`luminance` below), stored as one extra channel fetched with the taps.
+
+`__call__` is the torch path: the reference. `Synthesized` queries on the CPU run the same
+synthesis inside the fused C query (`btf_triple_plane_hex` in neumat/btf/query_kernel.c,
+tests/test_btf_query.py); there its sin/cos are a double polynomial, not libm's (< 2e-16)."""
 
 from __future__ import annotations
 
