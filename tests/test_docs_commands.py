@@ -76,27 +76,41 @@ def _missing_plugin(args: list[str]) -> str | None:
     return None
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-    wd = tmp_path_factory.mktemp("docs")
+def _dry_run(wd: Path, args: list[str]) -> subprocess.CompletedProcess:
     for item in ("Snakefile", "workflow", "config", "profiles", "src"):
         src = ROOT / item
         (shutil.copytree if src.is_dir() else shutil.copy)(src, wd / item)
-    return wd
+    full = [sys.executable, "-m", "snakemake", *args[1:], "--dry-run"]
+    return subprocess.run(full, cwd=wd, capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def dry_runs(tmp_path_factory):
+    """Every runnable command's dry run, started at once, one per CPU (each is a Snakemake start
+    and a DAG, seconds of one core), each in its own copy of the workflow."""
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    runs = {cmd: pool.submit(_dry_run, tmp_path_factory.mktemp("docs"), shlex.split(cmd))
+            for _, cmd in documented_commands() if _skip_reason(cmd) is None}
+    yield runs
+    pool.shutdown()
+
+
+def _skip_reason(cmd: str) -> str | None:
+    args = shlex.split(cmd)
+    if "--report" in args:
+        return ("--report needs a finished run: test_workflow.py::test_snakemake_report runs it "
+                "on the tiny run")
+    return _missing_plugin(args)
 
 
 @pytest.mark.parametrize("doc,cmd", documented_commands(),
                          ids=[f"{d}:{c}" for d, c in documented_commands()])
-def test_documented_command_dry_runs(workdir, doc, cmd):
-    args = shlex.split(cmd)
-    if "--report" in args:
-        pytest.skip("--report needs a finished run: test_workflow.py::test_snakemake_report runs "
-                    "it on the tiny run")
-    reason = _missing_plugin(args)
+def test_documented_command_dry_runs(dry_runs, doc, cmd):
+    reason = _skip_reason(cmd)
     if reason:
         pytest.skip(f"{cmd!r} ({doc}): {reason}")
-    full = [sys.executable, "-m", "snakemake", *args[1:], "--dry-run"]
-    res = subprocess.run(full, cwd=workdir, capture_output=True, text=True)
+    res = dry_runs[cmd].result()
     assert res.returncode == 0, (f"{cmd!r} from {doc} fails (with --dry-run):\n"
                                  f"{res.stdout[-2000:]}\n{res.stderr[-4000:]}")
 
