@@ -118,9 +118,12 @@ def test_augmerl_materialises_rows_and_interpolations(tmp_path):
     logs, valid = augment.load_log_tables([paths[n] for n in names])
     recipe = augment.build_recipe(man, rows, pairs, logs, names, pca_dims=17)
     bins = augment.choose_bins(valid, 100, seed=0)
-    np.savez(tmp_path / "recipe.npz", bins=bins,
+    np.savez(tmp_path / "recipe.npz", bins=bins, valid_bins=valid,
              **{k: v for k, v in recipe.items() if k != "pca_stats"})
-    aug = augment.AugMERL(tmp_path / "recipe.npz", paths)
+    cache = tmp_path / "logs.npy", tmp_path / "logs_index.npz"
+    augment.write_log_tables([paths[n] for n in names], names, *cache)
+    aug = augment.AugMERL(tmp_path / "recipe.npz", *cache)
+    assert isinstance(aug.logs, np.memmap)
 
     vals = aug.values(man["id"].to_numpy())
     assert vals.shape == (24, 3, 100) and (vals >= 0).all()
@@ -145,6 +148,110 @@ def test_augmerl_materialises_rows_and_interpolations(tmp_path):
     torch.testing.assert_close(
         sphere.render_view_values(aug.values_or_zero(ids, view_bins), 32),
         sphere.render_tables(aug.tables_from_coefs(aug.coef[ids]), 32), rtol=1e-5, atol=1e-7)
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory):
+    """4 random tables (log1p far from linear) with 7 negative bins each, written once."""
+    tmp_path = tmp_path_factory.mktemp("sources")
+    rng = np.random.default_rng(5)
+    valid = merl.valid_mask()
+    paths = []
+    for i in range(4):
+        t = np.where(valid, rng.gamma(0.5, 2.0, (3, merl.N_BINS)), -merl.SCALE[:, None])
+        t[:, rng.choice(np.flatnonzero(valid), 7, replace=False)] = -0.5
+        paths.append(tmp_path / f"m{i}.binary")
+        merl.write_merl(paths[-1], t.reshape(merl.SHAPE))
+    return paths
+
+
+def test_log_table_cache_round_trips_the_converted_sources(tmp_path, sources):
+    paths = sources[:3]
+    names = [p.stem for p in paths]
+    cache = tmp_path / "logs.npy", tmp_path / "idx.npz"
+    assert augment.write_log_tables(paths, names, *cache)[0] == 3
+    logs, valid, got_names, negative = augment.open_log_tables(*cache)
+    assert isinstance(logs, np.memmap) and not logs.flags.writeable
+    ref_negative = {}
+    ref, ref_valid = augment.load_log_tables(paths, ref_negative)
+    np.testing.assert_array_equal(logs, ref)  # bit for bit
+    np.testing.assert_array_equal(valid, ref_valid)
+    assert got_names == names and negative.tolist() == [ref_negative[str(p)] for p in paths]
+    assert negative.tolist() == [7, 7, 7] and len(valid) < merl.valid_mask().sum() - 7
+    # the values are float64 log1p of the physical tables, rounded once to float32
+    t = merl.read_merl(paths[1]).reshape(3, -1)[:, valid]
+    np.testing.assert_array_equal(logs[1], np.log1p(t).astype(np.float32))
+
+
+def test_cached_augmerl_equals_the_in_memory_path(tmp_path, sources):
+    """Consumers (AugMERL.values, tables, the figures' Gram matrix) give the same numbers from
+    the memory map as from the tables read and converted in the job (the old path)."""
+    paths = sources
+    names = [p.stem for p in paths]
+    rows, pairs, man = _plan(names, size=40, test_fraction=0.25)
+    logs, valid = augment.load_log_tables(paths)
+    recipe = augment.build_recipe(man, rows, pairs, logs, names, pca_dims=5)
+    bins = augment.choose_bins(valid, 5000, seed=0)
+    recipe.pop("pca_stats")
+    np.savez(tmp_path / "recipe.npz", bins=bins, valid_bins=valid, **recipe)
+    cache = tmp_path / "logs.npy", tmp_path / "idx.npz"
+    augment.write_log_tables(paths, names, *cache)
+    aug = augment.AugMERL(tmp_path / "recipe.npz", *cache)
+    ids = man["id"].to_numpy()
+    pos = np.searchsorted(valid, bins)
+    old = augment.mix_values(logs, recipe["row_src"], recipe["row_perm"], recipe["coef"][ids], pos)
+    np.testing.assert_array_equal(aug.values(ids), old)
+    # the pre-cache indexing (all sources at the columns, then the used rows): same values
+    coef = recipe["coef"][ids][:, np.abs(recipe["coef"]).sum(0) > 0].astype(np.float32)
+    used = np.flatnonzero(np.abs(recipe["coef"]).sum(0) > 0)
+    ch = np.array(["rgb".index(augment.PERMS[p][1]) for p in recipe["row_perm"][used]])
+    rows_g = logs[:, :, pos][recipe["row_src"][used], ch]
+    np.testing.assert_array_equal(old[:, 1], np.maximum(np.expm1(coef @ rows_g), 0))
+    np.testing.assert_array_equal(
+        augment.row_gram(aug.logs, aug.row_src, aug.row_perm),
+        augment.row_gram(logs, recipe["row_src"], recipe["row_perm"]))
+    # the recipe's interpolations rebuild from the cache as from the in-memory logs
+    mix = ids[man["operation"] == "interpolation"][:3]
+    np.testing.assert_array_equal(
+        aug.tables_from_coefs(aug.coef[mix]).reshape(3, 3, -1)[:, :, valid],
+        augment.mix_values(logs, recipe["row_src"], recipe["row_perm"], recipe["coef"][mix],
+                           np.arange(len(valid))))
+
+
+def test_corrupt_or_mismatched_cache_errors_naming_the_file(tmp_path, sources):
+    paths = sources[:2]
+    names = [p.stem for p in paths]
+    npy, idx = tmp_path / "logs.npy", tmp_path / "idx.npz"
+    augment.write_log_tables(paths, names, npy, idx)
+    data = npy.read_bytes()
+    npy.write_bytes(data[: len(data) // 2])  # truncated
+    with pytest.raises(ValueError, match=r"logs\.npy: not a readable AugMERL log-table cache"):
+        augment.open_log_tables(npy, idx)
+    npy.write_bytes(b"garbage" * 100)
+    with pytest.raises(ValueError, match=r"logs\.npy.*augmerl_log_tables rebuilds it"):
+        augment.open_log_tables(npy, idx)
+    np.save(npy, np.zeros((2, 3, 10), np.float32))  # a valid .npy of the wrong shape
+    with pytest.raises(ValueError, match=r"logs\.npy: float32 array of shape \(2, 3, 10\)"):
+        augment.open_log_tables(npy, idx)
+    idx.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"idx\.npz: not a readable AugMERL log-table index"):
+        augment.open_log_tables(npy, idx)
+    # a recipe planned on other sources than the cache holds
+    augment.write_log_tables(paths, names, npy, idx)
+    np.savez(tmp_path / "recipe.npz", coef=np.eye(1), row_src=[0], row_perm=[0], bins=[0],
+             source_names=np.array(names[::-1]))
+    with pytest.raises(ValueError, match="recipe.npz was planned on other sources"):
+        augment.AugMERL(tmp_path / "recipe.npz", npy, idx)
+
+
+def test_cache_refuses_a_table_with_nan_naming_it(tmp_path, sources):
+    raw = bytearray(sources[1].read_bytes())
+    raw[12 + 8 * 1000: 12 + 8 * 1001] = np.array([np.nan]).tobytes()
+    paths = [sources[0], tmp_path / "m1.binary"]
+    paths[1].write_bytes(bytes(raw))
+    with pytest.raises(merl.MerlFormatError, match=r"m1\.binary: contains NaN"):
+        augment.write_log_tables(paths, ["m0", "m1"], tmp_path / "l.npy", tmp_path / "i.npz")
+    assert not (tmp_path / "l.npy").exists()
 
 
 def test_choose_bins_errors():

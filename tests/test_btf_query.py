@@ -92,3 +92,63 @@ def test_fallbacks_give_the_torch_path():
     assert tp.f_u.grad is not None
     with torch.no_grad():
         assert query.supported(tp, u)
+
+
+def hpb_queries(n, seed=6):
+    """float64 u around 0, around 1e5 and around -1e5 (where float32 u has no sub-texel
+    digits left), and the directions of `queries`."""
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(n, 2, generator=g, dtype=torch.float64) * 40 - 20
+    u[: n // 3] += 1e5
+    u[n // 3: 2 * n // 3] -= 1e5
+    _, wi, wo = queries(n, seed)
+    return u, wi, wo
+
+
+@pytest.mark.parametrize("march", MARCHES)
+@pytest.mark.parametrize("n", [3, 2000])
+def test_fused_hpb_query_matches_the_torch_synthesis(march, n):
+    """HPB inside the kernel (grid, hash, taps, blend, LUT per tile; PCA folded into layer 1)
+    = the torch path decode(HPB.torch_features(u)), which tests/test_btf_synthesis.py checks
+    against a float64 reference at u = 1e5."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(n)
+    s = synthesis.build(m, "hpb", 5)
+    raw = m.decode(s.torch_features(u), wi, wo)
+    got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
+    # float32 rounding, amplified where the 37 x 23 exemplar's LUT steps are steep
+    scale = raw.abs().max().item()
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * scale)
+    rgb = query.query(m, u, wi, wo, features_u=s, march=march)
+    torch.testing.assert_close(rgb, torch.relu(torch.expm1(got)), rtol=1e-5, atol=1e-6)
+    if n > 3:  # u is used in float64: its float32 rounding moves the result at 1e5
+        off = query.query(m, u.float().double(), wi, wo, features_u=s, raw=True, march=march)
+        assert (off - raw)[: n // 3].abs().max() > 100 * (got - raw)[: n // 3].abs().max()
+
+
+def test_fused_hpb_query_is_a_pure_function_of_u_and_seed():
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(5000, 7)
+    s = synthesis.build(m, "hpb", 9)
+    a = query.query(m, u, wi, wo, features_u=s)
+    perm = torch.randperm(5000, generator=torch.Generator().manual_seed(0))
+    assert torch.equal(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hpb", 9)))
+    assert torch.equal(a[perm], query.query(m, u[perm], wi[perm], wo[perm], features_u=s))
+    assert torch.equal(a[:10], query.query(m, u[:10], wi[:10], wo[:10], features_u=s))
+    assert torch.equal(a, query.query(m, u, wi, wo, features_u=s, threads=3))
+    assert not torch.allclose(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hpb", 10)))
+
+
+def test_synthesized_queries_use_the_fused_path(monkeypatch):
+    """Synthesized(model, synth)(u, wi, wo) runs the kernel on the CPU and equals its torch
+    path, for HPB (inside the kernel) and a method that feeds features to it."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(600, 8)
+    lib, calls = query._library(), []
+    monkeypatch.setattr(query, "_library", lambda march="native": calls.append(march) or lib)
+    for method in ("hpb", "hextile"):
+        w = synthesis.Synthesized(m, synthesis.build(m, method, 2))
+        ref = w.torch_forward(u, wi, wo)
+        calls.clear()
+        torch.testing.assert_close(w(u, wi, wo), ref, rtol=1e-3, atol=1e-4 * ref.abs().max().item())
+        assert calls, method

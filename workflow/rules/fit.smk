@@ -64,7 +64,8 @@ rule fit_eval:
     input:
         fits=out("neumerl/shards/{shard}.npz"),
         recipe=out("augmerl/recipe.npz"),
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
     output:
         out("neumerl/eval/{shard}.tsv"),
     params:
@@ -80,7 +81,7 @@ rule fit_eval:
         CONDA_ENV
     threads: 1
     resources:
-        mem_mb=lambda wc, input: 2500 + 15 * len(input.tables),
+        mem_mb=2500 + 15 * len(MERL_NAMES),
         runtime=30,
     script:
         "../scripts/fit_eval.py"
@@ -139,7 +140,8 @@ rule neumerl_section:
         shards=expand(out("neumerl/shards/{shard}.npz"), shard=AUG_SHARDS),
         template=out("neumerl/template.npz"),
         recipe=out("augmerl/recipe.npz"),
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
         exports=expand(out("neumerl/merl/{augmerl}.binary"), augmerl=FIT["export"]),
     output:
         section=out("report/sections/20_neumerl.md"),
@@ -158,7 +160,7 @@ rule neumerl_section:
         CONDA_ENV
     threads: 1
     resources:
-        mem_mb=lambda wc, input: 2500 + 15 * len(input.tables),
+        mem_mb=2500 + 15 * len(MERL_NAMES),
         runtime=20,
     script:
         "../scripts/neumerl_section.py"

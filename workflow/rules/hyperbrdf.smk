@@ -13,7 +13,8 @@ rule hyperbrdf_median:
     input:
         manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
     output:
         out("hyperbrdf/median.npy"),
     log:
@@ -24,7 +25,7 @@ rule hyperbrdf_median:
         CONDA_ENV
     threads: 1
     resources:
-        mem_mb=lambda wc, input: 2500 + 40 * len(input.tables),
+        mem_mb=2500 + 40 * len(MERL_NAMES),
         runtime=30,
     script:
         "../scripts/hyperbrdf_median.py"
@@ -68,7 +69,8 @@ rule hyperbrdf_eval:
         shards=augmerl_shards(),
         manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
-        tables=[merl_table(n) for n in MERL_NAMES],
+        log_tables=out("augmerl/log_tables.npy"),
+        log_index=out("augmerl/log_tables_index.npz"),
         weights=out("neumerl/weights.npy"),
     output:
         scores=out("hyperbrdf/scores.tsv"),
@@ -87,7 +89,7 @@ rule hyperbrdf_eval:
         CONDA_ENV
     threads: HB["threads"]
     resources:
-        mem_mb=lambda wc, input: 3000 + 40 * len(input.tables),
+        mem_mb=3000 + 40 * len(MERL_NAMES),
         runtime=30,
     script:
         "../scripts/hyperbrdf_eval.py"

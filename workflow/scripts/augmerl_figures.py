@@ -8,8 +8,8 @@ from neumat.render.gallery import gallery
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in snakemake.input.tables}
-    aug = augment.AugMERL(snakemake.input.recipe, paths)
+    inp = snakemake.input
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     src = aug.source_names
 
     def row(name, perm="rgb"):

@@ -19,8 +19,12 @@ with script_logging(snakemake) as log:
     manifest = augment.build_manifest(rows, pairs, cfg["shard_size"])
     log.info("%d sources -> %d rows + %d interpolations", len(names), len(rows), len(pairs))
 
-    negative = {}  # per table: warned in this log and shown in the report, refused if far too many
-    logs, valid = augment.load_log_tables(snakemake.input.tables, negative)
+    # negative-bin counts per table: warned in the cache's log, shown in the report
+    logs, valid, cached, negative = augment.open_log_tables(snakemake.input.log_tables,
+                                                            snakemake.input.log_index)
+    if cached != names:
+        raise ValueError(f"{snakemake.input.log_index}: holds {len(cached)} sources, not this "
+                         f"run's {len(names)} (merl.subset); rerun the workflow")
     log.info("%d bins valid in every source table", len(valid))
     recipe = augment.build_recipe(manifest, rows, pairs, logs, names, cfg["pca_dims"])
     bins = augment.choose_bins(valid, cfg["bins"], seed)
@@ -28,5 +32,5 @@ with script_logging(snakemake) as log:
     np.savez(snakemake.output.recipe, bins=bins, valid_bins=valid,
              pca_split=np.array(sorted(stats)), pca_k=np.array([stats[s][0] for s in sorted(stats)]),
              pca_explained=np.array([stats[s][1] for s in sorted(stats)]),
-             negative_bins=np.array([negative[str(t)] for t in snakemake.input.tables]), **recipe)
+             negative_bins=np.asarray(negative), **recipe)
     manifest.to_csv(snakemake.output.manifest, sep="\t", index=False)

@@ -9,8 +9,8 @@ with script_logging(snakemake) as log:
     manifest = pd.read_csv(snakemake.input.manifest, sep="\t", dtype={"shard": str},
                            keep_default_na=False)
     ids = manifest.loc[manifest["shard"] == shard, "id"].to_numpy()
-    paths = {p.rsplit("/", 1)[-1].removesuffix(".binary"): p for p in snakemake.input.tables}
-    aug = augment.AugMERL(snakemake.input.recipe, paths)
+    inp = snakemake.input
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     values = aug.values(ids)
     log.info("shard %s: %d materials x %d bins, %.1f MB", shard, len(ids), values.shape[-1],
              values.nbytes / 1e6)

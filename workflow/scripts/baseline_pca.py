@@ -27,8 +27,7 @@ with script_logging(snakemake) as log:
         # the table set holds the bins the metrics read; PCA over those in the common valid
         # region of the sources, 0 elsewhere (below the horizon)
         bins = materials.metric_bins(distances.brdf_sample(p.brdf_samples, p.brdf_seed), p.resolution)
-        paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in inp.tables}
-        aug = augment.AugMERL(inp.recipe, paths)
+        aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
         ok = np.isin(bins, aug.valid_bins) & merl.valid_mask()[bins]
         log.info("PCA-A: %d training tables at %d of %d metric bins", len(train), ok.sum(), len(bins))
         fitted = pca.NielsenPCA(p.components, bins[ok]).fit(aug.values(man["id"].iloc[train], bins[ok]))

@@ -10,8 +10,8 @@ from neumat.render import sphere
 with script_logging(snakemake) as log:
     p = snakemake.params
     fits = fit.load_fits(snakemake.input.fits)
-    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in snakemake.input.tables}
-    aug = augment.AugMERL(snakemake.input.recipe, paths)
+    inp = snakemake.input
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     device = str(resolve_device(snakemake.config["device"]))
     # the reference renders need each material only at the view's bins, not as a full table
     view_bins = sphere.sphere_view(p.resolution, device).bins.cpu().numpy()

@@ -32,8 +32,7 @@ with script_logging(snakemake) as log:
             stored[int(sh["ids"][r])] = sh["values"][r]
     values = np.stack([stored[i] for i in ids])
     median = np.load(inp.median)
-    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in inp.tables}
-    aug = augment.AugMERL(inp.recipe, paths)
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     weights = np.load(inp.weights)
     views = {v: rec.view(v, p.resolution, dev) for v in rec.VIEWS}
 

@@ -15,8 +15,7 @@ with script_logging(snakemake) as log:
     ids = man.loc[(man["operation"] == "original") & (man["split"] == "train"), "id"].to_numpy()
     if len(ids) == 0:
         raise ValueError(f"{inp.manifest}: no train-split source materials")
-    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in inp.tables}
-    aug = augment.AugMERL(inp.recipe, paths)
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     median = np.zeros(merl.N_BINS, np.float32)
     valid = aug.valid_bins
     for s in range(0, len(valid), 1 << 16):

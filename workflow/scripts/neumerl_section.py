@@ -24,8 +24,7 @@ with script_logging(snakemake) as log:
     curve = np.concatenate([s["val_history"] for s in shards], 1)  # (k, N)
     fit.plot_fit_quality(fits["render_psnr"], fits["val_loss"], steps, curve, out.quality)
 
-    paths = {f.rsplit("/", 1)[-1].removesuffix(".binary"): f for f in inp.tables}
-    aug = augment.AugMERL(inp.recipe, paths)
+    aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
     k = min(cfg["report_examples"], len(fits))
     ranked = fits.sort_values("render_psnr")
     for rows, path, what in ((ranked.tail(k)[::-1], out.best, "best"),

@@ -9,7 +9,10 @@ measures both against the FLOP bound.
 The f_U hook, for texture synthesis: `features_u` replaces the positional fetch of f_U at u by
 the caller's features, either a tensor (N, C_U) or a callable u -> (N, C_U) (e.g. a fetch from a
 synthesised plane); u is then only passed to that callable. Everything else (directions,
-f_H, f_D, MLP) is unchanged.
+f_H, f_D, MLP) is unchanged. An `HPB` synthesis (neumat.btf.synthesis.hpb) as `features_u`
+runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetches of its
+Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
+is folded into the first layer (`fold_pca`).
 
 Falls back to the model's torch path (same results) for other models (NeuMIP, the classical
 ones), tensors off the CPU, autograd, or where the kernel cannot be built (no compiler; see
@@ -41,6 +44,12 @@ def _library(march: str = "native"):
     p, i, l = ctypes.c_void_p, ctypes.c_int, ctypes.c_long
     lib.btf_triple_plane.argtypes = [l, p, p, p, p, p, i, i, i, p, p, i, i, i, p, p, p, i]
     lib.btf_triple_plane.restype = None
+    u32 = ctypes.c_uint32
+    lib.btf_triple_plane_hpb.argtypes = [l, p, p, p, p, i, i, i, p, i, u32, p, p, i, i, i, p, p,
+                                         p, i]
+    lib.btf_triple_plane_hpb.restype = None
+    lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
+    lib.hpb_features.restype = None
     return lib
 
 
@@ -69,53 +78,99 @@ def supported(model, *tensors, march: str = "native") -> bool:
     return all(t.device.type == "cpu" for t in (model.f_u, *tensors))
 
 
+def _hpb(features_u):
+    """features_u if it is an HPB synthesis (neumat.btf.synthesis.hpb.HPB, known by its
+    `method`: this module does not import the synthesis package, which imports it) the kernel
+    can run, else None."""
+    if getattr(features_u, "method", None) != "hpb":
+        return None
+    H, W, C = features_u.gauss.shape
+    return features_u if H * W * C < 2 ** 31 else None  # int32 texel offsets
+
+
+def fold_pca(W1: torch.Tensor, b1: torch.Tensor, cu: int, mean, basis):
+    """First layer taking HPB's decorrelated q in place of f_U = mean + basis q:
+    W1[:, :cu] basis and b1 + W1[:, :cu] mean (in float64, then float32). numpy: torch's
+    float64 matmul of these tiny matrices took 16 CPU-ms a call on 2 threads (OpenMP)."""
+    W = W1.detach().double().numpy().copy()
+    wu = W[:, :cu].copy()
+    W[:, :cu] = wu @ basis.detach().double().numpy()
+    b = b1.detach().double().numpy() + wu @ mean.detach().double().numpy()
+    return torch.from_numpy(W).float(), torch.from_numpy(b).float()
+
+
 def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
           raw: bool = False, threads: int | None = None, march: str = "native") -> torch.Tensor:
     """RGB (N, 3) of `model` at texture coordinates u (N, 2) and unit directions wi, wo (N, 3);
     raw=True: the MLP output log(1 + RGB) instead. `features_u`: see the module docstring.
     Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
     (e.g. x86-64-v3 for the AVX2 one, in tests)."""
-    if callable(features_u):
+    hpb = _hpb(features_u) if supported(model, u, wi, wo, march=march) else None
+    if callable(features_u) and hpb is None:
         features_u = features_u(u)
-    if not supported(model, u, wi, wo, *([] if features_u is None else [features_u]),
-                     march=march):
+    if hpb is None and not supported(model, u, wi, wo,
+                                     *([] if features_u is None else [features_u]), march=march):
         if features_u is None:  # any model answering model(u, wi, wo) (neumat.btf.models)
             return model.raw(u, wi, wo) if raw else model(u, wi, wo)
         y = model.decode(features_u, wi, wo)
         return y if raw else torch.relu(torch.expm1(y))
     N = wi.shape[0]
     cu = model.kwargs["u_channels"]
-    if features_u is not None and tuple(features_u.shape) != (N, cu):
+    if hpb is None and features_u is not None and tuple(features_u.shape) != (N, cu):
         raise ValueError(f"features_u must be ({N}, {cu}), got {tuple(features_u.shape)}")
-    u, wi, wo = _f32(u), _f32(wi), _f32(wo)
-    feat = None if features_u is None else _f32(features_u)
-    fu, fh, fd = _f32(model.f_u), _f32(model.f_h), _f32(model.f_d)
+    wi, wo = _f32(wi), _f32(wo)
+    fh, fd = _f32(model.f_h), _f32(model.f_d)
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     dims = torch.tensor([lin[0].in_features] + [l.out_features for l in lin], dtype=torch.int32)
-    params = torch.cat([t.detach().reshape(-1) for l in lin for t in (l.weight, l.bias)]).float()
-    out = torch.empty(N, 3)
+    weights = [t.detach() for l in lin for t in (l.weight, l.bias)]
     lib = _library(march)
+    f4 = 4
+    if hpb is None:
+        u = _f32(u)
+        feat = None if features_u is None else _f32(features_u)
+        fu = _f32(model.f_u)
+
+        def call(a, n, out_ptr):
+            lib.btf_triple_plane(
+                n, u.data_ptr() + 2 * f4 * a, wi.data_ptr() + 3 * f4 * a,
+                wo.data_ptr() + 3 * f4 * a, None if feat is None else feat.data_ptr() + cu * f4 * a,
+                fu.data_ptr(), fu.shape[0], fu.shape[1], cu, fh.data_ptr(), fd.data_ptr(),
+                fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
+                out_ptr, int(raw))
+    else:
+        u = u.detach().double().contiguous()
+        weights[:2] = fold_pca(weights[0], weights[1], cu, hpb.mean, hpb.basis)
+        gauss, lut = _f32(hpb.gauss), _f32(hpb.lut)
+
+        def call(a, n, out_ptr):
+            lib.btf_triple_plane_hpb(
+                n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
+                wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), gauss.shape[0], gauss.shape[1],
+                cu, lut.data_ptr(), lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(),
+                fd.data_ptr(), fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(),
+                params.data_ptr(), out_ptr, int(raw))
+    params = torch.cat([t.reshape(-1) for t in weights]).float()
+    out = torch.empty(N, 3)
     threads = max(1, min(threads or torch.get_num_threads(), N // 4096 + 1))
     bounds = [N * k // threads for k in range(threads + 1)]
-    f4 = 4
 
     def part(k):
         a, b = bounds[k], bounds[k + 1]
-        lib.btf_triple_plane(
-            b - a, u.data_ptr() + 2 * f4 * a, wi.data_ptr() + 3 * f4 * a,
-            wo.data_ptr() + 3 * f4 * a, None if feat is None else feat.data_ptr() + cu * f4 * a,
-            fu.data_ptr(), fu.shape[0], fu.shape[1], cu, fh.data_ptr(), fd.data_ptr(),
-            fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
-            out.data_ptr() + 3 * f4 * a, int(raw))
+        call(a, b - a, out.data_ptr() + 3 * f4 * a)
 
+    parallel(part, threads)
+    return out
+
+
+def parallel(part, threads: int) -> None:
+    """part(0) ... part(threads - 1), in parallel (ctypes releases the GIL)."""
     if threads == 1:
         part(0)
-    else:  # ctypes releases the GIL: the parts run in parallel
+    else:
         futures = [_pool(threads - 1).submit(part, k) for k in range(1, threads)]
         part(0)
         for f in futures:
             f.result()
-    return out
 
 
 @cache

@@ -13,11 +13,16 @@
  *   each layer in turn (nn.Linear layout), ReLU between layers
  *   out (N, 3): max(expm1(y), 0), or y itself (log(1 + RGB)) when raw
  *
+ * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
+ * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
+ * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
+ *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
  */
 #include <math.h>
 #include <stddef.h>
+#include <stdint.h>
 
 #if defined(__AVX512F__)
 #define VL 16
@@ -39,9 +44,15 @@ enum { AJ = 6, AS = 2 };
 #endif
 #define T 64        /* queries per tile: a multiple of AS * VL for every VL */
 #define MAXW 128    /* widest layer the scratch holds */
+#ifndef AHEAD
+#define AHEAD 2     /* tiles HPB's taps are prefetched ahead */
+#endif
+#ifndef DIST
+#define DIST 8      /* queries ahead HPB's taps are moved from L2 into L1 */
+#endif
 
-typedef float vf __attribute__((vector_size(4 * VL), aligned(4)));
-typedef int vi __attribute__((vector_size(4 * VL), aligned(4)));
+typedef float vf __attribute__((vector_size(4 * VL), aligned(4), may_alias));  /* may_alias: it reads and writes float arrays */
+typedef int vi __attribute__((vector_size(4 * VL), aligned(4), may_alias));
 
 static inline vf vload(const float *p) { return *(const vf *)p; }
 static inline void st(float *p, vf v) { *(vf *)p = v; }
@@ -174,34 +185,226 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
     dxy[1] = (y + 1) / 2;
 }
 
-void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
-                      const float *feat_u, const float *fu, int Hu, int Wu, int Cu,
-                      const float *fh, const float *fd, int R, int C, int L, const int *dims,
-                      const float *params, float *out, int raw)
+/* Histogram-preserving blending of f_U (neumat.btf.synthesis.hpb; the maths of its torch path
+ * `HPB.torch_features`), in place of the plane fetch: per query the triangle grid in double,
+ * the integer vertex hash (so u = 1e5 keeps its precision), fetch coordinates formed in double
+ * from frac(u) then rounded to float, three bilinear wrap fetches of the Gaussianised plane,
+ * the variance-preserving blend and the inverse LUT. The result is the decorrelated q; the
+ * inverse PCA (mean + basis q) is folded into the first layer's f_U columns by the caller
+ * (neumat/btf/query.py), or applied by hpb_features. A pure function of (u, seed): each query
+ * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
+struct hpb {
+    const double *u;        /* (N, 2) */
+    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane */
+    int H, W;
+    const float *lut;       /* (C, L) inverse LUT */
+    int L;
+    uint32_t seed;
+};
+
+struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
+    int32_t off[12][T];     /* texel offsets (in floats) into gauss */
+    float tw[12][T];        /* bilinear weights */
+    float w[3][T];          /* blend weights */
+    float inv[T];           /* 1 / sqrt(sum of their squares) */
+};
+
+/* The grid, hash and taps without -ffast-math's reassociation: with it GCC formed the bilinear
+ * weights from differently rounded copies of the texel position (their sum off by ~10 ulp). */
+#define IEEE __attribute__((optimize("no-associative-math", "no-reciprocal-math")))
+
+static inline IEEE uint32_t mix(uint32_t x)  /* neumat.btf.synthesis.grid._mix */
+{
+    x ^= x >> 16;
+    x *= 0x7FEB352Du;
+    x ^= x >> 15;
+    x *= 0x2C1B3C6Du;
+    return x ^ (x >> 16);
+}
+
+/* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
+ * compiler vectorises), then the texels prefetched while the previous tile runs its MLP. */
+static IEEE __attribute__((noinline)) void hpb_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
+{
+    const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
+    const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
+    const uint32_t hs = mix(s->seed);
+    double ux[T], uy[T], fx[T], fy[T], wd[3][T];
+    uint32_t vx[3][T], vy[3][T];
+    if (t0 + T <= N)
+        for (int q = 0; q < T; q++)
+            ux[q] = s->u[2 * (t0 + q)], uy[q] = s->u[2 * (t0 + q) + 1];
+    else
+        for (int q = 0; q < T; q++) {
+            long i = t0 + q < N ? t0 + q : N - 1;
+            ux[q] = s->u[2 * i], uy[q] = s->u[2 * i + 1];
+        }
+    for (int q = 0; q < T; q++) {  /* grid.triangle_grid */
+        double sty = uy[q] * K;
+        double s0 = ux[q] * K - sty / S3, s1 = 2 * sty / S3;
+        double b0 = floor(s0), b1 = floor(s1);
+        double f0 = s0 - b0, f1 = s1 - b1, z = 1 - f0 - f1;
+        int up = z > 0;
+        uint32_t i0 = (uint32_t)(int64_t)b0, i1 = (uint32_t)(int64_t)b1;
+        vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
+        vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
+        vx[2][q] = i0 + up, vy[2][q] = i1 + !up, wd[2][q] = up ? f0 : 1 - f0;
+        double rx = ux[q] - floor(ux[q]), ry = uy[q] - floor(uy[q]);
+        fx[q] = rx >= 1 ? rx - 1 : rx;  /* torch.remainder(u, 1) may round to 1 */
+        fy[q] = ry >= 1 ? ry - 1 : ry;
+    }
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {  /* grid.vertex_hash, grid.wrap_fetch_coords, taps */
+            uint32_t h = mix(vy[v][q] ^ mix(vx[v][q] ^ hs));
+            h = mix(h ^ 0x9E3779B1u);
+            double px = fx[q] + h * (1.0 / 4294967296.0);
+            h = mix(h ^ 0x9E3779B2u);
+            double py = fy[q] + h * (1.0 / 4294967296.0);
+            px -= floor(px);
+            py -= floor(py);
+            float x = (float)px, y = (float)py;
+            x = x > top ? top : x;
+            y = y > top ? top : y;
+            x = x * s->W - 0.5f, y = y * s->H - 0.5f;  /* in [-0.5, W - 0.5): wrap by one */
+            float x0 = floorf(x), y0 = floorf(y), ax = x - x0, ay = y - y0;
+            int32_t xa = (int32_t)x0, ya = (int32_t)y0, xb = xa + 1, yb = ya + 1;
+            xa += xa < 0 ? s->W : 0, ya += ya < 0 ? s->H : 0;
+            xb -= xb >= s->W ? s->W : 0, yb -= yb >= s->H ? s->H : 0;
+            p->off[4 * v][q] = (ya * s->W + xa) * C, p->off[4 * v + 1][q] = (ya * s->W + xb) * C;
+            p->off[4 * v + 2][q] = (yb * s->W + xa) * C, p->off[4 * v + 3][q] = (yb * s->W + xb) * C;
+            p->tw[4 * v][q] = (1 - ax) * (1 - ay), p->tw[4 * v + 1][q] = ax * (1 - ay);
+            p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
+            p->w[v][q] = (float)wd[v][q];
+        }
+    for (int q = 0; q < T; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
+        float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
+        p->inv[q] = (float)(1 / sqrt((double)ww));
+    }
+    /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
+     * aligned); the lines' first and last floats then both need a prefetch */
+    int straddle = 64 % (4 * C) != 0;
+    for (int k = 0; k < 12; k++)
+        for (int q = 0; q < T; q++)
+            __builtin_prefetch(s->gauss + p->off[k][q], 0, 2);
+    if (straddle)
+        for (int k = 0; k < 12; k++)
+            for (int q = 0; q < T; q++)
+                __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 2);
+}
+
+/* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
+ * inlining (one vector of channels per texel for C = 8). */
+static inline __attribute__((always_inline)) IEEE void
+hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
+{
+    for (int q = 0; q < T; q++) {
+        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
+            for (int k = 0; k < 12; k++)
+                __builtin_prefetch(s->gauss + p->off[k][q + DIST]);
+        float acc[C];
+        for (int c = 0; c < C; c++)
+            acc[c] = 0;
+        for (int v = 0; v < 3; v++) {
+            const float *a = s->gauss + p->off[4 * v][q], *b = s->gauss + p->off[4 * v + 1][q],
+                        *d = s->gauss + p->off[4 * v + 2][q], *e = s->gauss + p->off[4 * v + 3][q];
+            float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
+                  t3 = p->tw[4 * v + 3][q], w = p->w[v][q];
+            for (int c = 0; c < C; c++)  /* two short chains: more in flight */
+                acc[c] += ((t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]) - 0.5f) * w;
+        }
+        for (int c = 0; c < C; c++)
+            X[c * T + q] = acc[c];
+    }
+    const int L = s->L;
+    for (int c = 0; c < C; c++) {
+        const float *restrict row = s->lut + (long)c * L;
+        for (int q = 0; q < T; q++) {  /* linear interpolation, clamped at both ends */
+            float g = X[c * T + q] * p->inv[q] + 0.5f;
+            g = g < 0 ? 0 : g > 1 ? 1 : g;
+            float x = g * L - 0.5f;
+            x = x < 0 ? 0 : x > L - 1 ? L - 1 : x;
+            int i0 = (int)x;  /* x >= 0: truncation is floor */
+            i0 = i0 > L - 2 ? L - 2 : i0;
+            float t = x - i0, a = row[i0], b = row[i0 + 1];
+            X[c * T + q] = a + t * (b - a);
+        }
+    }
+}
+
+static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
+{
+    if (C == 8)
+        hpb_fill_c(8, s, p, X);
+    else
+        hpb_fill_c(C, s, p, X);
+}
+
+/* Where a tile's f_U comes from: the plane fetch at u, the caller's features, or HPB. */
+struct source {
+    const float *u, *feat, *fu;
+    int Hu, Wu, Cu;
+    const struct hpb *hpb;
+};
+
+struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a tile ahead */
+    long off[T][4];
+    float w[T][4];
+    struct hpb_taps hpb;
+};
+
+/* noinline: inlined into run(), GCC 12.2 at -O3 -ffast-math lost prepare_u's stores (every
+ * f_U row 0; found by tests/test_btf_query.py, gone with -fno-strict-aliasing too). A call per
+ * tile of 64 queries costs nothing measurable. */
+static __attribute__((noinline)) void prepare(const struct source *src, long t0, long N, struct prepared *p)
+{
+    if (src->hpb)
+        hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
+    else if (!src->feat)
+        prepare_u(src->u, t0, N, src->fu, src->Hu, src->Wu, src->Cu, p->off, p->w);
+}
+
+/* Rows 0 ... Cu - 1 of X for the tile at t0 (nt queries, the rest repeat the last). */
+static void fill(const struct source *src, long t0, int nt, const struct prepared *p, float *X)
+{
+    int Cu = src->Cu;
+    if (src->hpb)
+        hpb_fill(Cu, src->hpb, &p->hpb, X);
+    else if (src->feat)
+        for (int q = 0; q < T; q++) {
+            long i = t0 + (q < nt ? q : nt - 1);
+            for (int c = 0; c < Cu; c++)
+                X[c * T + q] = src->feat[i * Cu + c];
+        }
+    else
+        for (int q = 0; q < T; q++)
+            interp(src->fu, Cu, p->off[q], p->w[q], X, q);
+}
+
+static void run(long N, const struct source *src, const float *wi, const float *wo,
+                const float *fh, const float *fd, int R, int C, int L, const int *dims,
+                const float *params, float *out, int raw)
 {
     float bufa[MAXW * T], bufb[MAXW * T];  /* a tile's activations, ping-pong between layers */
     float wi_[3 * T], wo_[3 * T];
-    long uoff[2][T][4];  /* f_U taps of this tile and the next */
-    float uw[2][T][4];
-    if (!feat_u && N > 0)
-        prepare_u(u, 0, N, fu, Hu, Wu, Cu, uoff[0], uw[0]);
-    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile ^= 1) {
+    /* f_U fetches prepared (and prefetched) `ahead` tiles ahead: HPB's 12 taps a query need
+     * more time in flight than the plane fetch's 4 */
+    struct prepared pre[AHEAD + 1];
+    int Cu = src->Cu, ahead = src->hpb ? AHEAD : 1;
+    for (int k = 0; k < ahead && k * T < N; k++)
+        prepare(src, k * T, N, &pre[k]);
+    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile = tile == ahead ? 0 : tile + 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
-        if (!feat_u && t0 + T < N)
-            prepare_u(u, t0 + T, N, fu, Hu, Wu, Cu, uoff[tile ^ 1], uw[tile ^ 1]);
+        if (t0 + ahead * T < N)
+            prepare(src, t0 + ahead * T, N, &pre[tile == 0 ? ahead : tile - 1]);
         for (int q = 0; q < T; q++) {
             long i = t0 + (q < nt ? q : nt - 1);
             for (int k = 0; k < 3; k++)
                 wi_[3 * q + k] = wi[3 * i + k], wo_[3 * q + k] = wo[3 * i + k];
-            if (feat_u)
-                for (int c = 0; c < Cu; c++)
-                    bufa[c * T + q] = feat_u[i * Cu + c];
         }
+        fill(src, t0, nt, &pre[tile], bufa);
         for (int q = 0; q < T; q++) {
             float hxy[2], dxy[2];
             half_diff(wi_ + 3 * q, wo_ + 3 * q, hxy, dxy);
-            if (!feat_u)
-                interp(fu, Cu, uoff[tile][q], uw[tile][q], bufa, q);
             fetch(fh, R, R, C, hxy[0], hxy[1], 0, bufa + Cu * T, q);
             fetch(fd, R, R, C, dxy[0], dxy[1], 0, bufa + (Cu + C) * T, q);
         }
@@ -222,5 +425,48 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
             }
         for (int k = 0; k < 3 * nt; k++)
             out[t0 * 3 + k] = o[k];
+    }
+}
+
+void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
+                      const float *feat_u, const float *fu, int Hu, int Wu, int Cu,
+                      const float *fh, const float *fd, int R, int C, int L, const int *dims,
+                      const float *params, float *out, int raw)
+{
+    struct source src = {u, feat_u, fu, Hu, Wu, Cu, NULL};
+    run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
+}
+
+/* The query with HPB's f_U at float64 u: params' first layer takes q in place of f_U (its
+ * f_U columns times the PCA basis, its bias plus those columns times the mean). */
+void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float *wo,
+                          const float *gauss, int H, int W, int Cu, const float *lut, int Lut,
+                          uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
+                          const int *dims, const float *params, float *out, int raw)
+{
+    struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
+    run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
+}
+
+/* HPB's features alone, (N, C) = mean + basis q (neumat.btf.synthesis.kernel). */
+void hpb_features(long N, const double *u, const float *gauss, int H, int W, int C,
+                  const float *lut, int Lut, uint32_t seed, const float *mean,
+                  const float *basis, float *out)
+{
+    struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct hpb_taps p;
+    float X[MAXW * T];
+    for (long t0 = 0; t0 < N; t0 += T) {
+        int nt = N - t0 < T ? (int)(N - t0) : T;
+        hpb_prepare(&s, C, t0, N, &p);
+        hpb_fill(C, &s, &p, X);
+        for (int q = 0; q < nt; q++)
+            for (int j = 0; j < C; j++) {
+                float f = mean[j];
+                for (int c = 0; c < C; c++)
+                    f += basis[j * C + c] * X[c * T + q];
+                out[(t0 + q) * C + j] = f;
+            }
     }
 }

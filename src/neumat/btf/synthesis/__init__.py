@@ -14,6 +14,7 @@ from pathlib import Path
 
 import torch
 
+from neumat.btf import query
 from neumat.btf.synthesis.hextile import HexTile, luminance
 from neumat.btf.synthesis.hpb import HPB
 from neumat.btf.synthesis.quilting import Quilting
@@ -47,6 +48,14 @@ class Synthesized(torch.nn.Module):
 
     @torch.no_grad()
     def forward(self, u, wi, wo):
+        """On the CPU through the fused C query (`neumat.btf.query`: HPB runs inside its tile
+        loop, other methods feed their features to it), else `torch_forward`; the same
+        function to float32 rounding (tests/test_btf_query.py)."""
+        return query.query(self.model, u, wi, wo, features_u=self.synth)
+
+    @torch.no_grad()
+    def torch_forward(self, u, wi, wo):
+        """The torch path: the fallback, and the reference the fused query is tested against."""
         return torch.relu(torch.expm1(self.model.decode(self.synth(u), wi, wo)))
 
     def n_params(self) -> int:
