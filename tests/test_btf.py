@@ -111,6 +111,7 @@ def test_query_api_shapes_and_save_load(tiny_btf, make, tmp_path):
         assert torch.allclose(m(u, wi, wo), m.values(t, l, v), atol=1e-5)
 
 
+@pytest.mark.slow
 def test_classical_fits_are_accurate(tiny_btf):
     t, l, v, y, u, wi, wo = _queries(tiny_btf, 2000)
 
@@ -131,6 +132,7 @@ def _psnr(a, b):
     return (10 * torch.log10(b.max() ** 2 / ((a - b) ** 2).mean())).item()
 
 
+@pytest.mark.slow
 def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path):
     torch.set_num_threads(1)
     t, l, v, y, u, wi, wo = _queries(tiny_btf, 4000, seed=5)

@@ -18,6 +18,7 @@ from neumat.diffusion.sample import guided_multi, sample
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
+@pytest.mark.slow
 def test_text_encoder_loads_offline_and_is_deterministic():
     """In a fresh interpreter with the hub offline and every proxy pointing nowhere: the packaged
     model loads by path, embeds twice identically, and ranks a paraphrase above another material."""
@@ -128,6 +129,7 @@ def test_cfg_null_path_per_modality():
         assert torch.allclose(guided_multi(m, cond, sc)(x, t), want, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_toy_text_and_image_conditioning_hit_the_mode(tmp_path):
     """Two modes; each material has a noisy text embedding and K = 3 noisy image embeddings
     of its mode, and no type label. Text alone and image alone must pick the mode."""

@@ -181,6 +181,7 @@ TOY_MODEL = DenoiserConfig(width=64, depth=2, heads=4, mlp_ratio=2.0, n_classes=
 TOY_SCHED = ScheduleConfig(timesteps=100, kind="cosine", prediction="x0")
 
 
+@pytest.mark.slow
 def test_learns_two_mode_distribution(tmp_path):
     w, labels, centres = _two_modes()
     bundle = train(w, labels, ["a", "b"], TOY_MODEL, TOY_SCHED, TOY_TRAIN,

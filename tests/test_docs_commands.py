@@ -1,10 +1,22 @@
-"""Every `snakemake ...` command written in README.md, the Snakefile header and the profiles'
-headers runs verbatim (with --dry-run added), so a documented command cannot rot unnoticed.
+"""Every command written in README.md is tested as written, so a documented command cannot rot
+unnoticed. Commands are found, not listed: a new command in the README is tested without
+touching this file.
 
-Commands are found, not listed: a new command in the README is tested without touching this file.
-Each runs in a copy of the workflow, so the checkout's .snakemake/ and results/ stay untouched."""
+- `snakemake ...` (README, Snakefile header, profiles' headers): run verbatim with --dry-run
+  added, in a copy of the workflow (the checkout's .snakemake/ and results/ stay untouched).
+- `neumat ...` (README code blocks, and inline spans with arguments): run verbatim, in document
+  order, against the tiny run (conftest.py `tiny_run`), as `python -m neumat.cli ...` (the
+  console script's module). One mechanical substitution: the README names the default
+  config's run, `results/default`; the commands run in a directory where `results/default` is a
+  link to the tiny run's `results/tiny`, so their text is unchanged.
+- The Quickstart's shell chains and the other commands (`python benchmarks/...`,
+  `./.ci/run`): too costly to run here (an install, the whole suite, realistic data), so each
+  part is checked cheaply: the file or extra it names exists, every flag it passes is one its
+  program accepts (its --help, or an argparse literal in a benchmarks/ script), and `.ci/run` runs the README's test command verbatim. A command with no
+  check fails the test, naming it."""
 
 import importlib.util
+import os
 import re
 import shlex
 import shutil
@@ -64,26 +76,187 @@ def _missing_plugin(args: list[str]) -> str | None:
     return None
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory):
-    wd = tmp_path_factory.mktemp("docs")
+def _dry_run(wd: Path, args: list[str]) -> subprocess.CompletedProcess:
     for item in ("Snakefile", "workflow", "config", "profiles", "src"):
         src = ROOT / item
         (shutil.copytree if src.is_dir() else shutil.copy)(src, wd / item)
-    return wd
+    full = [sys.executable, "-m", "snakemake", *args[1:], "--dry-run"]
+    return subprocess.run(full, cwd=wd, capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def dry_runs(tmp_path_factory):
+    """Every runnable command's dry run, started at once, one per CPU (each is a Snakemake start
+    and a DAG, seconds of one core), each in its own copy of the workflow."""
+    from concurrent.futures import ThreadPoolExecutor
+    pool = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    runs = {cmd: pool.submit(_dry_run, tmp_path_factory.mktemp("docs"), shlex.split(cmd))
+            for _, cmd in documented_commands() if _skip_reason(cmd) is None}
+    yield runs
+    pool.shutdown()
+
+
+def _skip_reason(cmd: str) -> str | None:
+    args = shlex.split(cmd)
+    if "--report" in args:
+        return ("--report needs a finished run: test_workflow.py::test_snakemake_report runs it "
+                "on the tiny run")
+    return _missing_plugin(args)
 
 
 @pytest.mark.parametrize("doc,cmd", documented_commands(),
                          ids=[f"{d}:{c}" for d, c in documented_commands()])
-def test_documented_command_dry_runs(workdir, doc, cmd):
-    args = shlex.split(cmd)
-    if "--report" in args:
-        pytest.skip("--report needs a finished run: test_workflow.py::test_snakemake_report runs "
-                    "it on the tiny run")
-    reason = _missing_plugin(args)
+def test_documented_command_dry_runs(dry_runs, doc, cmd):
+    reason = _skip_reason(cmd)
     if reason:
         pytest.skip(f"{cmd!r} ({doc}): {reason}")
-    full = [sys.executable, "-m", "snakemake", *args[1:], "--dry-run"]
-    res = subprocess.run(full, cwd=workdir, capture_output=True, text=True)
+    res = dry_runs[cmd].result()
     assert res.returncode == 0, (f"{cmd!r} from {doc} fails (with --dry-run):\n"
                                  f"{res.stdout[-2000:]}\n{res.stderr[-4000:]}")
+
+
+# ----------------------------------------------------------------------------- neumat commands
+
+README = ROOT / "README.md"
+
+
+def neumat_commands(text: str) -> list[str]:
+    """`neumat ...` commands in document order: lines of fenced code blocks (a trailing
+    `# comment` dropped) and inline code spans with arguments (a bare `neumat sample` names the
+    subcommand, it is no command)."""
+    cmds = []
+    pattern = r"```[^\n]*\n(.*?)```|`(neumat [^`]+)`"
+    for block, span in re.findall(pattern, text, re.S):
+        lines = block.splitlines() if block else [" ".join(span.split())]
+        for ln in lines:
+            ln = re.sub(r"\s+#.*$", "", ln).strip()
+            if ln.startswith("neumat ") and len(shlex.split(ln)) > 2 and ln not in cmds:
+                cmds.append(ln)
+    return cmds
+
+
+NEUMAT = neumat_commands(README.read_text())
+
+
+def test_neumat_commands_are_found():
+    assert any(c.startswith("neumat sample ") for c in NEUMAT), NEUMAT
+    assert any(c.startswith("neumat render ") for c in NEUMAT), NEUMAT
+    assert neumat_commands("x `neumat sample` y\n```bash\nneumat info r  # c\n```\n") == ["neumat info r"]
+
+
+@pytest.fixture(scope="module")
+def cli_dir(tiny_run, tmp_path_factory):
+    d = tmp_path_factory.mktemp("readme_cli")
+    (d / "results").mkdir()
+    (d / "results/default").symlink_to(tiny_run / "results/tiny", target_is_directory=True)
+    return d
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("cmd", NEUMAT, ids=NEUMAT)
+def test_readme_neumat_command_runs_on_the_tiny_run(cli_dir, cmd):
+    """In README order: a later command may read what an earlier one wrote (`render mirrors/...`)."""
+    args = shlex.split(cmd)
+    res = subprocess.run([sys.executable, "-m", "neumat.cli", *args[1:]], cwd=cli_dir,
+                         capture_output=True, text=True)
+    assert res.returncode == 0, f"{cmd!r} (README) fails on the tiny run:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}"
+    if "--out" in args:
+        out = cli_dir / args[args.index("--out") + 1]
+        assert out.exists() and (out.is_dir() or out.stat().st_size > 100), out
+
+
+# ----------------------------------------------------------------------------- other commands
+
+def other_commands(text: str) -> list[str]:
+    """Shell commands of the README that are neither snakemake nor neumat ones: each part of the
+    Quickstart's `&&` chains, and inline spans that run a program (python, pip, pytest, a
+    benchmarks/ script, ./.ci/run)."""
+    parts = []
+    quick = text.split("## Quickstart", 1)[1].split("\n## ", 1)[0]
+    for block in re.findall(r"```bash\n(.*?)```", quick, re.S):
+        parts += [p.strip() for ln in block.splitlines() for p in ln.split("&&")]
+    prose = re.sub(r"```.*?```", "", text, flags=re.S)
+    for span in re.findall(r"`([^`]+)`", prose):
+        span = " ".join(span.split())
+        if re.match(r"(\w+=\S+ )*(python3? |pip |pytest|\./\.ci/run|benchmarks/\S+\.py)", span) \
+                or re.match(r"time \./", span):
+            parts.append(span)
+    cmds = []
+    for p in parts:
+        if p and not p.startswith(("snakemake ", "neumat ")) and p not in cmds:
+            cmds.append(p)
+    return cmds
+
+
+OTHER = other_commands(README.read_text())
+
+
+def _accepts(prog: list[str], flags: list[str]) -> str | None:
+    """None if `prog --help` lists every flag, else what is missing."""
+    if not flags:
+        return None
+    res = subprocess.run([*prog, "--help"], cwd=ROOT, capture_output=True, text=True)
+    if res.returncode != 0:
+        return f"{' '.join(prog)} --help fails: {res.stderr[-500:]}"
+    missing = [f for f in flags if f.split("=")[0] not in res.stdout]
+    return f"{' '.join(prog)} does not accept {missing}" if missing else None
+
+
+def _check(cmd: str) -> str | None:
+    """None if the command would run as written (cheap checks), else why not."""
+    import tomllib
+    args = shlex.split(cmd)
+    while args and re.match(r"\w+=", args[0]) or args[:1] == ["time"]:
+        args = args[1:]  # environment assignments, `time`
+    flags = [a for a in args if a.startswith("-")]
+    prog = args[0]
+    if "*" in prog:
+        return None if list(ROOT.glob(prog)) else f"{prog} matches no file"
+    if prog == "python3" and args[1:4] == ["-m", "venv", ".venv"]:
+        return _accepts([sys.executable, "-m", "venv"], flags[1:])
+    if prog == "." and args[1:] == [".venv/bin/activate"]:
+        return None  # what `python3 -m venv .venv` makes on POSIX
+    if prog == "pip" and args[1] == "install":
+        m = re.fullmatch(r"\.(?:\[([\w,]+)\])?", args[-1])
+        if not m or not (ROOT / "pyproject.toml").exists():
+            return f"installs {args[-1]!r}, not this project"
+        extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"].get(
+            "optional-dependencies", {})
+        unknown = [e for e in (m.group(1) or "").split(",") if e and e not in extras]
+        return f"pyproject.toml has no extra {unknown}" if unknown else \
+            _accepts([sys.executable, "-m", "pip", "install"], flags)
+    if prog == "pytest":
+        ini = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["pytest"]["ini_options"]
+        markers = {m.split(":")[0] for m in ini.get("markers", [])}
+        for i, a in enumerate(args):
+            if a == "-m":
+                names = set(re.findall(r"\w+", args[i + 1])) - {"not", "and", "or"}
+                if names - markers:
+                    return f"marker(s) {names - markers} not registered in pyproject.toml"
+        return _accepts([sys.executable, "-m", "pytest"], flags)
+    if prog in ("python", "python3") and args[1:2] == ["-m"]:
+        return _accepts([sys.executable, "-m", args[2]], flags[1:])
+    if prog in ("python", "python3") or prog.startswith("benchmarks/"):
+        script = args[1] if prog.startswith("python") else prog
+        if not (ROOT / script).is_file():
+            return f"{script} does not exist"
+        src = (ROOT / script).read_text()  # argparse flags as literals: no torch import here
+        missing = [f for f in flags if f'"{f.split("=")[0]}"' not in src]
+        return f"{script} has no option {missing}" if missing else None
+    if prog == "./.ci/run":
+        return None if os.access(ROOT / ".ci/run", os.X_OK) else ".ci/run is not executable"
+    return "no check for this kind of command: add one to _check"
+
+
+@pytest.mark.parametrize("cmd", OTHER, ids=OTHER)
+def test_readme_command_would_run(cmd):
+    reason = _check(cmd)
+    assert reason is None, f"README command {cmd!r}: {reason}"
+
+
+def test_ci_runs_the_readme_test_command():
+    """.ci/run installs and tests exactly as the README's Quickstart says (after its own venv)."""
+    quick = README.read_text().split("## Quickstart", 1)[1]
+    test_cmd = re.findall(r"```bash\n(.*?)\n```", quick, re.S)[1]
+    tail = test_cmd.split("&&", 2)[2].strip()  # after creating and activating the venv
+    assert tail in (ROOT / ".ci/run").read_text(), tail

@@ -113,6 +113,7 @@ def test_training_rejects_bad_input(tmp_path):
         hb.train(vals[:, :, :150], bins[:150], med[:150], mcfg, cfg, out, ck, seed=0)
 
 
+@pytest.mark.slow
 def test_learns_lambertian_family_and_reconstructs(tmp_path):
     """Trained on Lambertians of random albedo, an unseen albedo is recovered from its samples
     (sparse and compression) much better than by the untrained model."""

@@ -205,6 +205,7 @@ def keras_to_flat(h5) -> np.ndarray:
     return np.concatenate(parts).astype(np.float64)
 
 
+@pytest.mark.slow
 def test_neural_field_agrees_with_shared_decode(tmp_path):
     archive = SHARED / "data" / "merl_nbrdf.zip"
     tool = SHARED / "tools" / "nbrdf_to_merl.py"

@@ -151,7 +151,9 @@ def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
     remote, local = _copy_workflow(tmp_path / "slurm"), _copy_workflow(tmp_path / "local")
     cmd = [sys.executable, "-m", "snakemake", "report", "--until", *UNTIL, "--retries", "0"]
     t0 = time.time()
-    res = subprocess.run([*cmd, "--profile", "profiles/slurm", "--configfile", "config/tiny.yaml"],
+    # --cores: the most CPUs a (group) job may ask for, this node's (the profile's is 8)
+    res = subprocess.run([*cmd, "--profile", "profiles/slurm", "--cores", str(os.cpu_count()),
+                          "--configfile", "config/tiny.yaml"],
                          cwd=remote, env=slurm, capture_output=True, text=True, timeout=1800)
     slurm_s = time.time() - t0
     text = res.stdout + res.stderr
@@ -160,12 +162,19 @@ def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
     subprocess.run([*cmd, "--cores", "2", "--configfile", "config/tiny.yaml"], cwd=local,
                    check=True, capture_output=True)
     local_s = time.time() - t0
-    submitted = re.findall(r"submitted with SLURM jobid", text)
+    # every job went through sbatch: each one the run executed is listed under a (group) job
+    # that was submitted, and none ran on the submit host ("localrule")
     n_done = int(re.findall(r"(\d+) of \d+ steps", text)[-1])  # "10 of 57 steps": --until
-    assert len(submitted) == n_done >= 10, text[-3000:]  # every job went through sbatch
+    executed = sum(int(n) for n in re.findall(r"^Execute (\d+) jobs", text, re.M))
+    submitted = re.findall(r"submitted with SLURM jobid", text)
+    listed = re.findall(r"^\s*rule \w+:$", text, re.M)
+    assert "localrule " not in text and len(submitted) == executed >= 1, text[-3000:]
+    assert len(listed) == n_done >= 10, text[-3000:]
     files = sorted(p.relative_to(local) for p in (local / "results/tiny").rglob("*")
                    if p.is_file() and "/logs/" not in str(p) and "/benchmarks/" not in str(p))
     assert files
     for f in files:
         assert (remote / f).read_bytes() == (local / f).read_bytes(), f
-    print(f"via Slurm {slurm_s:.0f} s, local {local_s:.0f} s ({slurm_s / local_s:.2f}x)")
+    # not asserted: on a shared 2-core machine the ratio swings with the load
+    print(f"{n_done} jobs in {len(submitted)} sbatch jobs: via Slurm {slurm_s:.0f} s, "
+          f"local {local_s:.0f} s ({slurm_s / local_s:.2f}x), load {os.getloadavg()[0]:.1f}")

@@ -30,11 +30,7 @@ def _snakemake(cwd, *args, check=True):
     return res
 
 
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    wd = _copy_workflow(tmp_path_factory.mktemp("tiny"))
-    _snakemake(wd, "report", "--configfile", "config/tiny.yaml")
-    return wd
+# tiny_run (conftest.py): the tiny config run once to its report, shared with other modules
 
 
 @pytest.mark.slow

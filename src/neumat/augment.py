@@ -28,6 +28,7 @@ import pandas as pd
 
 from neumat.data.catalog import drop_colours
 from neumat.io import merl
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,10 @@ def check_split(names: list[str], test_fraction: float, what: str = "merl.subset
 
 
 def split_sources(names: list[str], test_fraction: float, seed: int) -> dict[str, str]:
-    """Assign each source material to train/test (at least one of each when test_fraction > 0)."""
+    """Assign each source material to train/test (at least one of each when test_fraction > 0).
+
+    Draws from `seed` itself (the AugMERL stream); pairs and bins draw from named sub-streams
+    of it, so none of the three shares numbers with another."""
     rng = np.random.default_rng(seed)
     n_test = int(round(test_fraction * len(names)))
     if test_fraction > 0:
@@ -85,7 +89,7 @@ def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
     """Draw `n_interp` (row_a, row_b, weight_a) triples inside splits, in proportion to their size.
 
     Rows of different source materials are paired when the split has more than one source."""
-    rng = np.random.default_rng(seed + 1)
+    rng = np.random.default_rng(seed_for(seed, "augmerl_pairs"))
     splits = sorted(rows["split"].unique())
     sizes = np.array([(rows["split"] == s).sum() for s in splits])
     counts = np.floor(n_interp * sizes / sizes.sum()).astype(int)
@@ -371,7 +375,7 @@ def choose_bins(valid_bins: np.ndarray, bins, seed: int) -> np.ndarray:
         raise ValueError(f"config augmerl.bins must be 'all' or a positive integer, got {bins!r}")
     if bins > len(valid_bins):
         raise ValueError(f"config augmerl.bins = {bins} exceeds the {len(valid_bins)} valid bins")
-    rng = np.random.default_rng(seed + 2)
+    rng = np.random.default_rng(seed_for(seed, "augmerl_bins"))
     return np.sort(rng.choice(valid_bins, bins, replace=False))
 
 

@@ -435,11 +435,10 @@ def cmd_sample(args) -> int:
 
 
 def _render_scene(xml: Path, png: Path, variant: str, resolution: int | None, spp: int | None):
-    import mitsuba as mi
-
-    from neumat.render import mitsuba_bsdf as mb
+    from neumat.render import mitsuba_bsdf as mb  # before mitsuba: it points Dr.Jit at libLLVM
     from neumat.render import scenes
     mb.select_variant(variant)
+    import mitsuba as mi
     text = xml.read_text()
     if resolution:  # another size or sample count than the file's: a modified copy beside it
         text = re.sub(r'(name="(?:width|height)" value=")\d+', rf"\g<1>{resolution}", text)

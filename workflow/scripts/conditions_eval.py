@@ -13,6 +13,7 @@ from neumat.diffusion import dataset
 from neumat.logs import script_logging
 from neumat.metrics import distances
 from neumat.render import sphere
+from neumat.seeds import seed_for
 
 
 def set_name(path):
@@ -35,7 +36,8 @@ with script_logging(snakemake) as log:
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
-    neg = lambda w: ev.negative_share(w, p.angles, p.seed + 1, p.activation)  # noqa: E731
+    neg_seed = seed_for(p.seed, "negative_share")
+    neg = lambda w: ev.negative_share(w, p.angles, neg_seed, p.activation)  # noqa: E731
     per, rows = [], []
     for wpath, tpath in zip(inp.samples, inp.tables):
         name, w = set_name(wpath), np.load(wpath)

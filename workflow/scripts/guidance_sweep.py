@@ -12,6 +12,7 @@ from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
 from neumat.logs import script_logging
 from neumat.metrics import distances
+from neumat.seeds import seed_for
 
 with script_logging(snakemake) as log:
     p, inp = snakemake.params, snakemake.input
@@ -55,7 +56,8 @@ with script_logging(snakemake) as log:
                          "type hits": float(hits.mean()) if ok.any() else float("nan"),
                          "median BRDF-L1 to nearest training": float(near["brdf_l1"].median()),
                          "share clamping negatives": float(
-                             ev.negative_share(w, p.angles, p.seed + 1, p.activation).mean()),
+                             ev.negative_share(w, p.angles, seed_for(p.seed, "negative_share"),
+                                               p.activation).mean()),
                          "seconds": time.perf_counter() - t0})
             log.info("%s", rows[-1])
     pd.DataFrame(rows).to_csv(snakemake.output[0], sep="\t", index=False, float_format="%.4g")

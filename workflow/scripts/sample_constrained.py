@@ -9,6 +9,7 @@ from neumat import constrained
 from neumat.diffusion import Sampler
 from neumat.fit import save_npy
 from neumat.logs import script_logging
+from neumat.seeds import seed_for
 
 with script_logging(snakemake) as log:
     inp, p, out = snakemake.input, snakemake.params, snakemake.output
@@ -20,11 +21,11 @@ with script_logging(snakemake) as log:
     guides = constrained.category_types(src["type"], src["category"])
     bins = constrained.grid_bins(cfg["bins"], p.seed)
     rows, weights, tables = [], [], []
-    for k, cat in enumerate(cfg["categories"]):
+    for cat in cfg["categories"]:
         types = [t for t in guides[cat] if t in sampler.class_names] if cfg["guide"] == "auto" else []
         r = constrained.sample_category(sampler, cat, th, cfg["per_category"], cfg["budget"],
-                                        cfg["batch"], p.seed + 10_000_000 * k, p.sample, types,
-                                        bins, p.activation)
+                                        cfg["batch"], seed_for(p.seed, "category", cat), p.sample,
+                                        types, bins, p.activation)
         row = constrained.acceptance_row(r, cfg["per_category"])
         rows.append(row)
         log.info("%s", row)
