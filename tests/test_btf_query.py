@@ -105,16 +105,27 @@ def hpb_queries(n, seed=6):
     return u, wi, wo
 
 
+# query seed per method (each test draws its own queries)
+FUSED_METHODS = {"hpb": 6, "hextile": 9}
+
+
+@pytest.mark.parametrize("method", FUSED_METHODS)
 @pytest.mark.parametrize("march", MARCHES)
 @pytest.mark.parametrize("n", [3, 2000])
-def test_fused_hpb_query_matches_the_torch_synthesis(march, n):
-    """HPB inside the kernel (grid, hash, taps, blend, LUT per tile; PCA folded into layer 1)
-    = the torch path decode(HPB.torch_features(u)), which tests/test_btf_synthesis.py checks
-    against a float64 reference at u = 1e5."""
+def test_fused_synthesis_query_matches_the_torch_synthesis(method, march, n, monkeypatch):
+    """Synthesis inside the kernel = its torch path. HPB (grid, hash, taps, blend, LUT per
+    tile; PCA folded into layer 1) against decode(HPB.torch_features(u)), which
+    tests/test_btf_synthesis.py checks against a float64 reference at u = 1e5; hex-tiling
+    (HPB's grid, hash and taps, rotated about each vertex; luminance-weighted, Gain3-sharpened
+    blend) against decode(HexTile(u)), with HexTile's torch call barred during the query."""
     from neumat.btf import synthesis
-    m, (u, wi, wo) = model(), hpb_queries(n)
-    s = synthesis.build(m, "hpb", 5)
-    raw = m.decode(s.torch_features(u), wi, wo)
+    m, (u, wi, wo) = model(), hpb_queries(n, FUSED_METHODS[method])
+    s = synthesis.build(m, method, 5)
+    if method == "hpb":
+        raw = m.decode(s.torch_features(u), wi, wo)
+    else:
+        raw = m.decode(s(u), wi, wo)
+        monkeypatch.setattr(type(s), "__call__", lambda self, u: pytest.fail("not fused"))
     got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
     # float32 rounding, amplified where the 37 x 23 exemplar's LUT steps are steep
     scale = raw.abs().max().item()
@@ -126,17 +137,18 @@ def test_fused_hpb_query_matches_the_torch_synthesis(march, n):
         assert (off - raw)[: n // 3].abs().max() > 100 * (got - raw)[: n // 3].abs().max()
 
 
-def test_fused_hpb_query_is_a_pure_function_of_u_and_seed():
+@pytest.mark.parametrize("method, seed", [("hpb", 7), ("hextile", 11)])
+def test_fused_synthesis_query_is_a_pure_function_of_u_and_seed(method, seed):
     from neumat.btf import synthesis
-    m, (u, wi, wo) = model(), hpb_queries(5000, 7)
-    s = synthesis.build(m, "hpb", 9)
+    m, (u, wi, wo) = model(), hpb_queries(5000, seed)
+    s = synthesis.build(m, method, 9)
     a = query.query(m, u, wi, wo, features_u=s)
     perm = torch.randperm(5000, generator=torch.Generator().manual_seed(0))
-    assert torch.equal(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hpb", 9)))
+    assert torch.equal(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, method, 9)))
     assert torch.equal(a[perm], query.query(m, u[perm], wi[perm], wo[perm], features_u=s))
     assert torch.equal(a[:10], query.query(m, u[:10], wi[:10], wo[:10], features_u=s))
     assert torch.equal(a, query.query(m, u, wi, wo, features_u=s, threads=3))
-    assert not torch.allclose(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hpb", 10)))
+    assert not torch.allclose(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, method, 10)))
 
 
 def test_synthesized_queries_use_the_fused_path(monkeypatch):
@@ -157,26 +169,6 @@ def test_synthesized_queries_use_the_fused_path(monkeypatch):
         assert calls, method
 
 
-@pytest.mark.parametrize("march", MARCHES)
-@pytest.mark.parametrize("n", [3, 2000])
-def test_fused_hextile_query_matches_the_torch_synthesis(march, n, monkeypatch):
-    """Hex-tiling inside the kernel (HPB's grid, hash and taps, rotated about each vertex;
-    luminance-weighted, Gain3-sharpened blend) = decode(HexTile(u)), its torch path."""
-    from neumat.btf import synthesis
-    m, (u, wi, wo) = model(), hpb_queries(n, 9)
-    s = synthesis.build(m, "hextile", 5)
-    raw = m.decode(s(u), wi, wo)
-    monkeypatch.setattr(type(s), "__call__", lambda self, u: pytest.fail("not fused"))
-    got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
-    scale = raw.abs().max().item()
-    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * scale)
-    rgb = query.query(m, u, wi, wo, features_u=s, march=march)
-    torch.testing.assert_close(rgb, torch.relu(torch.expm1(got)), rtol=1e-5, atol=1e-6)
-    if n > 3:  # u is used in float64: its float32 rounding moves the result at 1e5
-        off = query.query(m, u.float().double(), wi, wo, features_u=s, raw=True, march=march)
-        assert (off - raw)[: n // 3].abs().max() > 100 * (got - raw)[: n // 3].abs().max()
-
-
 @pytest.mark.parametrize("settings", [{"rotation": 0.0, "gain": 0.5},
                                       {"exponent": 2.5, "contrast": 0.0, "gain": 0.9}])
 def test_fused_hextile_settings(settings):
@@ -187,20 +179,6 @@ def test_fused_hextile_settings(settings):
     raw = m.decode(s(u), wi, wo)
     got = query.query(m, u, wi, wo, features_u=s, raw=True)
     torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
-
-
-def test_fused_hextile_query_is_a_pure_function_of_u_and_seed():
-    from neumat.btf import synthesis
-    m, (u, wi, wo) = model(), hpb_queries(5000, 11)
-    s = synthesis.build(m, "hextile", 9)
-    a = query.query(m, u, wi, wo, features_u=s)
-    perm = torch.randperm(5000, generator=torch.Generator().manual_seed(0))
-    assert torch.equal(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hextile", 9)))
-    assert torch.equal(a[perm], query.query(m, u[perm], wi[perm], wo[perm], features_u=s))
-    assert torch.equal(a[:10], query.query(m, u[:10], wi[:10], wo[:10], features_u=s))
-    assert torch.equal(a, query.query(m, u, wi, wo, features_u=s, threads=3))
-    assert not torch.allclose(
-        a, query.query(m, u, wi, wo, features_u=synthesis.build(m, "hextile", 10)))
 
 
 def test_fused_hextile_other_widths():
