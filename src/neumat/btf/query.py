@@ -97,8 +97,8 @@ def _hpb(features_u):
 
 def fold_pca(W1: torch.Tensor, b1: torch.Tensor, cu: int, mean, basis):
     """First layer taking HPB's decorrelated q in place of f_U = mean + basis q:
-    W1[:, :cu] basis and b1 + W1[:, :cu] mean (in float64, then float32). numpy: torch's
-    float64 matmul of these tiny matrices took 16 CPU-ms a call on 2 threads (OpenMP)."""
+    W1[:, :cu] basis and b1 + W1[:, :cu] mean (in float64, then float32). numpy, because
+    torch's float64 matmul starts its OpenMP threads for these tiny matrices on every call."""
     W = W1.detach().double().numpy().copy()
     wu = W[:, :cu].copy()
     W[:, :cu] = wu @ basis.detach().double().numpy()
