@@ -1,3 +1,5 @@
+import platform
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -81,6 +83,28 @@ def test_brdf_l1_fields_and_tables_alike():
     np.testing.assert_allclose(d, expected, rtol=1e-6, atol=1e-9)
     with pytest.raises(ValueError, match="sample size"):
         D.brdf_sample(0, seed=0)
+
+
+X86 = platform.machine().lower() in ("x86_64", "amd64")
+L1_MARCHES = [pytest.param(m, marks=pytest.mark.skipif(
+    not (X86 or m == "native") or D._l1_library(m) is None,
+    reason=f"l1_kernel.c for -march={m} does not build or run here"))
+    for m in ("native", "x86-64-v3", "x86-64-v2")]
+
+
+@pytest.mark.parametrize("march", L1_MARCHES)
+@pytest.mark.parametrize("n, m, d", [(1, 1, 1), (5, 7, 33), (37, 9, 3 * 1025 + 7)])
+def test_l1_kernel_matches_cdist(march, n, m, d):
+    """Every ISA variant that runs here, shapes off every block size (rows of 4, 3; vectors of
+    16, 8, 4; chunks of 1024), threads splitting uneven row counts."""
+    g = torch.Generator().manual_seed(d)
+    a, b = torch.rand(n, d, generator=g) * 5, torch.randn(m, d, generator=g)
+    expected = torch.cdist(a.double(), b.double(), p=1)
+    for threads in (1, 2, 3):
+        got = D.l1_sums(a, b, threads=threads, march=march)
+        assert got.dtype == torch.float64 and got.shape == (n, m)
+        torch.testing.assert_close(got, expected, rtol=1e-6, atol=1e-6)
+    assert D.l1_sums(a, a, march=march).diagonal().eq(0).all()
 
 
 # ----------------------------------------------------------------------------- FID

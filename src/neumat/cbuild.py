@@ -1,4 +1,5 @@
-"""Build and cache the package's C kernels (`fit_step.c`, `btf/query_kernel.c`) for a target.
+"""Build and cache the package's C kernels (`fit_step.c`, `btf/query_kernel.c`,
+`metrics/l1_kernel.c`) for a target.
 
 Each shared library is built with the system C compiler (`$CC`, default `cc`) for a `-march`
 (`native` by default; a named level such as `x86-64-v3` builds an AVX2 variant on any x86
