@@ -107,6 +107,38 @@ def test_l1_kernel_matches_cdist(march, n, m, d):
     assert D.l1_sums(a, a, march=march).diagonal().eq(0).all()
 
 
+SSIM_MARCHES = [pytest.param(m, marks=pytest.mark.skipif(
+    not (X86 or m == "native") or D._ssim_library(m) is None,
+    reason=f"ssim_kernel.c for -march={m} does not build or run here"))
+    for m in ("native", "x86-64-v3", "x86-64-v2")]
+
+
+@pytest.mark.parametrize("march", SSIM_MARCHES)
+@pytest.mark.parametrize("n, m, h, w", [(1, 1, 7, 7), (5, 3, 9, 23), (6, 7, 40, 37)])
+def test_ssim_kernel_matches_the_torch_path(march, n, m, h, w, monkeypatch):
+    """The C pairs (`ssim_kernel.c`) against scikit-image (float64) and pairwise_ssim's torch
+    loop, for each ISA variant that runs here, general and symmetric, over thread counts and
+    row blocks of 4."""
+    g = torch.Generator().manual_seed(h * w)
+    x, y = torch.rand(n, h, w, 3, generator=g), torch.rand(m, h, w, 3, generator=g)
+    x[0] = x[0] * 0.05 + 0.5  # a flat image: small covariances, where rounding would show
+    sk = torch.tensor([[structural_similarity(a.numpy(), b.numpy(), channel_axis=-1,
+                                              data_range=1) for b in y] for a in x],
+                      dtype=torch.float64)
+    kernel = D._ssim_kernel
+    monkeypatch.setattr(D, "_ssim_kernel", lambda *a, **kw: None)
+    torch_path = D.pairwise_ssim(x, y)
+    for threads in (1, 2, 3):
+        monkeypatch.setattr(D, "_ssim_kernel", lambda *a, threads=threads, **kw:
+                            kernel(*a, threads=threads, march=march, **kw))
+        got = D.pairwise_ssim(x, y)
+        torch.testing.assert_close(got, sk, rtol=0, atol=2e-6)
+        torch.testing.assert_close(got, torch_path, rtol=0, atol=1e-4)
+        sym = D.pairwise_ssim(x)
+        torch.testing.assert_close(sym, D.pairwise_ssim(x, x), rtol=0, atol=2e-6)
+        assert torch.equal(sym, sym.T)
+
+
 # ----------------------------------------------------------------------------- FID
 
 def test_frechet_distance_closed_forms():

@@ -165,6 +165,9 @@ def pairwise_ssim(x, y=None) -> torch.Tensor:
     ux, uy = _box(x), _box(y)
     qx, qy = ux * ux, uy * uy + c1
     rx, ry = k * (_box(x * x) - qx), k * (_box(y * y) - uy * uy) + c2
+    out = _ssim_kernel(x, y, ux, qx, rx, uy, qy, ry, c1, c2, k, sym)
+    if out is not None:
+        return out
     out = torch.empty(len(x), len(y), dtype=torch.float64)
     step = max(1, _PAIR_FLOATS // (len(y) * x[0].numel()))
     for s in range(0, len(x), step):
@@ -178,6 +181,42 @@ def pairwise_ssim(x, y=None) -> torch.Tensor:
     if sym:
         out = torch.triu(out) + torch.triu(out, 1).T
     return out
+
+
+@cache
+def _ssim_library(march: str = "native"):
+    path = cbuild.build(Path(__file__).with_name("ssim_kernel.c"), march,
+                        "pairwise SSIM uses torch")
+    if path is None:
+        return None
+    lib = ctypes.CDLL(str(path))
+    p, l, i, f = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_float
+    lib.ssim_pairs.argtypes = [l, l, i, i, i, p, p, p, p, p, p, p, p, p, p, f, f, f, i, i, i, p]
+    lib.ssim_pairs.restype = i
+    return lib
+
+
+def _ssim_kernel(x, y, ux, qx, rx, uy, qy, ry, c1, c2, k, sym, threads=None,
+                 march: str = "native"):
+    """pairwise_ssim's pairs by `ssim_kernel.c` (rows split over `threads`, default torch's),
+    or None where it is not built or the images are wider than it holds."""
+    lib = _ssim_library(march)
+    if lib is None or x.shape[-1] > 1024:
+        return None
+    shifts = x.mean((2, 3)), y.mean((2, 3))  # centred products: small covariances keep digits
+    t = [a.float().contiguous() for a in (x, y, *shifts, ux, qx, rx, uy, qy, ry)]
+    n, m, (C, H, W) = len(x), len(y), x.shape[1:]
+    out = torch.zeros(n, m, dtype=torch.float64)
+    workers = max(1, min(threads or torch.get_num_threads(), n))
+
+    def part(w):  # ctypes drops the GIL: the workers run in parallel
+        return lib.ssim_pairs(n, m, C, H, W, *(a.data_ptr() for a in t), c1, c2, k, int(sym),
+                              w, workers, out.data_ptr())
+
+    with ThreadPoolExecutor(workers) as pool:
+        if any(pool.map(part, range(workers))):
+            return None
+    return torch.triu(out) + torch.triu(out, 1).T if sym else out
 
 
 def pairwise_negssim(x, y=None) -> torch.Tensor:

@@ -25,13 +25,22 @@ COLUMNS = ["metric", "distance", "value", "note"]
 SET_METRICS = ("MMD", "COV", "1-NNA")
 
 
-def distance_matrices(ref_values, smp_values, ref_images, smp_images) -> dict[str, tuple]:
-    """{distance: (d_rr, d_ss, d_rs)} for BRDF-L1 (BRDF values) and the image distances."""
-    out = {"BRDF-L1": (D.pairwise_l1(ref_values, ref_values), D.pairwise_l1(smp_values, smp_values),
-                       D.pairwise_l1(ref_values, smp_values))}
-    for name, fn in D.IMAGE_DISTANCES.items():
-        out[name] = (fn(ref_images), fn(smp_images), fn(ref_images, smp_images))
+def self_distances(values, images) -> dict[str, torch.Tensor]:
+    """{distance: d_xx} of one set: BRDF-L1 on BRDF values, the image distances on renders."""
+    out = {"BRDF-L1": D.pairwise_l1(values, values)}
+    out.update({name: fn(images) for name, fn in D.IMAGE_DISTANCES.items()})
     return out
+
+
+def distance_matrices(ref_values, smp_values, ref_images, smp_images,
+                      ref_self: dict | None = None) -> dict[str, tuple]:
+    """{distance: (d_rr, d_ss, d_rs)} for BRDF-L1 (BRDF values) and the image distances;
+    `ref_self`: the references' `self_distances`, when already computed (shared by draws)."""
+    rr = ref_self or self_distances(ref_values, ref_images)
+    ss = self_distances(smp_values, smp_images)
+    rs = {"BRDF-L1": D.pairwise_l1(ref_values, smp_values)}
+    rs.update({name: fn(ref_images, smp_images) for name, fn in D.IMAGE_DISTANCES.items()})
+    return {name: (rr[name], ss[name], rs[name]) for name in rs}
 
 
 def set_metric_rows(matrices: dict[str, tuple]) -> pd.DataFrame:
@@ -88,6 +97,7 @@ def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_
         return M.brdf_values(s, bins, activation), M.renders(s, resolution, activation, device)
 
     shared = prepare(ref) if refs is None else None
+    shared_self = None if shared is None else self_distances(*shared)  # once for every draw
     shared_fid = None
     out = []
     for i, smp in enumerate(draws):
@@ -97,7 +107,8 @@ def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_
             from neumat.metrics import fid as fidlib
             shared_fid = fidlib.features(fid_model, ri, device=device)
         table = pd.concat([fid_rows(fid_model, ri, si, fid_unavailable, device, shared_fid),
-                           set_metric_rows(distance_matrices(rv, sv, ri, si))], ignore_index=True)
+                           set_metric_rows(distance_matrices(rv, sv, ri, si, shared_self))],
+                          ignore_index=True)
         out.append(table.assign(draw=i))
         log.info("draw %d: %d vs %d materials, %.1fs so far", i, len(sv), len(rv), time.time() - t0)
     return pd.concat(out, ignore_index=True)[["draw", *COLUMNS]]
