@@ -1,0 +1,248 @@
+"""The tiny run through profiles/slurm against the same run locally, on the same node.
+
+Sets up the single-node Slurm of tests/test_slurm.py (root, munge/slurmctld/slurmd installed or
+installable with apt; no accounting), copies the workflow twice, runs the targets locally
+(`--cores N`) and via Slurm (`--profile profiles/slurm`), back to back, each with its own `run:`
+name, and prints both walls, their ratio, the job counts (local vs sbatch vs local rules on the
+submit host), the load average and the CPU. Then, per Slurm job, where the time went:
+
+    ready -> sbatch     the outer Snakemake decided to run the job -> slurmctld got it
+    sbatch -> start     slurmctld queue: waiting for a free CPU/memory, then the scheduler
+    in job              the allocation's life minus the job's own run (its benchmark `s`):
+                        the sbatch-level Snakemake, srun, the inner Snakemake, file checks
+    end -> detected     slurmctld marked it complete -> the outer Snakemake saw it (status poll)
+
+    python benchmarks/slurm_overhead.py                       # whole tiny run (report)
+    python benchmarks/slurm_overhead.py --until synthetic_merl synthetic_btf   # test subset
+    python benchmarks/slurm_overhead.py --order slurm-first --keep /tmp/slurm_bench
+
+Outputs of both runs are compared byte for byte (logs and benchmarks aside). Times are wall
+clock on a machine that may be shared: it prints `uptime`'s load next to each run.
+"""
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections import defaultdict
+from datetime import datetime
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "src"))
+
+import test_slurm  # noqa: E402  (its Slurm set-up: slurm_cluster, _copy_workflow)
+from neumat import machine  # noqa: E402
+
+
+def load() -> str:
+    return "load average " + ", ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def run_snakemake(cmd, cwd, env, log_path):
+    """Run `cmd`, time-stamping every output line as it arrives: (wall s, [(t, line)])."""
+    t0 = time.time()
+    proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, bufsize=1)
+    lines = []
+    with open(log_path, "w") as f:
+        for line in proc.stdout:
+            t = time.time()
+            lines.append((t, line.rstrip("\n")))
+            f.write(f"{t - t0:9.3f} {line}")
+    rc = proc.wait()
+    wall = time.time() - t0
+    if rc:
+        tail = "\n".join(line for _, line in lines[-60:])
+        raise SystemExit(f"{' '.join(cmd)} failed ({rc}) in {cwd}; log {log_path}\n{tail}")
+    return wall, lines
+
+
+def outer_events(lines):
+    """Per Snakemake jobid: rule, time it was announced, SLURM id, time its end was seen;
+    and the jobs run on the submit host (localrule)."""
+    jobs = defaultdict(dict)
+    local = []
+    pending = None  # (time, rule, is_local) until its "jobid:" line
+    for t, line in lines:
+        m = re.match(r"^(local)?rule (\w+):$", line.strip())
+        if m:
+            pending = (t, m.group(2), bool(m.group(1)))
+            continue
+        m = re.match(r"^jobid: (\d+)$", line.strip())
+        if m and pending:
+            j = jobs[int(m.group(1))]
+            j.update(announced=pending[0], rule=pending[1], local=pending[2])
+            if pending[2]:
+                local.append(pending[1])
+            pending = None
+            continue
+        m = re.search(r"Job (\d+) has been submitted with SLURM jobid (\d+)", line)
+        if m:
+            jobs[int(m.group(1))].update(slurm=int(m.group(2)), submitted_seen=t)
+            continue
+        m = re.search(r"Finished jobid: (\d+)", line)
+        if m:
+            jobs[int(m.group(1))]["detected"] = t
+    return jobs, local
+
+
+def ctld_events(log: Path):
+    """Per SLURM jobid: submit, allocate (start) and complete times from slurmctld.log."""
+    ev = defaultdict(dict)
+    pats = {"submit": r"_slurm_rpc_submit_batch_job: JobId=(\d+)",
+            "start": r"sched(?:/backfill)?: Allocate JobId=(\d+)",
+            "end": r"_job_complete: JobId=(\d+) done"}
+    for line in log.read_text().splitlines():
+        m = re.match(r"^\[([\d\-T:.]+)\] (.*)$", line)
+        if not m:
+            continue
+        t = datetime.fromisoformat(m.group(1)).timestamp()
+        for key, pat in pats.items():
+            mm = re.search(pat, m.group(2))
+            if mm:
+                ev[int(mm.group(1))].setdefault(key, t)
+    return ev
+
+
+def job_seconds(wd: Path, run: str):
+    """Each job's own run time (benchmark `s`), by benchmark file stem relative path."""
+    out = {}
+    for f in (wd / f"results/{run}/benchmarks").rglob("*.tsv"):
+        rows = f.read_text().splitlines()
+        if len(rows) > 1:
+            out[str(f.relative_to(wd / f"results/{run}/benchmarks"))[:-4]] = float(rows[-1].split("\t")[0])
+    return out
+
+
+def breakdown(jobs, ctld, wd, run):
+    """Rows (rule, ready->sbatch, queue, in-job overhead, job s, end->detected) per sbatch job."""
+    secs = job_seconds(wd, run)
+    by_rule = defaultdict(list)
+    for name, s in secs.items():
+        by_rule[name.split("/")[0]].append(s)
+    rows = []
+    for j in jobs.values():
+        if "slurm" not in j or j["slurm"] not in ctld:
+            continue
+        c = ctld[j["slurm"]]
+        if not {"submit", "start", "end"} <= set(c) or "detected" not in j:
+            continue
+        # one benchmark per rule when the rule has one job; else the rule's mean (the job's
+        # wildcards are not in the log line; per-rule means are what the table prints anyway)
+        s = sum(by_rule[j["rule"]]) / len(by_rule[j["rule"]]) if by_rule[j["rule"]] else 0.0
+        rows.append(dict(rule=j["rule"], ready=c["submit"] - j["announced"],
+                         queue=c["start"] - c["submit"], injob=c["end"] - c["start"] - s,
+                         own=s, detect=j["detected"] - c["end"]))
+    return rows
+
+
+def print_breakdown(rows):
+    cols = ["ready", "queue", "injob", "own", "detect"]
+    print(f"\nper sbatch job, seconds (mean over the rule's jobs; {len(rows)} jobs):")
+    print(f"{'rule':28s} {'n':>3s} {'ready->sbatch':>13s} {'sbatch->start':>13s} "
+          f"{'in job (ovh)':>12s} {'own run':>8s} {'end->detect':>11s}")
+    groups = defaultdict(list)
+    for r in rows:
+        groups[r["rule"]].append(r)
+    for rule, rs in sorted(groups.items(), key=lambda kv: -sum(r["own"] for r in kv[1])):
+        m = [sum(r[c] for r in rs) / len(rs) for c in cols]
+        print(f"{rule:28s} {len(rs):3d} {m[0]:13.2f} {m[1]:13.2f} {m[2]:12.2f} {m[3]:8.2f} {m[4]:11.2f}")
+    if rows:
+        tot = [sum(r[c] for r in rows) for c in cols]
+        mean = [x / len(rows) for x in tot]
+        print(f"{'mean':28s} {len(rows):3d} " + " ".join(f"{x:{w}.2f}" for x, w in
+                                                       zip(mean, (13, 13, 12, 8, 11))))
+        print(f"{'sum':28s} {'':3s} " + " ".join(f"{x:{w}.1f}" for x, w in
+                                                 zip(tot, (13, 13, 12, 8, 11))))
+
+
+def same_outputs(a: Path, b: Path, run_a: str, run_b: str):
+    """Relative paths whose bytes differ between the two runs (logs, benchmarks, the report's
+    HTML/Markdown, which name the run, aside)."""
+    ra, rb = a / f"results/{run_a}", b / f"results/{run_b}"
+    skip = ("logs/", "benchmarks/", "report/")
+    files = sorted(p.relative_to(ra) for p in ra.rglob("*") if p.is_file()
+                   and not str(p.relative_to(ra)).startswith(skip))
+    missing = [f for f in files if not (rb / f).exists()]
+    differ = [f for f in files if (rb / f).exists() and (ra / f).read_bytes() != (rb / f).read_bytes()]
+    return len(files), missing, differ
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("targets", nargs="*", default=["report"])
+    ap.add_argument("--until", nargs="+", default=None, help="snakemake --until RULES")
+    ap.add_argument("--configfile", default="config/tiny.yaml")
+    ap.add_argument("--cores", type=int, default=os.cpu_count(),
+                    help="local --cores, and the most CPUs one Slurm job asks for")
+    ap.add_argument("--order", choices=["local-first", "slurm-first"], default="local-first")
+    ap.add_argument("--only", choices=["both", "local", "slurm"], default="both")
+    ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
+    ap.add_argument("--slurm-args", default="", help="extra snakemake args for the Slurm run, "
+                    "e.g. '--slurm-array-jobs=all'")
+    args = ap.parse_args()
+
+    work = args.keep or Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
+    if args.keep and work.exists():
+        shutil.rmtree(work)
+    work.mkdir(parents=True)
+    print(f"machine: {machine.describe()}; work dir {work}")
+    base = [sys.executable, "-m", "snakemake", *args.targets]
+    if args.until:
+        base += ["--until", *args.until]
+    base += ["--retries", "0"]
+    runs = {"local": "bench_local", "slurm": "bench_slurm"}
+    order = ["local", "slurm"] if args.order == "local-first" else ["slurm", "local"]
+    order = [o for o in order if args.only in ("both", o)]
+    results = {}
+    with test_slurm.slurm_cluster(work) as env:
+        env = {**env, "OMP_NUM_THREADS": env.get("OMP_NUM_THREADS", "1")}
+        for kind in order:
+            wd = test_slurm._copy_workflow(work / kind)
+            if kind == "local":
+                cmd = [*base, "--cores", str(args.cores)]
+            else:
+                cmd = [*base, "--profile", "profiles/slurm", "--cores", str(args.cores),
+                       "--slurm-keep-successful-logs", *args.slurm_args.split()]
+            cmd += ["--configfile", args.configfile, "--config", f"run={runs[kind]}"]
+            before = load()
+            print(f"\n[{kind}] {' '.join(cmd[2:])}\n[{kind}] before: {before}", flush=True)
+            wall, lines = run_snakemake(cmd, wd, env, work / f"{kind}.log")
+            jobs, local = outer_events(lines)
+            done = sum(1 for j in jobs.values() if "detected" in j)
+            n_sbatch = sum(1 for j in jobs.values() if "slurm" in j)
+            results[kind] = dict(wall=wall, wd=wd, jobs=jobs, local=local, done=done,
+                                 sbatch=n_sbatch, load=(before, load()))
+            print(f"[{kind}] wall {wall:.1f} s, {done} jobs ({n_sbatch} via sbatch, "
+                  f"{len(local) if kind == 'slurm' else done} on the submit host); "
+                  f"after: {results[kind]['load'][1]}", flush=True)
+        ctld_log = work / "slurmctld.log"
+        if "slurm" in results:
+            rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log),
+                             results["slurm"]["wd"], runs["slurm"])
+            print_breakdown(rows)
+            if local := results["slurm"]["local"]:
+                print(f"local rules on the submit host: {len(local)} "
+                      f"({', '.join(sorted(set(local)))})")
+
+    print(f"\nmachine: {machine.describe()}")
+    if len(results) == 2:
+        lo, sl = results["local"], results["slurm"]
+        n, missing, differ = same_outputs(lo["wd"], sl["wd"], runs["local"], runs["slurm"])
+        print(f"outputs: {n} files compared, {len(missing)} missing via Slurm, {len(differ)} differ"
+              + (f" ({', '.join(map(str, (missing + differ)[:8]))})" if missing or differ else ""))
+        print(f"local: {lo['wall']:.1f} s, {lo['done']} jobs ({lo['load'][0]} before)")
+        print(f"slurm: {sl['wall']:.1f} s, {sl['done']} jobs: {sl['sbatch']} via sbatch, "
+              f"{len(sl['local'])} local rules ({sl['load'][0]} before)")
+        print(f"ratio slurm/local: {sl['wall'] / lo['wall']:.2f}x")
+    if not args.keep:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
