@@ -53,7 +53,7 @@ def run_snakemake(cmd, cwd, env, log_path):
         for line in proc.stdout:
             t = time.time()
             lines.append((t, line.rstrip("\n")))
-            f.write(f"{t - t0:9.3f} {line}")
+            f.write(f"{t:.3f} {line}")  # epoch seconds, as slurmctld.log's times
     rc = proc.wait()
     wall = time.time() - t0
     if rc:
@@ -68,6 +68,7 @@ def outer_events(lines):
     jobs = defaultdict(dict)
     local = []
     pending = None  # (time, rule, is_local) until its "jobid:" line
+    current = None  # the jobid whose announcement is being read (for its "benchmark:" line)
     for t, line in lines:
         m = re.match(r"^(local)?rule (\w+):$", line.strip())
         if m:
@@ -79,7 +80,12 @@ def outer_events(lines):
             j.update(announced=pending[0], rule=pending[1], local=pending[2])
             if pending[2]:
                 local.append(pending[1])
-            pending = None
+            pending, current = None, int(m.group(1))
+            continue
+        m = re.match(r"^benchmark: (\S+)$", line.strip())
+        if m and current is not None:
+            jobs[current]["bench"] = m.group(1)
+            current = None
             continue
         m = re.search(r"Job (\d+) has been submitted with SLURM jobid (\d+)", line)
         if m:
@@ -95,7 +101,7 @@ def ctld_events(log: Path):
     """Per SLURM jobid: submit, allocate (start) and complete times from slurmctld.log."""
     ev = defaultdict(dict)
     pats = {"submit": r"_slurm_rpc_submit_batch_job: JobId=(\d+)",
-            "start": r"sched(?:/backfill)?: Allocate JobId=(\d+)",
+            "start": r"(?:Allocate|_start_job: Started) JobId=(\d+)",  # scheduler or backfill
             "end": r"_job_complete: JobId=(\d+) done"}
     for line in log.read_text().splitlines():
         m = re.match(r"^\[([\d\-T:.]+)\] (.*)$", line)
@@ -109,22 +115,13 @@ def ctld_events(log: Path):
     return ev
 
 
-def job_seconds(wd: Path, run: str):
-    """Each job's own run time (benchmark `s`), by benchmark file stem relative path."""
-    out = {}
-    for f in (wd / f"results/{run}/benchmarks").rglob("*.tsv"):
-        rows = f.read_text().splitlines()
-        if len(rows) > 1:
-            out[str(f.relative_to(wd / f"results/{run}/benchmarks"))[:-4]] = float(rows[-1].split("\t")[0])
-    return out
+def job_seconds(path: Path) -> float:
+    """A job's own run time: its benchmark file's `s` (the script, timed inside the job)."""
+    return float(path.read_text().splitlines()[-1].split("\t")[0])
 
 
-def breakdown(jobs, ctld, wd, run):
+def breakdown(jobs, ctld, wd):
     """Rows (rule, ready->sbatch, queue, in-job overhead, job s, end->detected) per sbatch job."""
-    secs = job_seconds(wd, run)
-    by_rule = defaultdict(list)
-    for name, s in secs.items():
-        by_rule[name.split("/")[0]].append(s)
     rows = []
     for j in jobs.values():
         if "slurm" not in j or j["slurm"] not in ctld:
@@ -132,9 +129,7 @@ def breakdown(jobs, ctld, wd, run):
         c = ctld[j["slurm"]]
         if not {"submit", "start", "end"} <= set(c) or "detected" not in j:
             continue
-        # one benchmark per rule when the rule has one job; else the rule's mean (the job's
-        # wildcards are not in the log line; per-rule means are what the table prints anyway)
-        s = sum(by_rule[j["rule"]]) / len(by_rule[j["rule"]]) if by_rule[j["rule"]] else 0.0
+        s = job_seconds(wd / j["bench"])
         rows.append(dict(rule=j["rule"], ready=c["submit"] - j["announced"],
                          queue=c["start"] - c["submit"], injob=c["end"] - c["start"] - s,
                          own=s, detect=j["detected"] - c["end"]))
@@ -161,6 +156,18 @@ def print_breakdown(rows):
                                                  zip(tot, (13, 13, 12, 8, 11))))
 
 
+def read_log(path: Path):
+    """[(t, line)] back from a log written by run_snakemake."""
+    return [(float(t), line.rstrip("\n")) for t, _, line in
+            (raw.partition(" ") for raw in open(path))]
+
+
+def analyse(work: Path):
+    jobs, local = outer_events(read_log(work / "slurm.log"))
+    print_breakdown(breakdown(jobs, ctld_events(work / "slurmctld.log"), work / "slurm"))
+    print(f"local rules on the submit host: {len(local)}")
+
+
 def same_outputs(a: Path, b: Path, run_a: str, run_b: str):
     """Relative paths whose bytes differ between the two runs (logs, benchmarks, the report's
     HTML/Markdown, which name the run, aside)."""
@@ -183,9 +190,13 @@ def main():
     ap.add_argument("--order", choices=["local-first", "slurm-first"], default="local-first")
     ap.add_argument("--only", choices=["both", "local", "slurm"], default="both")
     ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
+    ap.add_argument("--analyse", type=Path, default=None, metavar="DIR",
+                    help="only print the per-job breakdown of a run kept with --keep DIR")
     ap.add_argument("--slurm-args", default="", help="extra snakemake args for the Slurm run, "
                     "e.g. '--slurm-array-jobs=all'")
     args = ap.parse_args()
+    if args.analyse:
+        return analyse(args.analyse)
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
     if args.keep and work.exists():
@@ -223,8 +234,7 @@ def main():
                   f"after: {results[kind]['load'][1]}", flush=True)
         ctld_log = work / "slurmctld.log"
         if "slurm" in results:
-            rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log),
-                             results["slurm"]["wd"], runs["slurm"])
+            rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log), results["slurm"]["wd"])
             print_breakdown(rows)
             if local := results["slurm"]["local"]:
                 print(f"local rules on the submit host: {len(local)} "
