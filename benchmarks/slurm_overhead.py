@@ -97,13 +97,18 @@ def outer_events(lines):
     return jobs, local
 
 
-def ctld_events(log: Path):
-    """Per SLURM jobid: submit, allocate (start) and complete times from slurmctld.log."""
+def ctld_events(log: Path, slurmd_log: Path | None = None):
+    """Per SLURM jobid: submit, allocate (start) and complete times from slurmctld.log, and
+    from slurmd.log when given, the launch of its step (the job script's Snakemake calls srun)
+    and the step's end (the inner Snakemake, around the rule, is done)."""
     ev = defaultdict(dict)
     pats = {"submit": r"_slurm_rpc_submit_batch_job: JobId=(\d+)",
             "start": r"(?:Allocate|_start_job: Started) JobId=(\d+)",  # scheduler or backfill
-            "end": r"_job_complete: JobId=(\d+) done"}
-    for line in log.read_text().splitlines():
+            "end": r"_job_complete: JobId=(\d+) done",
+            "step": r"launch task StepId=(\d+)\.0 ",
+            "step_end": r"\[(\d+)\.0\] done with job"}
+    text = log.read_text() + (slurmd_log.read_text() if slurmd_log else "")
+    for line in text.splitlines():
         m = re.match(r"^\[([\d\-T:.]+)\] (.*)$", line)
         if not m:
             continue
@@ -120,6 +125,25 @@ def job_seconds(path: Path) -> float:
     return float(path.read_text().splitlines()[-1].split("\t")[0])
 
 
+def mean_allocated(log: Path) -> float:
+    """CPUs Slurm kept allocated, on average from the first start to the last end."""
+    start, cpus, total, first, last = {}, {}, 0.0, None, None
+    for line in log.read_text().splitlines():
+        m = re.match(r"^\[([\d\-T:.]+)\] (.*)$", line)
+        if not m:
+            continue
+        t = datetime.fromisoformat(m.group(1)).timestamp()
+        a = re.search(r"(?:Allocate|Started) JobId=(\d+)(?: NodeList=\S+ #CPUs=(\d+))?", m.group(2))
+        if a:  # a backfill start does not name its CPUs: counted as 1
+            start[a.group(1)], cpus[a.group(1)] = t, int(a.group(2) or 1)
+            first = first or t
+        e = re.search(r"_job_complete: JobId=(\d+) done", m.group(2))
+        if e and e.group(1) in start:
+            total += (t - start[e.group(1)]) * cpus[e.group(1)]
+            last = t
+    return total / (last - first) if first and last and last > first else 0.0
+
+
 def breakdown(jobs, ctld, wd):
     """Rows (rule, ready->sbatch, queue, in-job overhead, job s, end->detected) per sbatch job."""
     rows = []
@@ -132,7 +156,10 @@ def breakdown(jobs, ctld, wd):
         s = job_seconds(wd / j["bench"])
         rows.append(dict(rule=j["rule"], ready=c["submit"] - j["announced"],
                          queue=c["start"] - c["submit"], injob=c["end"] - c["start"] - s,
-                         own=s, detect=j["detected"] - c["end"]))
+                         own=s, detect=j["detected"] - c["end"],
+                         script=c.get("step", c["start"]) - c["start"],  # split of "in job"
+                         inner=c.get("step_end", c["end"]) - c.get("step", c["start"]) - s,
+                         after=c["end"] - c.get("step_end", c["end"])))
     return rows
 
 
@@ -154,6 +181,10 @@ def print_breakdown(rows):
                                                        zip(mean, (13, 13, 12, 8, 11))))
         print(f"{'sum':28s} {'':3s} " + " ".join(f"{x:{w}.1f}" for x, w in
                                                  zip(tot, (13, 13, 12, 8, 11))))
+        split = [sum(r[c] for r in rows) / len(rows) for c in ("script", "inner", "after")]
+        print("in job, mean: job script's Snakemake until srun {:.2f} s, inner Snakemake around "
+              "the rule {:.2f} s (its step minus the rule's own run), step end to job end "
+              "{:.2f} s".format(*split))
 
 
 def read_log(path: Path):
@@ -164,8 +195,10 @@ def read_log(path: Path):
 
 def analyse(work: Path):
     jobs, local = outer_events(read_log(work / "slurm.log"))
-    print_breakdown(breakdown(jobs, ctld_events(work / "slurmctld.log"), work / "slurm"))
-    print(f"local rules on the submit host: {len(local)}")
+    print_breakdown(breakdown(jobs, ctld_events(work / "slurmctld.log", work / "slurmd.log"),
+                              work / "slurm"))
+    print(f"local rules on the submit host: {len(local)}; CPUs allocated by Slurm, mean: "
+          f"{mean_allocated(work / 'slurmctld.log'):.2f}")
 
 
 def same_outputs(a: Path, b: Path, run_a: str, run_b: str):
@@ -234,8 +267,10 @@ def main():
                   f"after: {results[kind]['load'][1]}", flush=True)
         ctld_log = work / "slurmctld.log"
         if "slurm" in results:
-            rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log), results["slurm"]["wd"])
+            rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log, work / "slurmd.log"),
+                             results["slurm"]["wd"])
             print_breakdown(rows)
+            print(f"CPUs allocated by Slurm, mean: {mean_allocated(ctld_log):.2f}")
             if local := results["slurm"]["local"]:
                 print(f"local rules on the submit host: {len(local)} "
                       f"({', '.join(sorted(set(local)))})")
