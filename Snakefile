@@ -29,11 +29,11 @@ include: "workflow/rules/btf_synthesis.smk"
 include: "workflow/rules/report.smk"
 
 
-# On a cluster (profiles/slurm) these run on the submit host instead of as batch jobs: they only
-# gather finished results into tables, Markdown and a few small files, in seconds and under
-# 1.5 GB at the paper's scale (measured: neumerl 5 s, diffusion_training_set 4 s, hyperbrdf_table
-# 5 s on the 100-material run), while a batch job costs two Snakemake starts and a queue wait.
-# Rules that fit, train, sample, render or read the raw data stay batch jobs.
+# On a cluster (profiles/slurm) these run on the submit host instead of as batch jobs: they
+# gather finished results into tables, Markdown and a few MERL exports, in seconds (measured on
+# the 100-material run: neumerl 5 s / 0.27 GB, diffusion_training_set 4 s, hyperbrdf_table
+# 5 s / 0.30 GB), while a batch job costs two Snakemake starts and a queue wait (README
+# "Running on Slurm"). Rules that fit, train, sample, render or read the raw data stay batch jobs.
 localrules:
     report,
     dataset_section,
