@@ -6,6 +6,7 @@ slurm-client, --no-install-recommends) or with those already installed. The daem
 temporary directory with a minimal slurm.conf and are stopped by PID at the end. Elsewhere the
 test skips and names what is missing."""
 
+import contextlib
 import importlib.util
 import os
 import re
@@ -93,30 +94,37 @@ def _sbin(name: str) -> str:
     return shutil.which(name) or f"/usr/sbin/{name}"
 
 
-@pytest.fixture(scope="module")
-def slurm(tmp_path_factory):
+class SlurmUnavailable(Exception):
+    """No Slurm can be set up here; the message says why."""
+
+
+@contextlib.contextmanager
+def slurm_cluster(d: Path):
+    """A single-node Slurm without accounting, its files under `d`: yields the environment
+    (SLURM_CONF) for sbatch/squeue and snakemake, and stops the daemons it started by PID.
+    Also used by benchmarks/slurm_overhead.py. Raises SlurmUnavailable elsewhere."""
     reason = _missing()
     if reason:
-        pytest.skip(reason)
+        raise SlurmUnavailable(reason)
     if SYSTEM_CONF.exists():
-        pytest.skip(f"{SYSTEM_CONF} exists: a Slurm is configured here, the test does not touch it")
-    d = tmp_path_factory.mktemp("slurm")
+        raise SlurmUnavailable(f"{SYSTEM_CONF} exists: a Slurm is configured here, the test does "
+                               "not touch it")
     conf = _slurm_conf(d)
     env = {**os.environ, "SLURM_CONF": str(conf)}
     pids = []
-    # munge: the packaged key, our own socket and pid file
-    key = Path("/etc/munge/munge.key")
-    if not key.exists():
-        subprocess.run(["mungekey", "--create", "--keyfile", str(key)], check=True)
-        shutil.chown(key, "munge", "munge")
-    if subprocess.run(["munge", "-n"], capture_output=True).returncode != 0:  # no munged yet
-        Path("/run/munge").mkdir(exist_ok=True)
-        shutil.chown("/run/munge", "munge", "munge")
-        pid = Path("/run/munge/munged.neumat-test.pid")  # a directory the munge user can write
-        subprocess.run(["runuser", "-u", "munge", "--", _sbin("munged"), "--force",
-                        "--pid-file", str(pid)], check=True)
-        pids.append(pid)
     try:
+        # munge: the packaged key, our own socket and pid file
+        key = Path("/etc/munge/munge.key")
+        if not key.exists():
+            subprocess.run(["mungekey", "--create", "--keyfile", str(key)], check=True)
+            shutil.chown(key, "munge", "munge")
+        if subprocess.run(["munge", "-n"], capture_output=True).returncode != 0:  # no munged yet
+            Path("/run/munge").mkdir(exist_ok=True)
+            shutil.chown("/run/munge", "munge", "munge")
+            pid = Path("/run/munge/munged.neumat-test.pid")  # a directory the munge user can write
+            subprocess.run(["runuser", "-u", "munge", "--", _sbin("munged"), "--force",
+                            "--pid-file", str(pid)], check=True)
+            pids.append(pid)
         for daemon in ("slurmctld", "slurmd"):
             subprocess.run([_sbin(daemon), "-f", str(conf)], check=True, env=env)
             pids.append(d / f"{daemon}.pid")
@@ -126,8 +134,8 @@ def slurm(tmp_path_factory):
                 break
             time.sleep(0.5)
         else:
-            pytest.fail(f"the Slurm node did not come up: {out.stdout} {out.stderr}\n"
-                        + (d / "slurmctld.log").read_text()[-2000:])
+            raise RuntimeError(f"the Slurm node did not come up: {out.stdout} {out.stderr}\n"
+                               + (d / "slurmctld.log").read_text()[-2000:])
         yield env
     finally:
         for pid_file in reversed(pids):  # stop what we started, by PID
@@ -137,6 +145,15 @@ def slurm(tmp_path_factory):
                 except (ProcessLookupError, ValueError):
                     pass
         SYSTEM_CONF.unlink(missing_ok=True)
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory):
+    try:
+        with slurm_cluster(tmp_path_factory.mktemp("slurm")) as env:
+            yield env
+    except SlurmUnavailable as e:
+        pytest.skip(str(e))
 
 
 def _copy_workflow(dst: Path) -> Path:

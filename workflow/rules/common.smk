@@ -48,8 +48,16 @@ def _floats_where_numbers(node, schema):
             _floats_where_numbers(v, sub)
 
 
-_floats_where_numbers(config, yaml.safe_load(open(Path(workflow.basedir) / "config/schema.yaml")))
-_KEY_KINDS = yaml.safe_load(open(Path(workflow.basedir) / "config/speed_keys.yaml"))
+def _load_yaml(name):
+    """A config/ file, with libyaml's parser where PyYAML has it: every job on a cluster parses
+    this Snakefile twice, and the 40 kB schema takes 0.08 s with the pure-Python parser against
+    0.01 s (measured, AMD EPYC)."""
+    with open(Path(workflow.basedir) / "config" / name) as f:
+        return yaml.load(f, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+
+
+_floats_where_numbers(config, _load_yaml("schema.yaml"))
+_KEY_KINDS = _load_yaml("speed_keys.yaml")
 SPEED_KEYS = set(_KEY_KINDS["speed"])  # never params
 COSMETIC_KEYS = set(_KEY_KINDS["cosmetic"])  # params of report/figure rules only
 
