@@ -283,13 +283,15 @@ class Composed:
 
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
-               clip: float | None = None) -> np.ndarray:
+               clip: float | None = None, negative_step: float = 0.0,
+               activation: str = "relu") -> np.ndarray:
         from neumat.diffusion.sample import sample
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
             cond["type"], scales["type"] = list(types), guidance
-        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip)
+        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
+                      negative_step=negative_step, activation=activation)
 
 
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
