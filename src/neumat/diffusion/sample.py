@@ -165,7 +165,7 @@ def _image_embedding(image_encoder, path, n: int) -> np.ndarray:
 def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = None,
            guidance: dict | float | None = None, steps: int = 50, eta: float = 0.0,
            batch_size: int = 256, clip: float | None = None, image_encoder=None,
-           negative_step: float = 0.0, activation: str = "relu") -> np.ndarray:
+           negative_step: float = 30.0, activation: str = "relu") -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies

@@ -222,7 +222,7 @@ class Sampler:
     @torch.no_grad()
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
-               clip: float | None = None, negative_step: float = 0.0,
+               clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu") -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
