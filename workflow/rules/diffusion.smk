@@ -2,7 +2,7 @@
 # (train-split fits of the original MERL materials), sample unconditionally (as many as the
 # test reference set) and per material type, export a few samples as MERL .binary, check
 # physical plausibility, find each sample's nearest training material, write the report section.
-#   neumerl -> train_diffusion -> sample_uncond / sample_type -> diffusion_nearest,
+#   neumerl -> train_diffusion -> sample_uncond / sample_type (/ sample_plain) -> diffusion_nearest,
 #   diffusion_plausibility, export_samples -> diffusion_section
 
 DIFF = config["diffusion"]
