@@ -20,7 +20,7 @@ valid MERL directions, and moved one gradient step down the clamp penalty
     P(x0) = mean over directions and channels of relu(-x),
     x0 <- x0 - lambda * dP/dx0   (per sample; lambda = 0: unchanged),
 before the DDIM update. It adds an NBRDF forward and backward pass at those directions per
-step: about 4x the sampling time of the default denoiser on CPU (README, Hyperdiffusion).
+step: about 3x the sampling time of the default denoiser on CPU (README, Hyperdiffusion).
 """
 
 from __future__ import annotations
