@@ -40,7 +40,6 @@ import torch
 from neumat import machine, nbrdf
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, dataset, plausibility
 from neumat.diffusion.model import Normalizer
-from neumat.diffusion.schedule import Diffusion
 from neumat.metrics import distances
 from neumat.seeds import seed_for
 
