@@ -43,7 +43,8 @@ CASES = {
     "ScheduleConfig": (_dataclass_defaults(ScheduleConfig), ("diffusion", "schedule"), {}),
     "TrainConfig": (_dataclass_defaults(TrainConfig), ("diffusion", "train"), {}),
     "Sampler.sample": (_signature_defaults(Sampler.sample), ("diffusion", "sample"),
-                       {"types": "None = unconditional; the workflow lists them"}),
+                       {"types": "None = unconditional; the workflow lists them",
+                        "activation": "fit.activation: how the NBRDF decodes"}),
     "plausibility": (
         {"angles": _signature_defaults(plausibility)["n_angles"],
          "explode_factor": _signature_defaults(plausibility)["explode_factor"]},

@@ -188,13 +188,14 @@ def test_learns_two_mode_distribution(tmp_path):
                    tmp_path / "m.pt", tmp_path / "ck.pt", seed=1, device="cpu")
     assert bundle["history"][-1][1] < 0.5 * bundle["history"][0][1]
     s = Sampler(tmp_path / "m.pt", device="cpu")
-    x = s.sample(200, seed=0, steps=20)
+    x = s.sample(200, seed=0, steps=20, negative_step=0.0)  # toy vectors, not BRDFs: no clamp
     dist = np.linalg.norm(x[:, None] - centres[None], axis=-1) / math.sqrt(675)  # RMS distance
     nearest = dist.argmin(1)
     assert np.median(dist.min(1)) < 0.25  # on a mode (modes are ~1.4 apart), not in between
     assert 0.25 < nearest.mean() < 0.75  # both modes, not collapsed onto one
     # type conditioning with guidance picks the requested mode
-    xc = s.sample(40, seed=1, types=["a"] * 20 + ["b"] * 20, steps=20, guidance=2.0)
+    xc = s.sample(40, seed=1, types=["a"] * 20 + ["b"] * 20, steps=20, guidance=2.0,
+                  negative_step=0.0)
     dc = np.linalg.norm(xc[:, None] - centres[None], axis=-1)
     assert (dc.argmin(1) == np.repeat([0, 1], 20)).mean() >= 0.9
 
@@ -307,3 +308,46 @@ def test_nearest_finds_identical_rows():
     b = torch.randn(20, 30)
     idx, dist = dataset.nearest(b[[3, 17, 5]] + 1e-4, b, chunk=2)
     assert idx.tolist() == [3, 17, 5] and np.allclose(dist, 1e-4, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- clamp constraint
+
+
+def _tiny_sampler(seed=0):
+    """A random tiny model whose normaliser comes from random NBRDFs (about half their log-space
+    outputs are negative, so the clamp constraint has work to do)."""
+    w = nbrdf.init_weights(64, torch.Generator().manual_seed(seed))
+    norm = Normalizer.fit(w)
+    cfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=0)
+    return Sampler({"model_cfg": cfg.to_dict(), "sched_cfg": ScheduleConfig(timesteps=50).to_dict(),
+                    "class_names": [], "ema": _model(cfg, seed).state_dict(),
+                    "normalizer": norm.state_dict()}, "cpu")
+
+
+def test_negative_constraint_step_lowers_the_penalty():
+    from neumat.diffusion.sample import NegativeConstraint, negative_penalty
+    s = _tiny_sampler()
+    x0 = torch.randn(8, nbrdf.N_PARAMS, generator=torch.Generator().manual_seed(1))
+    c = NegativeConstraint(s.norm, 0.5, seed=3, n_directions=512)
+    pen = lambda z: negative_penalty(s.norm.decode(z), c.x)  # noqa: E731
+    assert (pen(c(x0)) < pen(x0)).all()  # every sample moves down its own penalty
+    assert torch.equal(NegativeConstraint(s.norm, 0.0, seed=3)(x0), x0)
+    with pytest.raises(ValueError, match="negative_step"):
+        NegativeConstraint(s.norm, -1.0, seed=3)
+
+
+def test_constrained_sampling_fewer_negative_bins_and_off_is_unchanged():
+    s = _tiny_sampler()
+    kw = dict(steps=10, guidance=1.0)
+    plain = s.sample(16, 5, negative_step=0.0, **kw)
+    z = s.diffusion.ddim_sample(lambda x, t: s.model(x, t, None), (16, nbrdf.N_PARAMS), 10,
+                                generator=torch.Generator().manual_seed(5))  # no hook at all
+    assert np.array_equal(s.norm.decode(z).numpy(), plain)
+    on = s.sample(16, 5, negative_step=20.0, **kw)
+    assert np.array_equal(s.sample(16, 5, negative_step=20.0, **kw), on)  # deterministic
+    neg = lambda w: plausibility(w, n_angles=2000, albedo_kw=dict(  # noqa: E731
+        n_theta_o=1, n_theta_h=4, n_phi_h=4))["negative_share"].mean()
+    assert neg(on) < 0.8 * neg(plain), (neg(on), neg(plain))
+    # the library entry point (conditions, CLI) takes the same key
+    from neumat.diffusion.sample import sample
+    assert np.array_equal(sample(s, 16, 5, steps=10, negative_step=20.0), on)

@@ -318,3 +318,16 @@ def test_speed_and_cosmetic_keys_rerun_no_fit(tiny_run):
         culprits = {k: [j for j in plan([k]) if j.startswith(HEAVY)] for k in every}
         pytest.fail(f"speed/cosmetic keys rerun heavy jobs: {({k: v for k, v in culprits.items() if v})}")
     assert plan(list(kinds["speed"])) == [], "speed-only keys rerun jobs"
+
+
+@pytest.mark.slow
+def test_negative_step_reruns_only_sampling(tiny_run):
+    """diffusion.sample.negative_step (the clamp constraint) is a param of the sampling rules
+    only: changing it retrains nothing, and sample_plain (drawn without it) stays."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "diffusion.sample.negative_step", 7.0)
+    (tiny_run / "config/negative_step.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/negative_step.yaml")
+    assert "sample_uncond" in jobs and "sample_type" in jobs, jobs
+    assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_plain"))], jobs

@@ -283,13 +283,15 @@ class Composed:
 
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
-               clip: float | None = None) -> np.ndarray:
+               clip: float | None = None, negative_step: float = 30.0,
+               activation: str = "relu") -> np.ndarray:
         from neumat.diffusion.sample import sample
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
             cond["type"], scales["type"] = list(types), guidance
-        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip)
+        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
+                      negative_step=negative_step, activation=activation)
 
 
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
@@ -317,8 +319,10 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
     if args.image:
         info["image_encoder"] = str(enc_path)
+    # the run's clamp constraint (diffusion.sample.negative_step), as its workflow sampled
+    neg = float(run.setting("diffusion", "sample", "negative_step"))
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
-           "batch_size": args.batch, "clip": None}
+           "batch_size": args.batch, "clip": None, "negative_step": neg}
     if args.category:
         w, table = _draw_category(args, run, sampler, cfg)
         return w, table.assign(**info)
@@ -328,7 +332,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         for s in range(0, args.n, args.batch):
             b = min(args.batch, args.n - s)
             ws.append(sampler.sample(b, args.seed + s, types[s:s + b] if types else None, args.steps,
-                                     0.0, scales.get("type", 1.0), args.batch))
+                                     0.0, scales.get("type", 1.0), args.batch, None, neg,
+                                     args.activation))
             bar.update(b)
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
     return np.concatenate(ws), table

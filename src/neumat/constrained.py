@@ -315,11 +315,12 @@ class CategoryResult:
     hits: int = 0  # draws that fell into the category (>= len(weights): the last batch may overshoot)
 
 
-def _draw(sampler, n, seed, types, sample_cfg):
+def _draw(sampler, n, seed, types, sample_cfg, activation="relu"):
     guidance = sample_cfg["guidance"] if types else 1.0
     ts = [types[i % len(types)] for i in range(n)] if types else None
     return sampler.sample(n, seed, ts, sample_cfg["steps"], sample_cfg["eta"], guidance,
-                          sample_cfg["batch_size"], sample_cfg["clip"])
+                          sample_cfg["batch_size"], sample_cfg["clip"],
+                          sample_cfg.get("negative_step", 0.0), activation)
 
 
 def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int, batch: int,
@@ -340,7 +341,7 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
         b = min(batch, budget - drawn)
         if b <= 0:
             break
-        w = _draw(sampler, b, seed + k * 1_000_000, types, sample_cfg)
+        w = _draw(sampler, b, seed + k * 1_000_000, types, sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         pilot[name] = float(ok.mean())
@@ -353,7 +354,7 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
     while sum(map(len, acc_w)) < n and drawn < budget:
         b = min(batch, budget - drawn)
         k = list(modes).index(chosen)
-        w = _draw(sampler, b, seed + k * 1_000_000 + i, modes[chosen], sample_cfg)
+        w = _draw(sampler, b, seed + k * 1_000_000 + i, modes[chosen], sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         acc_w.append(w[ok]), acc_s.append(s[ok])

@@ -129,6 +129,7 @@ rule sample_text:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode="text",
         seed=cond_seed("text"),
+        activation=DIFF_ACTIVATION,
     log:
         log("sample_text"),
     benchmark:
@@ -195,6 +196,7 @@ rule sample_multimodal:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode=lambda w: w.set,
         seed=lambda w: cond_seed(w.set),
+        activation=DIFF_ACTIVATION,
     wildcard_constraints:
         set="mm_type|mm_uncond",
     log:

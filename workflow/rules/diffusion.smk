@@ -2,7 +2,7 @@
 # (train-split fits of the original MERL materials), sample unconditionally (as many as the
 # test reference set) and per material type, export a few samples as MERL .binary, check
 # physical plausibility, find each sample's nearest training material, write the report section.
-#   neumerl -> train_diffusion -> sample_uncond / sample_type -> diffusion_nearest,
+#   neumerl -> train_diffusion -> sample_uncond / sample_type (/ sample_plain) -> diffusion_nearest,
 #   diffusion_plausibility, export_samples -> diffusion_section
 
 DIFF = config["diffusion"]
@@ -12,8 +12,11 @@ DIFF_CLASSES = sorted(set(MERL["type"]))
 DIFF_ACTIVATION = config["fit"]["activation"]
 # Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
 # split ('reference', for the distance of unseen real materials to their nearest training one).
-DIFF_SETS = ["training", "ours", "merl100", "ours_type"]
-NEAREST_SETS = ["reference", "ours", "merl100", "ours_type"]
+# With the clamp constraint on (diffusion.sample.negative_step > 0), `ours_plain` is `ours`
+# sampled with the same seeds without it: the before/after of plausibility and novelty.
+PLAIN_SETS = ["ours_plain"] if DIFF["sample"]["negative_step"] > 0 else []
+DIFF_SETS = ["training", "ours", "merl100", "ours_type"] + PLAIN_SETS
+NEAREST_SETS = ["reference", "ours", "merl100", "ours_type"] + PLAIN_SETS
 
 
 rule train_diffusion:
@@ -57,12 +60,40 @@ rule sample_uncond:
         cfg={"sample": settings("diffusion.sample", drop=["guidance"])},  # unguided
         mode="uncond",
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
+        activation=DIFF_ACTIVATION,  # decodes x0 for the clamp constraint (negative_step)
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
     log:
         log("sample_uncond/{model}"),
     benchmark:
         bench("sample_uncond/{model}")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_diffusion.py"
+
+
+rule sample_plain:
+    input:
+        model=out("diffusion/ours/model.pt"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        weights=out("samples/ours_plain/weights.npy"),
+        table=out("samples/ours_plain/samples.tsv"),
+        timing=out("samples/ours_plain/timing.tsv"),
+    params:
+        cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step"])},
+        mode="uncond",
+        seeds=draw_seeds("sample", "ours"),  # the seeds of `ours`: paired samples
+        activation=DIFF_ACTIVATION,
+    log:
+        log("sample_plain"),
+    benchmark:
+        bench("sample_plain")
     conda:
         CONDA_ENV
     threads: DIFF["threads"]
@@ -85,6 +116,7 @@ rule sample_type:
         cfg=settings("diffusion", ["sample", "types", "per_type"]),
         mode="type",
         seed=seed_for("sample_type"),
+        activation=DIFF_ACTIVATION,
     log:
         log("sample_type"),
     benchmark:

@@ -30,6 +30,16 @@ def render(w, p):
                                                str(resolve_device(snakemake.config["device"]))))
 
 
+def clamp_note(s: dict) -> str:
+    step = s.get("negative_step", 0.0)
+    if not step:
+        return "Clamp-aware constraint off (diffusion.sample.negative_step = 0)."
+    return (f"Clamp-aware constraint: at every DDIM step the predicted x0 takes one gradient "
+            f"step of size {step:g} down mean(relu(-x)), x the NBRDF's log-space output at 4096 "
+            f"seeded valid MERL bins (the values the output max(exp(x) - 1, 0) clamps); "
+            f"`ours_plain` is `ours` drawn with the same seeds without it (before/after below).")
+
+
 def gallery(samples, near, weights, n, p, path, title):
     """Top row: samples; bottom row: their nearest training materials (BRDF-L1)."""
     k = min(n, len(samples))
@@ -111,7 +121,7 @@ with script_logging(snakemake) as log:
         f"{s['prediction']}-prediction; EMA {cfg['train']['ema_decay']}; type labels dropped "
         f"with p = {cfg['train']['cond_drop']} for classifier-free guidance. Sampling: DDIM, "
         f"{cfg['sample']['steps']} steps, eta = {cfg['sample']['eta']}; type-conditioned "
-        f"samples use guidance scale {cfg['sample']['guidance']}.",
+        f"samples use guidance scale {cfg['sample']['guidance']}. " + clamp_note(cfg["sample"]),
         "### Training", report.md_table(train_rows),
         "![diffusion training loss](figures/diffusion_loss.png)",
         "### Sampling speed", report.md_table(speed),

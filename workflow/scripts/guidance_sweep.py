@@ -47,7 +47,8 @@ with script_logging(snakemake) as log:
         for scale in p.scales:
             t0 = time.perf_counter()
             w = sample(sampler, len(want), p.seed, cond, {name: scale}, s["steps"], s["eta"],
-                       s["batch_size"], s["clip"])
+                       s["batch_size"], s["clip"], negative_step=s["negative_step"],
+                       activation=p.activation)
             near = ts.nearest(w)
             ok = ts.scorable(want)  # asked types that some training material has
             hits = near["nearest_type"].to_numpy()[ok] == want[ok]

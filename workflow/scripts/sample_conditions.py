@@ -64,7 +64,8 @@ with script_logging(snakemake) as log:
     guidance = {name: p.guidance[name]} if name in p.guidance else {}
     t0 = time.perf_counter()
     w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
-               s["batch_size"], s["clip"])
+               s["batch_size"], s["clip"], negative_step=s["negative_step"],
+               activation=p.activation)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table.to_csv(out.table, sep="\t", index=False)

@@ -1,6 +1,8 @@
 """Sample weight vectors from a trained model: unconditional (one draw as large as the test
 reference set per seed in `seeds`, draw-major, for Table 2's mean ± std) or type-conditioned
-(`per_type` for each requested type, classifier-free guidance)."""
+(`per_type` for each requested type, classifier-free guidance). diffusion.sample.negative_step
+turns on the clamp-aware constraint (neumat.diffusion.sample.NegativeConstraint); rule
+sample_plain drops that key: the same draws without it."""
 import time
 
 import numpy as np
@@ -12,7 +14,7 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
-    s = p.cfg["sample"]
+    s = {"negative_step": 0.0, **p.cfg["sample"]}  # sample_plain: the constraint off
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
     draw = None
@@ -27,10 +29,12 @@ with script_logging(snakemake) as log:
         n, types, guidance = len(requested), requested, s["guidance"]
     t0 = time.perf_counter()
     if draw is None:
-        w = sampler.sample(n, p.seed, types, s["steps"], s["eta"], guidance, s["batch_size"], s["clip"])
+        w = sampler.sample(n, p.seed, types, s["steps"], s["eta"], guidance, s["batch_size"],
+                           s["clip"], s["negative_step"], p.activation)
     else:
         w = np.concatenate([sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance,
-                                           s["batch_size"], s["clip"]) for seed in p.seeds])
+                                           s["batch_size"], s["clip"], s["negative_step"],
+                                           p.activation) for seed in p.seeds])
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
@@ -38,6 +42,7 @@ with script_logging(snakemake) as log:
         table["draw"] = draw
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
-                   "steps": s["steps"], "eta": s["eta"], "guidance": guidance}]).to_csv(
+                   "steps": s["steps"], "eta": s["eta"], "guidance": guidance,
+                   "negative_step": s["negative_step"]}]).to_csv(
         out.timing, sep="\t", index=False, float_format="%.6g")
     log.info("%d samples (%s) in %.2f s: %.1f samples/s", n, p.mode, dt, n / max(dt, 1e-9))

@@ -93,8 +93,13 @@ class Diffusion:
     @torch.no_grad()
     def ddim_sample(self, predict: Callable, shape, steps: int = 50, eta: float = 0.0,
                     generator: torch.Generator | None = None, device="cpu",
-                    x_T: torch.Tensor | None = None, clip: float | None = None) -> torch.Tensor:
-        """Sample with `predict(x_t, t_batch) -> model output` (already guided)."""
+                    x_T: torch.Tensor | None = None, clip: float | None = None,
+                    constrain: Callable | None = None) -> torch.Tensor:
+        """Sample with `predict(x_t, t_batch) -> model output` (already guided).
+
+        `constrain(x0_hat) -> x0_hat'` (e.g. `neumat.diffusion.sample.NegativeConstraint`)
+        edits each predicted x0 before the DDIM update; eps_hat is kept from the model, so the
+        edit moves x_prev by sqrt(ab_prev) times the edit and the next prediction sees it."""
         x = (torch.randn(shape, generator=generator) if x_T is None else x_T.clone()).to(device)
         ts = self.timesteps_for(steps)
         for i, t in enumerate(ts):
@@ -106,6 +111,8 @@ class Diffusion:
             if clip is not None:  # keep x0 inside the data range; re-derive eps consistently
                 x0 = x0.clamp(-clip, clip)
                 eps = (x - math.sqrt(ab) * x0) / math.sqrt(1 - ab)
+            if constrain is not None:
+                x0 = constrain(x0)
             sigma = eta * math.sqrt((1 - ab_prev) / (1 - ab) * (1 - ab / ab_prev))
             x = math.sqrt(ab_prev) * x0 + math.sqrt(max(1 - ab_prev - sigma ** 2, 0.0)) * eps
             if sigma > 0:

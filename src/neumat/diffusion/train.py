@@ -222,19 +222,25 @@ class Sampler:
     @torch.no_grad()
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
-               clip: float | None = None) -> np.ndarray:
+               clip: float | None = None, negative_step: float = 30.0,
+               activation: str = "relu") -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
-        classifier-free guidance scale `guidance`, None samples unconditionally."""
+        classifier-free guidance scale `guidance`, None samples unconditionally.
+        `negative_step` > 0: clamp-aware constraint at every DDIM step
+        (`neumat.diffusion.sample.NegativeConstraint`, NBRDF `activation`)."""
+        from neumat.diffusion.sample import constraint_for  # sample.py imports this module
+
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
         gen = torch.Generator().manual_seed(seed)
+        constrain = constraint_for(self, negative_step, seed, activation)
         out = []
         for s in range(0, n, batch_size):
             b = min(batch_size, n - s)
             cond = {"type": labels[s:s + b].to(self.device)} if labels is not None else None
             z = self.diffusion.ddim_sample(guided(self.model, cond, guidance),
                                            (b, nbrdf.N_PARAMS), steps, eta, gen, self.device,
-                                           clip=clip)
+                                           clip=clip, constrain=constrain)
             out.append(self.norm.decode(z).float().cpu().numpy())
         return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
