@@ -15,7 +15,7 @@ Rows, each against the plain query of the same path:
             `model(u, wi, wo)`, and the plane fetch alone.
 --compile adds rows whose torch synthesis is torch.compile'd.
 
-    OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3]
+    OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3] [--coherent]
                                                           [--model results/<run>/btf/models/<m>/triple_plane.pt]
 """
 
@@ -62,11 +62,18 @@ def main():
     ap.add_argument("--compile", action="store_true", help="also time torch.compile'd synthesis")
     ap.add_argument("--repeat", type=int, default=5, help="interleaved rounds (best kept)")
     ap.add_argument("--no-torch", action="store_true", help="skip the (slow) torch-path rows")
+    ap.add_argument("--coherent", action="store_true",
+                    help="u of a x15 plane across the frame in pixel order (a rendered frame), "
+                         "not uniform random u")
     a = ap.parse_args()
     m = (models.load(a.model) if a.model else models.TriplePlane(400, 400)).eval()
     m.requires_grad_(False)
     g = torch.Generator().manual_seed(0)
     u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
+    if a.coherent:  # neighbouring pixels, neighbouring u: 128 pixels per unit of u
+        ys, xs = torch.meshgrid(torch.arange(1080.0, dtype=torch.float64),
+                                torch.arange(1920.0, dtype=torch.float64), indexing="ij")
+        u = torch.stack([(xs + 0.5) / 128, (ys + 0.5) / 128], -1).reshape(-1, 2) + 1234.5
     u32 = torch.remainder(u, 1.0).float()
     w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
                                       + torch.tensor([0, 0, 0.8]), dim=-1)
@@ -74,7 +81,9 @@ def main():
     where = machine.describe("native" if fused else None)
     print(f"machine: {where}; torch ISA {torch.backends.cpu.get_cpu_capability()}, "
           f"torch threads {torch.get_num_threads()}, torch {torch.__version__}")
-    print(f"model {m.method} {m.kwargs}, frame {FRAME} queries, chunk {a.chunk}")
+    print(f"model {m.method} {m.kwargs}, frame {FRAME} queries "
+          f"({'coherent: a x15 plane in pixel order' if a.coherent else 'uniform random u'}), "
+          f"chunk {a.chunk}")
     c = a.chunk
     run = lambda f: lambda n=FRAME: chunked(f, n, c)
     runs, refs = {}, {}   # name -> timed function; name -> the plain query it is measured against
