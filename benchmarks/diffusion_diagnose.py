@@ -208,7 +208,7 @@ def hybrid_sample(sampler, train_w, n, seed, cfg, activation):
     """DDIM where the x0 prediction for t < cfg['gauss_below'] comes from the linear MMSE
     (Gaussian) denoiser of the training weights instead of the model (an experiment: the model's
     low-t error floor vs a denoiser that is exact at low noise)."""
-    from neumat.diffusion.sample import constraint_for
+    from neumat.diffusion.constraints import constraint_for
 
     x = sampler.norm.encode(torch.from_numpy(train_w)).double()
     lam, vec = torch.linalg.eigh(torch.cov(x.T))

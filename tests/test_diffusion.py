@@ -325,7 +325,7 @@ def _tiny_sampler(seed=0):
 
 
 def test_negative_constraint_step_lowers_the_penalty():
-    from neumat.diffusion.sample import NegativeConstraint, negative_penalty
+    from neumat.diffusion.constraints import NegativeConstraint, negative_penalty
     s = _tiny_sampler()
     x0 = torch.randn(8, nbrdf.N_PARAMS, generator=torch.Generator().manual_seed(1))
     c = NegativeConstraint(s.norm, 0.5, seed=3, n_directions=512)

@@ -1,7 +1,7 @@
 """Sample weight vectors from a trained model: unconditional (one draw as large as the test
 reference set per seed in `seeds`, draw-major, for Table 2's mean ± std) or type-conditioned
 (`per_type` for each requested type, classifier-free guidance). diffusion.sample.negative_step
-turns on the clamp-aware constraint (neumat.diffusion.sample.NegativeConstraint); rule
+turns on the clamp-aware constraint (neumat.diffusion.constraints.NegativeConstraint); rule
 sample_plain drops that key: the same draws without it."""
 import time
 

@@ -13,14 +13,8 @@ Library entry point for the workflow and the CLI:
                                         "image": "ref.png"}, guidance={"type": 2, ...},
            image_encoder="conditions/image_encoder.pt")
 
-Clamp-aware constraint (`NegativeConstraint`, config diffusion.sample.negative_step = lambda):
-the NBRDF output max(exp(x) - 1, 0) hides every bin whose log-space value x < 0. At each DDIM
-step the predicted x0 (normalised) is de-standardised, evaluated at a fixed seeded set of
-valid MERL directions, and moved one gradient step down the clamp penalty
-    P(x0) = mean over directions and channels of relu(-x),
-    x0 <- x0 - lambda * dP/dx0   (per sample; lambda = 0: unchanged),
-before the DDIM update. It adds an NBRDF forward and backward pass at those directions per
-step: about 3x the sampling time of the default denoiser on CPU (README, Hyperdiffusion).
+The clamp-aware constraint of every DDIM step (diffusion.sample.negative_step) is in
+`neumat.diffusion.constraints`.
 """
 
 from __future__ import annotations
@@ -31,55 +25,8 @@ import numpy as np
 import torch
 
 from neumat import nbrdf
+from neumat.diffusion.constraints import constraint_for
 from neumat.diffusion.train import Sampler
-
-CONSTRAINT_DIRECTIONS = 4096  # valid MERL bins the clamp penalty is evaluated at
-
-
-def constraint_directions(seed: int, n: int = CONSTRAINT_DIRECTIONS) -> torch.Tensor:
-    """(n, 6) NBRDF inputs at a fixed random subset (from `seed`) of the valid MERL bins."""
-    from neumat.io import merl
-
-    valid = np.flatnonzero(merl.valid_mask())
-    idx = np.sort(np.random.default_rng(seed).choice(valid, size=min(n, len(valid)), replace=False))
-    th, td, pd_ = (a[idx] for a in merl.grid_angles())
-    return torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
-
-
-def negative_penalty(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch.Tensor:
-    """Per material (B,): mean over directions x (N, 6) and channels of relu(-raw), the
-    log-space depth of the bins the output clamp max(exp(raw) - 1, 0) sets to 0."""
-    return torch.relu(-nbrdf.forward_raw(w, x, activation)).flatten(1).mean(1)
-
-
-class NegativeConstraint:
-    """x0_hat (normalised weights) -> x0_hat - step * d negative_penalty / d x0_hat, per sample
-    (see the module docstring). Deterministic: the directions come from `seed`."""
-
-    def __init__(self, norm, step: float, seed: int, activation: str = "relu",
-                 n_directions: int = CONSTRAINT_DIRECTIONS):
-        if step < 0:
-            raise ValueError(f"diffusion.sample.negative_step must be >= 0, got {step}")
-        self.norm, self.step, self.activation = norm, float(step), activation
-        self.x = constraint_directions(seed, n_directions)
-
-    def __call__(self, x0: torch.Tensor) -> torch.Tensor:
-        if self.step == 0:
-            return x0
-        with torch.enable_grad():
-            z = x0.detach().float().requires_grad_(True)
-            # summed over the batch: each sample's gradient is its own penalty's
-            pen = negative_penalty(self.norm.decode(z), self.x.to(z.device), self.activation).sum()
-            (g,) = torch.autograd.grad(pen, z)
-        return x0 - self.step * g.to(x0.dtype)
-
-
-def constraint_for(sampler: Sampler, negative_step: float, seed: int, activation: str = "relu"):
-    """The `constrain` hook of `Diffusion.ddim_sample` (None when negative_step is 0)."""
-    if not negative_step:
-        return None
-    return NegativeConstraint(sampler.norm, negative_step, seed, activation)
-
 
 def guided_multi(model, cond: dict, scales: dict) -> Callable:
     """Per-modality classifier-free guidance: predict(x_t, t) -> guided model output."""

@@ -97,7 +97,7 @@ class Diffusion:
                     constrain: Callable | None = None) -> torch.Tensor:
         """Sample with `predict(x_t, t_batch) -> model output` (already guided).
 
-        `constrain(x0_hat) -> x0_hat'` (e.g. `neumat.diffusion.sample.NegativeConstraint`)
+        `constrain(x0_hat) -> x0_hat'` (e.g. `neumat.diffusion.constraints.NegativeConstraint`)
         edits each predicted x0 before the DDIM update; eps_hat is kept from the model, so the
         edit moves x_prev by sqrt(ab_prev) times the edit and the next prediction sees it."""
         x = (torch.randn(shape, generator=generator) if x_T is None else x_T.clone()).to(device)

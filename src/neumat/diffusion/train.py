@@ -25,6 +25,7 @@ import torch
 
 from neumat import nbrdf
 from neumat.device import resolve_device
+from neumat.diffusion.constraints import constraint_for
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
 
@@ -227,9 +228,7 @@ class Sampler:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
-        (`neumat.diffusion.sample.NegativeConstraint`, NBRDF `activation`)."""
-        from neumat.diffusion.sample import constraint_for  # sample.py imports this module
-
+        (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`)."""
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
