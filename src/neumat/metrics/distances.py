@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from neumat import cbuild, nbrdf
 from neumat.io import merl
@@ -60,17 +59,40 @@ def table_values(tables, bins) -> torch.Tensor:
     return t[:, :, torch.as_tensor(bins)].clamp_min(0).transpose(1, 2).reshape(len(t), -1).float()
 
 
+_P, _L, _I, _F = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_float
+# kernel source -> (what runs without it, its entry point, argtypes, restype)
+_KERNELS = {
+    "l1_kernel.c": ("BRDF-L1 uses torch.cdist", "l1_pairwise", [_L, _L, _L, _P, _P, _P], None),
+    "ssim_kernel.c": ("pairwise SSIM uses torch", "ssim_pairs",
+                      [_L, _L, _I, _I, _I, *[_P] * 10, _F, _F, _F, _I, _I, _I, _P], _I),
+}
+
+
 @cache
-def _l1_library(march: str = "native"):
-    path = cbuild.build(Path(__file__).with_name("l1_kernel.c"), march,
-                        "BRDF-L1 uses torch.cdist")
+def _library(source: str, march: str = "native"):
+    """The C kernel `source` (beside this file) built for `march` and typed, or None."""
+    fallback, name, argtypes, restype = _KERNELS[source]
+    path = cbuild.build(Path(__file__).with_name(source), march, fallback)
     if path is None:
         return None
     lib = ctypes.CDLL(str(path))
-    p, l = ctypes.c_void_p, ctypes.c_long
-    lib.l1_pairwise.argtypes = [l, l, l, p, p, p]
-    lib.l1_pairwise.restype = None
+    getattr(lib, name).argtypes, getattr(lib, name).restype = argtypes, restype
     return lib
+
+
+def _l1_library(march: str = "native"):
+    return _library("l1_kernel.c", march)
+
+
+def _ssim_library(march: str = "native"):
+    return _library("ssim_kernel.c", march)
+
+
+def _in_threads(part, workers: int) -> list:
+    """part(0) ... part(workers - 1) on a thread each: the kernels' ctypes calls drop the GIL,
+    so the threads run in parallel."""
+    with ThreadPoolExecutor(workers) as pool:
+        return list(pool.map(part, range(workers)))
 
 
 def l1_sums(a: torch.Tensor, b: torch.Tensor, threads: int | None = None,
@@ -86,13 +108,12 @@ def l1_sums(a: torch.Tensor, b: torch.Tensor, threads: int | None = None,
     threads = max(1, min(threads or torch.get_num_threads(), n))
     edges = [n * k // threads for k in range(threads + 1)]
 
-    def part(k):  # ctypes drops the GIL: the threads run in parallel
+    def part(k):
         s, e = edges[k], edges[k + 1]
         lib.l1_pairwise(e - s, m, d, a.data_ptr() + 4 * s * d, b.data_ptr(),
                         out.data_ptr() + 8 * s * m)
 
-    with ThreadPoolExecutor(threads) as pool:
-        list(pool.map(part, range(threads)))
+    _in_threads(part, threads)
     return out
 
 
@@ -183,19 +204,6 @@ def pairwise_ssim(x, y=None) -> torch.Tensor:
     return out
 
 
-@cache
-def _ssim_library(march: str = "native"):
-    path = cbuild.build(Path(__file__).with_name("ssim_kernel.c"), march,
-                        "pairwise SSIM uses torch")
-    if path is None:
-        return None
-    lib = ctypes.CDLL(str(path))
-    p, l, i, f = ctypes.c_void_p, ctypes.c_long, ctypes.c_int, ctypes.c_float
-    lib.ssim_pairs.argtypes = [l, l, i, i, i, p, p, p, p, p, p, p, p, p, p, f, f, f, i, i, i, p]
-    lib.ssim_pairs.restype = i
-    return lib
-
-
 def _ssim_kernel(x, y, ux, qx, rx, uy, qy, ry, c1, c2, k, sym, threads=None,
                  march: str = "native"):
     """pairwise_ssim's pairs by `ssim_kernel.c` (rows split over `threads`, default torch's),
@@ -209,13 +217,12 @@ def _ssim_kernel(x, y, ux, qx, rx, uy, qy, ry, c1, c2, k, sym, threads=None,
     out = torch.zeros(n, m, dtype=torch.float64)
     workers = max(1, min(threads or torch.get_num_threads(), n))
 
-    def part(w):  # ctypes drops the GIL: the workers run in parallel
+    def part(w):
         return lib.ssim_pairs(n, m, C, H, W, *(a.data_ptr() for a in t), c1, c2, k, int(sym),
                               w, workers, out.data_ptr())
 
-    with ThreadPoolExecutor(workers) as pool:
-        if any(pool.map(part, range(workers))):
-            return None
+    if any(_in_threads(part, workers)):
+        return None
     return torch.triu(out) + torch.triu(out, 1).T if sym else out
 
 

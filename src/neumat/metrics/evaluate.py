@@ -18,7 +18,6 @@ import torch
 
 from neumat.metrics import distances as D
 from neumat.metrics import sets
-from neumat.render import sphere
 
 log = logging.getLogger(__name__)
 COLUMNS = ["metric", "distance", "value", "note"]
