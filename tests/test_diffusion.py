@@ -98,20 +98,42 @@ def test_schedules():
     with pytest.raises(ValueError, match="kind"):
         Diffusion(ScheduleConfig(kind="sigmoid"))
     with pytest.raises(ValueError, match="prediction"):
-        Diffusion(ScheduleConfig(prediction="v"))
+        Diffusion(ScheduleConfig(prediction="score"))
 
 
 def _gaussian_posterior(mu, s2, diffusion, prediction):
-    """Exact E[x0 | x_t] for x0 ~ N(mu, s2), returned as the model output (x0 or eps)."""
+    """Exact E[x0 | x_t] for x0 ~ N(mu, s2), returned as the model output (x0, eps or v)."""
     def predict(x, t):
         ab = diffusion.alpha_bar[t].to(x.dtype)[:, None]
         var_t = ab * s2 + 1 - ab
         x0 = mu + ab.sqrt() * s2 / var_t * (x - ab.sqrt() * mu)
-        return x0 if prediction == "x0" else (x - ab.sqrt() * x0) / (1 - ab).sqrt()
+        eps = (x - ab.sqrt() * x0) / (1 - ab).sqrt()
+        return {"x0": x0, "eps": eps, "v": ab.sqrt() * eps - (1 - ab).sqrt() * x0}[prediction]
     return predict
 
 
-@pytest.mark.parametrize("prediction", ["x0", "eps"])
+@pytest.mark.parametrize("prediction", ["x0", "eps", "v"])
+def test_split_inverts_each_target(prediction):
+    """The loss's target for (x0, eps) at t, split back from x_t, gives that x0 and eps."""
+    d = Diffusion(ScheduleConfig(timesteps=100, kind="cosine", prediction=prediction))
+    g = torch.Generator().manual_seed(1)
+    x0, eps = torch.randn(6, 5, generator=g, dtype=torch.float64), torch.randn(6, 5, generator=g, dtype=torch.float64)
+    t = torch.tensor([0, 1, 20, 50, 98, 99])
+    ab = d.alpha_bar[t][:, None]
+    x_t = d.q_sample(x0, t, eps)
+    target = {"x0": x0, "eps": eps, "v": ab.sqrt() * eps - (1 - ab).sqrt() * x0}[prediction]
+    x0_hat, eps_hat = d.split(target, x_t, ab)
+    assert torch.allclose(x0_hat, x0, atol=1e-9) and torch.allclose(eps_hat, eps, atol=1e-9)
+    # the training loss regresses that same target: a model that returns it has loss 0
+    def oracle(x, tt, cond, drop):
+        a = d.alpha_bar[tt][:, None].to(x.dtype)
+        e = (x - a.sqrt() * x0) / (1 - a).sqrt()
+        return {"x0": x0, "eps": e, "v": a.sqrt() * e - (1 - a).sqrt() * x0}[prediction]
+    x0 = x0.float()
+    assert d.loss(oracle, x0, generator=torch.Generator().manual_seed(0)).item() < 1e-8
+
+
+@pytest.mark.parametrize("prediction", ["x0", "eps", "v"])
 def test_ddim_matches_closed_form_on_gaussian(prediction):
     """With the exact posterior mean, deterministic DDIM on Gaussian data is the linear map
     x_prev - sqrt(ab') mu = g (x_t - sqrt(ab) mu), g = (sqrt(ab ab') s2 + sqrt((1-ab)(1-ab')))

@@ -2,7 +2,11 @@
 
 Conventions (Ho et al. 2020; Song et al. 2021): timesteps t = 0..T-1, alpha_bar[t] =
 prod_{s<=t} (1 - beta_s), x_t = sqrt(alpha_bar[t]) x0 + sqrt(1 - alpha_bar[t]) eps.
-The denoiser predicts x0 or eps (`prediction`); the other is derived from x_t.
+The denoiser predicts x0, eps or v = sqrt(alpha_bar) eps - sqrt(1 - alpha_bar) x0 (`prediction`;
+Salimans & Ho 2022); x0 and eps are derived from it and x_t. v is x0 prediction with EDM's skip
+connection for unit-variance data (Karras et al. 2022: x0 = sqrt(ab) x_t - sqrt(1 - ab) v): at low
+noise the network adds a small correction to x_t instead of rebuilding x0, and its loss,
+|x0 error|^2 / (1 - ab), weights the low-noise end that decides the fine detail.
 
 DDIM (Song et al. 2021, eq. 12) on a sub-sequence tau_1 > ... > tau_S of timesteps:
   x_prev = sqrt(ab_prev) x0_hat + sqrt(1 - ab_prev - sigma^2) eps_hat + sigma z,
@@ -19,7 +23,7 @@ from typing import Callable
 
 import torch
 
-PREDICTIONS = ("x0", "eps")
+PREDICTIONS = ("x0", "eps", "v")
 SCHEDULES = ("cosine", "linear")
 
 
@@ -70,6 +74,8 @@ class Diffusion:
         """Model output -> (x0_hat, eps_hat) for x_t at cumulative alpha ab (B, 1)."""
         if self.cfg.prediction == "x0":
             return out, (x_t - ab.sqrt() * out) / (1 - ab).sqrt()
+        if self.cfg.prediction == "v":
+            return ab.sqrt() * x_t - (1 - ab).sqrt() * out, (1 - ab).sqrt() * x_t + ab.sqrt() * out
         return (x_t - (1 - ab).sqrt() * out) / ab.sqrt(), out
 
     def loss(self, model, x0, cond=None, drop=None, generator=None):
@@ -80,7 +86,11 @@ class Diffusion:
         t = torch.randint(0, self.T, (b,), generator=generator).to(x0.device)
         noise = torch.randn(x0.shape, generator=generator).to(x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
-        target = x0 if self.cfg.prediction == "x0" else noise
+        if self.cfg.prediction == "v":
+            ab = self._ab(t, x0)
+            target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
+        else:
+            target = x0 if self.cfg.prediction == "x0" else noise
         return torch.mean((model(x_t, t, cond, drop) - target) ** 2)
 
     def timesteps_for(self, steps: int) -> list[int]:
