@@ -65,6 +65,12 @@ def load(model_path, results, model="ours", width=256, depth=4, heads=8, n_class
     return Sampler(b, "cpu"), weights, man, rows
 
 
+def x0_hat(sampler, xt, tb):
+    """The model's x0 prediction at x_t, whatever it predicts (x0, eps or v)."""
+    ab = sampler.diffusion.alpha_bar[tb].to(xt.dtype)[:, None]
+    return sampler.diffusion.split(sampler.model(xt, tb, None), xt, ab)[0]
+
+
 @torch.no_grad()
 def loss_table(sampler, x_train, x_test, live, seed=0, n=480):
     """Per-t x0-MSE (standardised units) of the model and the reference denoisers, over the
@@ -85,7 +91,7 @@ def loss_table(sampler, x_train, x_test, live, seed=0, n=480):
             eps = torch.randn(x0.shape, generator=g)
             xt = a * x0 + s * eps
             tb = torch.full((len(x0),), t, dtype=torch.long)
-            pred = sampler.model(xt, tb, None)
+            pred = x0_hat(sampler, xt, tb)
             frozen = mse(pred[:, ~live], x0[:, ~live]) if (~live).any() else float("nan")
             pred, x0, xt_all = pred[:, live], x0[:, live], xt
             # Gaussian MMSE: Sigma a (a^2 Sigma + s^2 I)^-1 x_t, in the eigenbasis
@@ -182,7 +188,7 @@ def cmd_roundtrip(a):
         for t in (0, 10, 50, 100, 300):
             ab = d.alpha_bar[t].item()
             xt = ab ** 0.5 * x0 + (1 - ab) ** 0.5 * torch.randn(x0.shape, generator=g)
-            pred = sampler.model(xt, torch.full((len(x0),), t, dtype=torch.long), None)
+            pred = x0_hat(sampler, xt, torch.full((len(x0),), t, dtype=torch.long))
             l1 = torch.diagonal(distances.pairwise_l1(fv(norm.decode(pred).numpy()), f0)).numpy()
             l1_xt = torch.diagonal(distances.pairwise_l1(fv(norm.decode(xt / ab ** 0.5).numpy()),
                                                          f0)).numpy()
@@ -222,7 +228,10 @@ def hybrid_sample(sampler, train_w, n, seed, cfg, activation):
         ab = alpha_bar[t].item()
         a_, s2 = ab ** 0.5, 1 - ab
         c = (xt.double() @ vec) * (a_ * lam / (ab * lam + s2))
-        return (c @ vec.T).to(xt.dtype)
+        x0 = (c @ vec.T).to(xt.dtype)
+        kind = sampler.diffusion.cfg.prediction  # the Gaussian x0 as the model's output kind
+        eps = (xt - a_ * x0) / s2 ** 0.5
+        return {"x0": x0, "eps": eps, "v": a_ * eps - s2 ** 0.5 * x0}[kind]
 
     gen = torch.Generator().manual_seed(seed)
     z = sampler.diffusion.ddim_sample(predict, (n, nbrdf.N_PARAMS), cfg["steps"], cfg["eta"], gen,

@@ -151,6 +151,35 @@ def test_ddim_matches_closed_form_on_gaussian(prediction):
     assert torch.allclose(got, y + mu, atol=1e-10)
 
 
+@pytest.mark.parametrize("strength", [0.3, 0.75])
+def test_ddim_from_a_start_matches_closed_form(strength):
+    """SDEdit start: x0_start noised to t_s = strength (T - 1), then the DDIM steps below t_s.
+    With the exact Gaussian posterior the sampler is the same linear recurrence from t_s."""
+    d = Diffusion(ScheduleConfig(timesteps=200, kind="cosine", prediction="v"))
+    mu, s2 = 1.5, 0.25
+    x0s = torch.linspace(-1, 3, 9, dtype=torch.float64)[:, None]
+    z = torch.randn(9, 1, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    got = d.ddim_sample(_gaussian_posterior(mu, s2, d, "v"), x0s.shape, steps=20, x_T=z,
+                        x0_start=x0s, strength=strength)
+    t_s = round(strength * 199)
+    ts = [t_s] + [t for t in d.timesteps_for(20) if t < t_s]
+    ab_s = d.alpha_bar[t_s]
+    y = ab_s.sqrt() * x0s + (1 - ab_s).sqrt() * z - ab_s.sqrt() * mu
+    for i, t in enumerate(ts):
+        ab = d.alpha_bar[t].item()
+        abp = d.alpha_bar[ts[i + 1]].item() if i + 1 < len(ts) else 1.0
+        y = y * (math.sqrt(ab * abp) * s2 + math.sqrt((1 - ab) * (1 - abp))) / (ab * s2 + 1 - ab)
+    assert torch.allclose(got, y + mu, atol=1e-10)
+    # strength 1: the start is ignored, ordinary sampling from x_T
+    full = d.ddim_sample(_gaussian_posterior(mu, s2, d, "v"), x0s.shape, steps=20, x_T=z)
+    same = d.ddim_sample(_gaussian_posterior(mu, s2, d, "v"), x0s.shape, steps=20, x_T=z,
+                         x0_start=x0s, strength=1.0)
+    assert torch.equal(full, same)
+    with pytest.raises(ValueError, match="strength"):
+        d.ddim_sample(_gaussian_posterior(mu, s2, d, "v"), x0s.shape, steps=20, x_T=z,
+                      x0_start=x0s, strength=0.0)
+
+
 def _exact_moments(d, mu, s2, steps, eta):
     """Mean and variance of the sampler's output for x0 ~ N(mu, s2) and the exact posterior
     mean: each step is y' = g y + sigma z with y = x_t - sqrt(ab) mu, a linear recurrence."""

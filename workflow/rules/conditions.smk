@@ -150,6 +150,7 @@ rule sample_image:
         encoder=out("conditions/image_encoder.pt"),
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
+        image_embeddings=out("conditions/image.npy"),
         images=COND["image"]["images"],
     output:
         weights=out("samples/image/weights.npy"),
@@ -162,6 +163,7 @@ rule sample_image:
         per_prompt=COND["per_condition"],
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         test_images=COND["image"]["test_images"],
+        strength=COND["image"]["strength"],
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
         mode="image",

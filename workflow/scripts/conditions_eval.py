@@ -9,6 +9,7 @@ import pandas as pd
 import torch
 
 from neumat.conditions import evaluate as ev
+from neumat.conditions import image
 from neumat.diffusion import dataset
 from neumat.logs import script_logging
 from neumat.metrics import distances
@@ -84,8 +85,7 @@ with script_logging(snakemake) as log:
     img = per[per["set"] == "image"]
     w_img = np.load([f for f in inp.samples if set_name(f) == "image"][0])
     w_unc = np.load([f for f in inp.samples if set_name(f) == "mm_uncond"][0])
-    train_emb = np.load(inp.image_embeddings)[ts.rows, 0]  # metric view
-    retrieved = ts.rows[((emb[:, None] - train_emb[None]) ** 2).sum(-1).argmin(1)]
+    retrieved = image.retrieve(emb, np.load(inp.image_embeddings)[ts.rows, 0], ts.rows)  # metric view
     res = []
     for c in range(len(cond)):
         target = cond[c:c + 1]

@@ -1,6 +1,8 @@
 """Sample the multimodal model under one condition: text prompts ('text'), conditioning images
 ('image': test-split metric-view renders and config images), or the same-run baselines for the
-test prompts: their types ('mm_type') and no condition ('mm_uncond')."""
+test prompts: their types ('mm_type') and no condition ('mm_uncond'). Images with
+`conditions.image.strength` < 1 start from their retrieved training material (nearest
+metric-view embedding) noised to that fraction of the schedule."""
 import time
 
 import numpy as np
@@ -41,11 +43,19 @@ with script_logging(snakemake) as log:
     p, inp, out = snakemake.params, snakemake.input, snakemake.output
     s, k = p.sample, p.per_prompt
     sampler = Sampler(inp.model, snakemake.config["device"])
+    start, strength = None, getattr(p, "strength", 1.0)
     if p.mode == "image":
         conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder))
         save_npy(out.conditioning, imgs)
         save_npy(out.embeddings, emb.astype(np.float32))
         conditions = {"image": np.repeat(emb, k, 0)}
+        if strength < 1:  # start from the retrieved training material (SDEdit)
+            weights = np.load(inp.weights)
+            man = dataset.read_manifest(inp.manifest, len(weights))
+            rows = dataset.training_rows(man, "ours")  # conditions_eval's retrieval set
+            got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
+            conds["start"] = man["name"].iloc[got].to_numpy()
+            start = weights[np.repeat(got, k)]
     else:
         conds = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
         if p.mode != "text":  # baselines for the test-split descriptions only
@@ -65,12 +75,13 @@ with script_logging(snakemake) as log:
     t0 = time.perf_counter()
     w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
                s["batch_size"], s["clip"], negative_step=s["negative_step"],
-               activation=p.activation)
+               activation=p.activation, start=start, strength=strength)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": len(table), "seconds": dt,
                    "samples_per_second": len(table) / max(dt, 1e-9), "steps": s["steps"],
-                   "eta": s["eta"], "guidance": guidance.get(name, 1.0)}]).to_csv(
+                   "eta": s["eta"], "guidance": guidance.get(name, 1.0),
+                   "strength": strength}]).to_csv(
         out.timing, sep="\t", index=False, float_format="%.6g")
     log.info("%d samples (%s) in %.2f s", len(table), p.mode, dt)

@@ -241,6 +241,14 @@ def embed_fields(model: ImageEncoder, weights, activation: str = "relu") -> np.n
     return embed(model, views.reshape(n * k, *views.shape[2:])).reshape(n, k, -1)
 
 
+def retrieve(embeddings: np.ndarray, library: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """For each embedding (M, D), the row (of `rows`) whose metric-view embedding in `library`
+    (len(rows), D) is nearest (squared Euclidean): image retrieval, the baseline image-conditioned
+    sampling is scored against and, with `conditions.image.strength` < 1, its starting point."""
+    e, lib = np.asarray(embeddings), np.asarray(library)
+    return np.asarray(rows)[((e[:, None] - lib[None]) ** 2).sum(-1).argmin(1)]
+
+
 def load_image(path, resolution: int) -> np.ndarray:
     """A user's reference image -> (resolution, resolution, 3) linear HDR.
 

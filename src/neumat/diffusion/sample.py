@@ -113,14 +113,20 @@ def _image_embedding(image_encoder, path, n: int) -> np.ndarray:
 def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = None,
            guidance: dict | float | None = None, steps: int = 50, eta: float = 0.0,
            batch_size: int = 256, clip: float | None = None, image_encoder=None,
-           negative_step: float = 30.0, activation: str = "relu") -> np.ndarray:
+           negative_step: float = 30.0, activation: str = "relu", start: np.ndarray | None = None,
+           strength: float = 1.0) -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies
-    the clamp-aware `NegativeConstraint` (NBRDF `activation`) at every DDIM step."""
+    the clamp-aware `NegativeConstraint` (NBRDF `activation`) at every DDIM step. `start`
+    (n, 675) weight vectors and `strength` < 1: each sample starts from its start vector
+    noised to strength (T - 1) (`Diffusion.ddim_sample`'s x0_start), e.g. the retrieved
+    training material of an image condition."""
     if not isinstance(sampler, Sampler):
         sampler = Sampler(sampler)
     cond = encode_conditions(sampler, n, conditions or {}, image_encoder)
+    if start is not None and len(start) != n:
+        raise ValueError(f"{len(start)} start vectors for {n} samples")
     if not isinstance(guidance, dict):
         guidance = {k: 1.0 if guidance is None else float(guidance) for k in cond}
     gen = torch.Generator().manual_seed(seed)
@@ -129,8 +135,11 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     for s in range(0, n, batch_size):
         b = min(batch_size, n - s)
         c = {k: v[s:s + b].to(sampler.device) for k, v in cond.items()}
+        x0 = None if start is None else sampler.norm.encode(
+            torch.as_tensor(np.asarray(start[s:s + b], np.float32)).to(sampler.device))
         z = sampler.diffusion.ddim_sample(guided_multi(sampler.model, c, guidance),
                                           (b, nbrdf.N_PARAMS), steps, eta, gen, sampler.device,
-                                          clip=clip, constrain=constrain)
+                                          clip=clip, constrain=constrain, x0_start=x0,
+                                          strength=strength)
         out.append(sampler.norm.decode(z).float().cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)

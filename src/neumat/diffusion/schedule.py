@@ -104,14 +104,27 @@ class Diffusion:
     def ddim_sample(self, predict: Callable, shape, steps: int = 50, eta: float = 0.0,
                     generator: torch.Generator | None = None, device="cpu",
                     x_T: torch.Tensor | None = None, clip: float | None = None,
-                    constrain: Callable | None = None) -> torch.Tensor:
+                    constrain: Callable | None = None, x0_start: torch.Tensor | None = None,
+                    strength: float = 1.0) -> torch.Tensor:
         """Sample with `predict(x_t, t_batch) -> model output` (already guided).
 
         `constrain(x0_hat) -> x0_hat'` (e.g. `neumat.diffusion.constraints.NegativeConstraint`)
         edits each predicted x0 before the DDIM update; eps_hat is kept from the model, so the
-        edit moves x_prev by sqrt(ab_prev) times the edit and the next prediction sees it."""
-        x = (torch.randn(shape, generator=generator) if x_T is None else x_T.clone()).to(device)
+        edit moves x_prev by sqrt(ab_prev) times the edit and the next prediction sees it.
+
+        `x0_start` (SDEdit, Meng et al. 2022): start from x0_start noised to t_s = strength (T - 1)
+        instead of pure noise, and run the DDIM steps below t_s: strength 1 is ordinary
+        sampling, small strengths stay near x0_start."""
+        noise = torch.randn(shape, generator=generator) if x_T is None else x_T.clone()
         ts = self.timesteps_for(steps)
+        if x0_start is not None and strength < 1.0:
+            if not 0.0 < strength <= 1.0:
+                raise ValueError(f"strength must be in (0, 1], got {strength}")
+            t_s = int(round(strength * (self.T - 1)))
+            ts = [t_s] + [t for t in ts if t < t_s]
+            ab = self.alpha_bar[t_s].to(noise.dtype)
+            noise = ab.sqrt() * x0_start.to(noise) + (1 - ab).sqrt() * noise
+        x = noise.to(device)
         for i, t in enumerate(ts):
             ab = self.alpha_bar[t].item()
             ab_prev = self.alpha_bar[ts[i + 1]].item() if i + 1 < len(ts) else 1.0
