@@ -16,11 +16,9 @@ from neumat.logs import script_logging
 from neumat.render import sphere
 
 
-def image_conditions(inp, p, enc):
+def image_conditions(inp, p, enc, weights, man):
     """Test-split typed materials (evenly picked) and user images -> table, embeddings (M, D),
     conditioning images (M, R, R, 3) linear HDR in the metric view."""
-    weights = np.load(inp.weights)
-    man = dataset.read_manifest(inp.manifest, len(weights))
     test = dataset.reference_rows(man)
     test = test[man["type"].iloc[test].to_numpy() != ""]
     k = p.test_images or len(test)
@@ -45,13 +43,13 @@ with script_logging(snakemake) as log:
     sampler = Sampler(inp.model, snakemake.config["device"])
     start, strength = None, getattr(p, "strength", 1.0)
     if p.mode == "image":
-        conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder))
+        weights = np.load(inp.weights)
+        man = dataset.read_manifest(inp.manifest, len(weights))
+        conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder), weights, man)
         save_npy(out.conditioning, imgs)
         save_npy(out.embeddings, emb.astype(np.float32))
         conditions = {"image": np.repeat(emb, k, 0)}
         if strength < 1:  # start from the retrieved training material (SDEdit)
-            weights = np.load(inp.weights)
-            man = dataset.read_manifest(inp.manifest, len(weights))
             rows = dataset.training_rows(man, "ours")  # conditions_eval's retrieval set
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
