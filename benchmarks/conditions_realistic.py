@@ -31,6 +31,7 @@ from neumat.conditions import image, text
 from neumat.data import catalog
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset, train
 from neumat.diffusion.sample import sample
+from neumat.io import modelfile
 from neumat.metrics import distances
 from neumat.render import sphere
 
@@ -140,7 +141,7 @@ def cmd_evaluate(a):
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(20000, a.seed), "relu")
     smp = dict(dr.settings(1)[3])
     smp["steps"] = a.sample_steps or smp["steps"]
-    sampler = Sampler(torch.load(OUT / f"multimodal_{a.objective}.pt", weights_only=False), "cpu")
+    sampler = Sampler(modelfile.load(OUT / f"multimodal_{a.objective}.pt"), "cpu")
     txt, img = np.load(OUT / "text.npy"), np.load(OUT / f"image_{a.objective}.npy")
     te = dataset.reference_rows(man)
     tests = man.iloc[te].drop_duplicates("description")

@@ -40,6 +40,7 @@ import torch
 from neumat import machine, nbrdf
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, dataset, plausibility
 from neumat.diffusion.model import Normalizer
+from neumat.io import modelfile
 from neumat.metrics import distances
 from neumat.seeds import seed_for
 
@@ -51,7 +52,7 @@ def load(model_path, results, model="ours", width=256, depth=4, heads=8, n_class
     weights = np.load(f"{results}/neumerl/weights.npy")
     man = dataset.read_manifest(f"{results}/neumerl/manifest.tsv", len(weights))
     rows = dataset.training_rows(man, model)
-    b = torch.load(model_path, map_location="cpu", weights_only=False)
+    b = modelfile.load(model_path)
     if "normalizer" not in b:  # a checkpoint: rebuild the bundle the way train() writes it
         norm = Normalizer.fit(torch.from_numpy(weights[rows]))
         b = {"model_cfg": DenoiserConfig(width=width, depth=depth, heads=heads,

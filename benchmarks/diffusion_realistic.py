@@ -33,6 +33,7 @@ from neumat import machine
 from neumat.diffusion import (DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset,
                               plausibility, train)
 from neumat.metrics import distances
+from neumat.io import modelfile
 from neumat.metrics.evaluate import evaluate_fields, table2
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -116,7 +117,7 @@ def cmd_evaluate(seed, resolution, bins):
     _, _, _, smp = settings(1)
     sets, info = {"training_set": weights[dataset.training_subset(man, seed)]}, {}
     for model in ("merl100", "ours"):
-        b = torch.load(OUT / f"{model}.pt", weights_only=False)
+        b = modelfile.load(OUT / f"{model}.pt")
         sampler = Sampler(b, "cpu")
         t0 = time.perf_counter()
         sets[model] = sampler.sample(len(ref), seed + 1, None, smp["steps"], smp["eta"])
@@ -125,7 +126,7 @@ def cmd_evaluate(seed, resolution, bins):
         info[model] = {"train_s": b["train_seconds"], "steps": b["train_cfg"]["steps"],
                        "n_train": b["n_train"], "samples_per_s": len(ref) / dt}
     # type conditioning: 8 samples for each of 6 types, nearest typed training field
-    b = Sampler(torch.load(OUT / "ours.pt", weights_only=False), "cpu")
+    b = Sampler(modelfile.load(OUT / "ours.pt"), "cpu")
     tr = dataset.training_rows(man, "ours")
     asked = [t for t in sorted(set(man["type"].iloc[tr]))[:48:8] for _ in range(8)]
     wt = b.sample(len(asked), seed + 2, asked, smp["steps"], smp["eta"], smp["guidance"])

@@ -331,3 +331,13 @@ def test_negative_step_reruns_only_sampling(tiny_run):
     jobs = _planned_jobs(tiny_run, "config/negative_step.yaml")
     assert "sample_uncond" in jobs and "sample_type" in jobs, jobs
     assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_plain"))], jobs
+
+
+def test_every_model_file_loads_with_weights_only(tiny_run):
+    """Users share model files: all the tiny run writes are tensors and plain values."""
+    import torch
+
+    files = sorted((tiny_run / "results/tiny").rglob("*.pt"))
+    assert len(files) >= 10, files  # diffusion, baselines, hyperbrdf, encoders, BTF models
+    for f in files:
+        torch.load(f, map_location="cpu", weights_only=True)

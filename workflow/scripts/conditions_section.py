@@ -12,6 +12,7 @@ import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
 from neumat import report  # noqa: E402
+from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 
 with script_logging(snakemake) as log:
@@ -21,7 +22,7 @@ with script_logging(snakemake) as log:
     sweep = pd.read_csv(inp.sweep, sep="\t")
     enc_eval = pd.read_csv(inp.encoder_eval, sep="\t")
     enc = torch.load(inp.encoder, map_location="cpu", weights_only=True)
-    model = torch.load(inp.model, map_location="cpu", weights_only=False)
+    model = modelfile.load(inp.model)
     cost = pd.DataFrame([{"job": Path(b).stem, "wall s": pd.read_csv(b, sep="\t")["s"].iloc[0],
                           "CPU s": pd.read_csv(b, sep="\t")["cpu_time"].iloc[0]}
                          for b in inp.benchmarks])

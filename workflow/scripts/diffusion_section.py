@@ -10,11 +10,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
-import torch  # noqa: E402
 
 from neumat import report  # noqa: E402
 from neumat.device import resolve_device  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
+from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 from neumat.render import sphere  # noqa: E402
 from neumat.render.gallery import gallery as image_grid  # noqa: E402
@@ -60,7 +60,7 @@ with script_logging(snakemake) as log:
     nearest = {k: pd.read_csv(f, sep="\t", keep_default_na=False)
                for k, f in sets_by_name(inp.nearest, "nearest.tsv").items()}
     timing = {k: pd.read_csv(f, sep="\t").iloc[0] for k, f in sets_by_name(inp.timings, "timing.tsv").items()}
-    bundles = {Path(f).parent.name: torch.load(f, map_location="cpu", weights_only=False)
+    bundles = {Path(f).parent.name: modelfile.load(f)
                for f in inp.models}
 
     # loss curves

@@ -44,6 +44,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from neumat.io import modelfile
+
 log = logging.getLogger(__name__)
 
 EPS = 0.002  # offset of the log mapping (reference code)
@@ -253,7 +255,7 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     gen = torch.Generator().manual_seed(seed)
     step, history, elapsed = 0, [], 0.0
     if ckpt_path.exists():
-        ck = torch.load(ckpt_path, map_location=dev, weights_only=True)
+        ck = modelfile.load(ckpt_path, map_location=dev)
         if ck.get("fingerprint") == fp:
             model.load_state_dict(ck["model"])
             opt.load_state_dict(ck["opt"])
@@ -316,7 +318,7 @@ HISTORY_COLUMNS = ["step", "loss", "mse", "z_reg", "theta_reg"]
 def load(bundle, device: str = "cpu") -> HyperBRDF:
     """A trained model from a bundle dict or file (eval mode)."""
     if not isinstance(bundle, dict):
-        bundle = torch.load(bundle, map_location="cpu", weights_only=True)
+        bundle = modelfile.load(bundle)
     model = HyperBRDF(HyperConfig(**bundle["model_cfg"]))
     model.load_state_dict(bundle["state"])
     return model.to(device).eval()

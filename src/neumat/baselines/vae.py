@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from neumat import nbrdf
+from neumat.io import modelfile
 
 
 def mlp(sizes, last_act=False) -> nn.Sequential:
@@ -153,7 +154,7 @@ def save(path, model, kind: str, config: dict) -> None:
 
 
 def load(path) -> nn.Module:
-    ck = torch.load(path, map_location="cpu", weights_only=True)
+    ck = modelfile.load(path)
     cls = {"vae_n": WeightVAE, "vae_a": SetVAE}.get(ck.get("kind"))
     if cls is None:
         raise ValueError(f"{path}: not a VAE baseline checkpoint (kind {ck.get('kind')!r})")

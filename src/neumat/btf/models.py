@@ -13,6 +13,7 @@ import torch
 
 from neumat.btf.classical import PCA, SH, Tucker
 from neumat.btf.neural import NeuMIP, TriplePlane
+from neumat.io import modelfile
 
 NEURAL = {"triple_plane": TriplePlane, "neumip": NeuMIP}
 GRID = {"pca": PCA, "sh": SH, "td": Tucker}
@@ -34,7 +35,7 @@ def save(model, path) -> None:
 
 
 def load(path):
-    ck = torch.load(path, weights_only=False, map_location="cpu")
+    ck = modelfile.load(path)
     cls = {**NEURAL, **GRID}.get(ck.get("method"))
     if cls is None:
         raise ValueError(f"{path}: unknown BTF model method {ck.get('method')!r}; known {METHODS}")

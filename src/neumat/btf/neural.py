@@ -16,6 +16,7 @@ import torch
 from torch import nn
 
 from neumat.btf.directions import half_diff
+from neumat.io import modelfile
 
 log = logging.getLogger(__name__)
 
@@ -144,7 +145,7 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
     gen = torch.Generator().manual_seed(seed)
     start = 0
     if checkpoint and Path(checkpoint).exists():
-        ck = torch.load(checkpoint, weights_only=False)
+        ck = modelfile.load(checkpoint)
         model.load_state_dict(ck["model"])
         opt.load_state_dict(ck["opt"])
         sched.load_state_dict(ck["sched"])

@@ -35,6 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from neumat.render import sphere
+from neumat.io import modelfile
 
 log = logging.getLogger(__name__)
 OBJECTIVES = ("weights", "text")
@@ -214,7 +215,7 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
 def load(bundle) -> ImageEncoder:
     """An encoder from a `train` bundle or its file (weights_only: tensors and plain values)."""
     if not isinstance(bundle, dict):
-        bundle = torch.load(bundle, map_location="cpu", weights_only=True)
+        bundle = modelfile.load(bundle)
     model = ImageEncoder(ImageEncoderConfig(**bundle["cfg"]), bundle["head_dim"])
     model.load_state_dict(bundle["state"])
     return model.eval()

@@ -23,6 +23,8 @@ from typing import Callable
 
 import torch
 
+from neumat.device import to_device
+
 PREDICTIONS = ("x0", "eps", "v")
 SCHEDULES = ("cosine", "linear")
 
@@ -83,8 +85,8 @@ class Diffusion:
 
         All randomness comes from `generator` (CPU), so training is reproducible and resumable."""
         b = x0.shape[0]
-        t = torch.randint(0, self.T, (b,), generator=generator).to(x0.device)
-        noise = torch.randn(x0.shape, generator=generator).to(x0.device, x0.dtype)
+        t = to_device(torch.randint(0, self.T, (b,), generator=generator), x0.device)
+        noise = to_device(torch.randn(x0.shape, generator=generator), x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
         if self.cfg.prediction == "v":
             ab = self._ab(t, x0)

@@ -19,6 +19,7 @@ from neumat.btf.synthesis.hextile import HexTile, luminance
 from neumat.btf.synthesis.hpb import HPB
 from neumat.btf.synthesis.quilting import Quilting
 from neumat.btf.synthesis.tiling import LinearBlend, Tiling
+from neumat.io import modelfile
 
 SYNTHS = {"tiling": Tiling, "linear": LinearBlend, "hpb": HPB, "hextile": HexTile,
           "quilting": Quilting}
@@ -74,7 +75,7 @@ def save(path, method: str, seed: int, settings: dict, synths: dict) -> None:
 
 def load(path, plane_models: dict) -> dict:
     """{plane model name: Synthesized} from a file of `save` and the loaded plane models."""
-    ck = torch.load(path, weights_only=True, map_location="cpu")
+    ck = modelfile.load(path)
     cls = SYNTHS.get(ck.get("method"))
     if cls is None:
         raise ValueError(f"{path}: unknown synthesis method {ck.get('method')!r}; "

@@ -1,0 +1,24 @@
+"""Loading model and checkpoint files safely. Users share model files, so a file is read with
+`torch.load(weights_only=True)`: tensors and plain values only, never arbitrary pickled objects
+(which would run code on load). Every file neumat writes is of that kind."""
+
+from pathlib import Path
+
+import torch
+
+
+def load(path: str | Path, map_location="cpu"):
+    """The contents of a torch file at `path`, refusing anything but tensors and plain values,
+    with an error that names the file and says what to do."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such model file")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as e:  # UnpicklingError for foreign objects, RuntimeError for corrupt zips
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(
+            f"{path}: not a model file neumat can load safely ({first}). neumat reads tensors "
+            "and plain values only (torch.load weights_only=True), never pickled objects. If the "
+            "file is truncated or from elsewhere, delete it and rebuild it with the snakemake "
+            "rule that writes it.") from e

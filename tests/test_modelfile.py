@@ -1,0 +1,59 @@
+"""Model files load as tensors and plain values only (torch.load weights_only=True): a shared
+file holding pickled objects is refused with an error naming it, never unpickled."""
+
+import pytest
+import torch
+
+from neumat.btf import models as btf_models
+from neumat.diffusion import Sampler
+from neumat.io import modelfile
+
+
+class Payload:
+    """Stands in for a foreign object in a pickle; unpickling it would run its __reduce__."""
+
+    ran = False
+
+    def __reduce__(self):
+        return (Payload._mark, ())
+
+    @staticmethod
+    def _mark():
+        Payload.ran = True
+        return {}
+
+
+def _foreign(path):
+    torch.save({"ema": {}, "payload": Payload()}, path)
+    return path
+
+
+def test_plain_values_round_trip(tmp_path):
+    obj = {"state": {"w": torch.arange(3.0)}, "history": [(1, 0.5)], "names": ["a"], "n": 2}
+    torch.save(obj, tmp_path / "m.pt")
+    back = modelfile.load(tmp_path / "m.pt")
+    assert torch.equal(back["state"]["w"], obj["state"]["w"])
+    assert back["history"] == [(1, 0.5)] and back["names"] == ["a"] and back["n"] == 2
+
+
+@pytest.mark.parametrize("loader", [modelfile.load, Sampler, btf_models.load],
+                         ids=["modelfile", "diffusion.Sampler", "btf.models.load"])
+def test_foreign_objects_are_refused_not_run(tmp_path, loader):
+    path = _foreign(tmp_path / "shared.pt")
+    Payload.ran = False
+    with pytest.raises(ValueError, match=r"shared\.pt: not a model file neumat can load safely"):
+        loader(path)
+    assert not Payload.ran
+
+
+def test_truncated_file_names_it(tmp_path):
+    torch.save({"w": torch.zeros(1000)}, tmp_path / "m.pt")
+    data = (tmp_path / "m.pt").read_bytes()
+    (tmp_path / "m.pt").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"m\.pt: .*delete it and rebuild it"):
+        modelfile.load(tmp_path / "m.pt")
+
+
+def test_missing_file_names_it(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"nope\.pt"):
+        modelfile.load(tmp_path / "nope.pt")
