@@ -189,6 +189,39 @@ def test_table3_layout_and_wins():
                  "compression PSNR": False, "compression dE": True, "compression SSIM": True}
 
 
+def _paired_scores(shift, noise, n=12):
+    """merl and augmerl on n materials x 2 views; augmerl = merl + shift (+ noise per material)."""
+    rng = np.random.default_rng(0)
+    rows = []
+    for task in hb.TASKS:
+        for i in range(n):
+            e = noise * rng.normal()
+            for view in ("metric", "grazing"):
+                base = dict(task=task, view=view, material=f"m{i}")
+                rows.append(dict(base, method="merl", PSNR=30.0, dE=3.0, SSIM=0.9))
+                rows.append(dict(base, method="augmerl", PSNR=30.0 + shift + e, dE=3.0 - shift - e,
+                                 SSIM=0.9 + (shift + e) / 100))
+    return pd.DataFrame(rows)
+
+
+def test_paired_comparison_known_answers():
+    # a constant gain: every pair won, the interval is the gain itself, beyond noise everywhere
+    p = rec.paired(_paired_scores(1.0, 0.0), "augmerl", "merl", list(hb.TASKS), seed=0)
+    assert list(p["cell"]) == [f"{t} {m}" for t in hb.TASKS for m in rec.METRICS]
+    assert p["beyond noise"].all() and (p["pairs won"] == "24/24").all()
+    row = p.set_index("cell").loc["sparse dE"]
+    assert row["mean difference"] == pytest.approx(-1.0) and row["95 % interval"] == "[-1, -1]"
+    # no gain but material-to-material noise: the interval straddles 0, no cell beyond noise
+    p = rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS), seed=0)
+    assert not p["beyond noise"].any()
+    # deterministic given the seed
+    assert rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS), seed=0).equals(p)
+    with pytest.raises(ValueError, match="same materials"):
+        s = _paired_scores(1.0, 0.0)
+        rec.paired(s[~((s.method == "merl") & (s.material == "m0"))], "augmerl", "merl",
+                   list(hb.TASKS), seed=0)
+
+
 def test_views_differ():
     a, b = rec.view("metric", 16), rec.view("grazing", 16)
     assert a.n_lit != b.n_lit or not torch.equal(a.wi[:a.n_lit], b.wi[:b.n_lit])

@@ -94,3 +94,34 @@ def wins(table: pd.DataFrame, better: str, worse: str) -> dict[str, bool]:
     b = table.set_index("method").loc[worse]
     return {c: bool(a[c] > b[c]) if HIGHER_IS_BETTER[c.split()[-1]] else bool(a[c] < b[c])
             for c in table.columns if c != "method"}
+
+
+def paired(scores: pd.DataFrame, better: str, worse: str, tasks: list[str], seed: int,
+           n_boot: int = 2000) -> pd.DataFrame:
+    """How firmly method `better` beats `worse`, per Table 3 cell, on the same materials and
+    views: the mean difference (better - worse; positive = better wins for PSNR and SSIM,
+    negative for dE), the share of (material, view) pairs it wins, and a 95 % bootstrap interval
+    of the mean difference, resampling materials (both views of a material together, since they
+    are not independent). A cell whose interval excludes 0 is a win beyond material-to-material
+    noise; one that straddles 0 is not."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for t in tasks:
+        a = scores[(scores["method"] == better) & (scores["task"] == t)]
+        b = scores[(scores["method"] == worse) & (scores["task"] == t)]
+        d = (a.set_index(["material", "view"])[list(METRICS)]
+             - b.set_index(["material", "view"])[list(METRICS)])
+        if d.isna().any().any() or len(d) == 0:
+            raise ValueError(f"task {t!r}: {better!r} and {worse!r} are not scored on the same "
+                             "materials and views")
+        per_mat = d.groupby(level="material").mean()  # (materials, metrics): views averaged
+        draw = rng.integers(0, len(per_mat), (n_boot, len(per_mat)))
+        boot = per_mat.to_numpy()[draw].mean(1)  # (n_boot, metrics)
+        for j, k in enumerate(METRICS):
+            sign = 1 if HIGHER_IS_BETTER[k] else -1
+            lo, hi = np.quantile(boot[:, j], [0.025, 0.975])
+            rows.append({"cell": f"{t} {k}", "mean difference": float(d[k].mean()),
+                         "pairs won": f"{int((sign * d[k] > 0).sum())}/{len(d)}",
+                         "95 % interval": f"[{lo:.4g}, {hi:.4g}]",
+                         "beyond noise": bool(sign * lo > 0 and sign * hi > 0)})
+    return pd.DataFrame(rows)
