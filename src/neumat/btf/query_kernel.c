@@ -387,8 +387,8 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
             int i0 = (int)x;  /* x >= 0: truncation is floor */
             i0 = i0 > L - 2 ? L - 2 : i0;
             /* value and slope in one 64-bit load: with AVX-512, GCC gathers 8 pairs per
-               vpgatherdq, half the elements of two vgatherdps of 16 floats (the LUT alone ran
-               1.6-1.75x faster on Zen 4); a + t (b - a) as before, bit for bit */
+               vpgatherdq, half the elements of two vgatherdps of 16 floats; a + t (b - a) as
+               before, bit for bit */
             uint64_t v = row[i0];
             uint32_t lo = (uint32_t)v, hi = (uint32_t)(v >> 32);  /* little-endian: value low */
             float a, slope;
