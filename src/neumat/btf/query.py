@@ -59,6 +59,14 @@ def _library(march: str = "native"):
     return lib
 
 
+def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
+    """HPB's inverse LUT (C, L) as the kernel reads it: (C, L, 2) float32 (value, slope) pairs,
+    slope = next value - value (0 for the last entry, which the kernel never reads)."""
+    lut = lut.detach().float().contiguous()
+    slope = torch.cat([lut[:, 1:] - lut[:, :-1], torch.zeros_like(lut[:, :1])], 1)
+    return torch.stack([lut, slope], -1).contiguous()
+
+
 def available(march: str = "native") -> bool:
     return _library(march) is not None
 
@@ -162,7 +170,7 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     else:
         u = u.detach().double().contiguous()
         weights[:2] = fold_pca(weights[0], weights[1], cu, hpb.mean, hpb.basis)
-        gauss, lut = _f32(hpb.gauss), _f32(hpb.lut)
+        gauss, lut = _f32(hpb.gauss), lut_pairs(hpb.lut)
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hpb(

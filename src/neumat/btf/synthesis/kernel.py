@@ -30,7 +30,8 @@ def hpb_features(u: torch.Tensor, gauss, lut, mean, basis, seed: int):
     if lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH or H * W * C >= 2 ** 31:
         return None
     u = u.detach().double().contiguous()
-    g, lt, mn, bs = (t.detach().float().contiguous() for t in (gauss, lut, mean, basis))
+    g, mn, bs = (t.detach().float().contiguous() for t in (gauss, mean, basis))
+    lt = query.lut_pairs(lut)
     out = torch.empty(len(u), C, dtype=torch.float32)
     threads = max(1, min(torch.get_num_threads(), len(u) // 65536))
     bounds = [len(u) * k // threads for k in range(threads + 1)]
