@@ -231,10 +231,13 @@ def main():
     if args.analyse:
         return analyse(args.analyse)
 
-    work = args.keep or Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
-    if args.keep and work.exists():
-        shutil.rmtree(work)
-    work.mkdir(parents=True)
+    if args.keep:
+        work = args.keep
+        if work.exists():
+            shutil.rmtree(work)
+        work.mkdir(parents=True)
+    else:  # mkdtemp has made it
+        work = Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
     print(f"machine: {machine.describe()}; work dir {work}")
     base = [sys.executable, "-m", "snakemake", *args.targets]
     if args.until:
