@@ -213,6 +213,16 @@ def same_outputs(a: Path, b: Path, run_a: str, run_b: str):
     return len(files), missing, differ
 
 
+def work_dir(keep: Path | None) -> Path:
+    """An empty directory for the two runs: `keep` (emptied first) or a new temporary one."""
+    if keep is None:
+        return Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
+    if keep.exists():
+        shutil.rmtree(keep)
+    keep.mkdir(parents=True)
+    return keep
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("targets", nargs="*", default=["report"])
@@ -231,13 +241,7 @@ def main():
     if args.analyse:
         return analyse(args.analyse)
 
-    if args.keep:
-        work = args.keep
-        if work.exists():
-            shutil.rmtree(work)
-        work.mkdir(parents=True)
-    else:  # mkdtemp has made it
-        work = Path(tempfile.mkdtemp(prefix="slurm_overhead_"))
+    work = work_dir(args.keep)
     print(f"machine: {machine.describe()}; work dir {work}")
     base = [sys.executable, "-m", "snakemake", *args.targets]
     if args.until:

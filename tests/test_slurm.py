@@ -195,3 +195,19 @@ def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
     # not asserted: on a shared 2-core machine the ratio swings with the load
     print(f"{n_done} jobs in {len(submitted)} sbatch jobs: via Slurm {slurm_s:.0f} s, "
           f"local {local_s:.0f} s ({slurm_s / local_s:.2f}x), load {os.getloadavg()[0]:.1f}")
+
+
+def test_overhead_benchmark_work_dir(tmp_path):
+    """benchmarks/slurm_overhead.py's default invocation (no --keep) once failed on the directory
+    mkdtemp had made; --keep empties and reuses its directory."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("slurm_overhead", ROOT / "benchmarks/slurm_overhead.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    tmp = bench.work_dir(None)
+    assert tmp.is_dir() and not any(tmp.iterdir())
+    tmp.rmdir()
+    keep = tmp_path / "keep"
+    (bench.work_dir(keep) / "old").write_text("x")
+    assert bench.work_dir(keep) == keep and not any(keep.iterdir())
