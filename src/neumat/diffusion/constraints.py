@@ -6,7 +6,8 @@ valid MERL directions, and moved one gradient step down the clamp penalty
     P(x0) = mean over directions and channels of relu(-x),
     x0 <- x0 - lambda * dP/dx0   (per sample; lambda = 0: unchanged),
 before the DDIM update. It adds an NBRDF forward and backward pass at those directions per
-step: about 3x the sampling time of the default denoiser on CPU (README, Hyperdiffusion).
+step: 2.3x the sampling time of the realistic run's denoiser on a 2-core CPU (README,
+Hyperdiffusion).
 
 Its own module, imported by both `train.Sampler.sample` and `sample.py` (which imports train).
 """
