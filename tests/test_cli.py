@@ -98,6 +98,29 @@ def test_sample_round_trip_binary_equals_field(run, tmp_path):
     assert xml.count('type="neumat_brdf"') == 2 and 'value="weights.npy"' in xml
 
 
+def test_steps_default_to_the_runs_setting(run, tmp_path):
+    """Without --steps, `sample` takes the run's diffusion.sample.steps (as its workflow sampled,
+    like negative_step), records it, and equals an explicit --steps of that value; with no
+    recorded config, the schema's default."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "diffusion:\n  sample: {steps: 7, negative_step: 0.0}\n```\n")
+    common = ["-n", 2, "--no-binary"]
+    assert main("sample", "--run", rec, *common, "--out", tmp_path / "a") == 0
+    assert main("sample", "--run", rec, *common, "--steps", 7, "--out", tmp_path / "b") == 0
+    assert main("sample", "--run", rec, *common, "--steps", 8, "--out", tmp_path / "c") == 0
+    a, b, c = (np.load(tmp_path / x / "weights.npy") for x in "abc")
+    assert cli.schema_default("diffusion", "sample", "steps") > 20
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert set(pd.read_csv(tmp_path / "a/samples.tsv", sep="\t")["steps"]) == {7}
+    # no recorded config: the schema's default (100), capped at the model's 20 timesteps
+    assert main("sample", "--run", run, "-n", 1, "--no-binary", "--out", tmp_path / "d") == 0
+    assert set(pd.read_csv(tmp_path / "d/samples.tsv", sep="\t")["steps"]) == {20}
+
+
 def test_scene_xml_loads_every_sample_and_renders(run, tmp_path):
     out = tmp_path / "s"
     assert main("sample", "--run", run, "-n", 2, "--steps", 3, "--no-binary", "--out", out) == 0
@@ -152,6 +175,7 @@ def test_info_lists_models_and_missing_config(run, capsys):
     (["sample", "--run", "{run}", "--model", "ours", "--image", "x.png", "--out", "{tmp}/o"], "trained without image"),
     (["sample", "--run", "{run}", "--type", "wood", "--out", "{tmp}/o"], "known: fabric, steel"),
     (["sample", "--run", "{run}", "--category", "shiny", "--out", "{tmp}/o"], "choose one of diffuse"),
+    (["sample", "--run", "{run}", "--steps", "50", "--out", "{tmp}/o"], "give 1 ... 20 DDIM steps"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),

@@ -321,6 +321,13 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         info["image_encoder"] = str(enc_path)
     # the run's clamp constraint (diffusion.sample.negative_step), as its workflow sampled
     neg = float(run.setting("diffusion", "sample", "negative_step"))
+    T = int(bundle["sched_cfg"]["timesteps"])
+    if args.steps is None:  # and its DDIM steps (at most the model's timesteps)
+        args.steps = min(int(run.setting("diffusion", "sample", "steps")), T)
+    if not 1 <= args.steps <= T:
+        raise CLIError(f"--steps {args.steps}: {model_path} was trained with {T} timesteps; "
+                       f"give 1 ... {T} DDIM steps")
+    info["steps"] = args.steps
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
            "batch_size": args.batch, "clip": None, "negative_step": neg}
     if args.category:
@@ -639,7 +646,8 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("-n", type=int, default=8, help="number of samples (default 8)")
     s.add_argument("--out", required=True, help="output directory (created)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--steps", type=int, default=100, help="DDIM steps (default 100)")
+    s.add_argument("--steps", type=int,
+                   help="DDIM steps (default: the run's diffusion.sample.steps, as its workflow sampled)")
     s.add_argument("--guidance", action="append", metavar="[MOD=]S",
                    help="classifier-free guidance scale (1 = none, 0 = ignore the condition): S "
                         "for every condition asked, or MOD=S for one of type, text, image; "
