@@ -11,7 +11,7 @@ METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins 
 
 rule metrics_reference:
     # what every metrics job shares: the reference set's BRDF values, renders, self-distances and
-    # Inception features, once (the realistic run's jobs each spent ~50 s on it)
+    # Inception features, once (50 s of every job of the realistic run before; README Benchmarks)
     input:
         reference=REFERENCE_WEIGHTS,
     output:
