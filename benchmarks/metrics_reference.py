@@ -1,0 +1,76 @@
+"""Rule metrics_reference: the reference set prepared once for all Table-2 columns, against each
+metrics job preparing it itself (the baseline), in the same run, on a finished run's files.
+
+Times one column's metrics (`--model`, its first `--draws` draws) both ways: `evaluate_draws`
+rendering and featurising the references itself, and `prepare_reference` once plus
+`evaluate_draws(..., reference=)`. Checks that the two tables are equal, and prints the cost of
+the metrics stage for the run's columns both ways (every column but the halves sanity row uses
+the shared file), with the CPU model and ISA.
+
+    OMP_NUM_THREADS=2 python benchmarks/metrics_reference.py --results results/default [--model ours]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import pandas as pd
+import yaml
+
+from neumat import machine, seeds
+from neumat.metrics import distances, evaluate, inception, materials
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--results", required=True, help="a finished run: results/<run>")
+    ap.add_argument("--model", default="ours", help="the column timed (samples/<model>/)")
+    ap.add_argument("--draws", type=int, default=1, help="draws of that column timed")
+    ap.add_argument("--config", help="the run's config (default: the schema's defaults)")
+    a = ap.parse_args()
+    schema = yaml.safe_load((ROOT / "config/schema.yaml").read_text())["properties"]
+    cfg = yaml.safe_load(Path(a.config).read_text()) if a.config else {}
+
+    def setting(section, key):
+        return cfg.get(section, {}).get(key, schema[section]["properties"][key].get("default"))
+
+    run = Path(a.results)
+    seed = seeds.seed_for(cfg.get("seed", schema["seed"]["default"]), "metrics")
+    draws = setting("metrics", "draws")
+    kw = dict(resolution=setting("render", "resolution"),
+              bins=distances.brdf_sample(setting("metrics", "brdf_samples"), seed),
+              activation=setting("fit", "activation"),
+              fid_model=inception.fid_network(setting("metrics", "inception_weights"))[0])
+    ref = materials.load(run / "samples/reference/weights.npy")
+    smp_dir = run / "samples" / a.model
+    smp = materials.load(next(p for p in (smp_dir / "weights.npy", smp_dir / "tables.npz") if p.exists()))
+    n = len(smp) // draws
+    sets = [materials.rows(smp, slice(i * n, (i + 1) * n)) for i in range(a.draws)]
+    print(f"machine: {machine.describe()}; {len(ref)} references, {a.model}: {a.draws} of "
+          f"{draws} draws of {n}, renders {kw['resolution']} px")
+    t0 = time.perf_counter()
+    own = evaluate.evaluate_draws(ref, sets, **kw)
+    t_own = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    prepared = evaluate.prepare_reference(ref, **kw)
+    t_prep = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    shared = evaluate.evaluate_draws(None, sets, **kw, reference=prepared)
+    t_shared = time.perf_counter() - t0
+    pd.testing.assert_frame_equal(own, shared, check_exact=True)
+    models = setting("metrics", "models")
+    per_draw = t_shared / a.draws
+    before = len(models) * (t_own + (draws - a.draws) * per_draw)
+    after = t_prep + len(models) * draws * per_draw
+    print(f"one job, {a.draws} draw(s): preparing the references itself {t_own:.1f} s; "
+          f"with the prepared file {t_shared:.1f} s; preparing it once {t_prep:.1f} s; "
+          f"tables equal")
+    print(f"metrics stage, {len(models)} columns x {draws} draws (the halves row aside): "
+          f"{before:.0f} s -> {after:.0f} s ({before / after:.2f}x)  [{machine.describe()}]")
+
+
+if __name__ == "__main__":
+    main()
