@@ -262,6 +262,11 @@ def test_prepared_reference_gives_the_same_table(tmp_path):
     assert "fid" not in no_fid
     pd.testing.assert_frame_equal(evaluate.evaluate_draws(ref, draws, **kw, reference=no_fid), want,
                                   check_exact=True)
+    with pytest.raises(ValueError, match="holds 6 materials at 300 bins and 16 px, the metrics ask "
+                                         "for 5 at 300 and 16 px: rebuild metrics/reference.pt"):
+        evaluate.evaluate_draws(ref[:5], draws, **kw, reference=no_fid)
+    with pytest.raises(ValueError, match="at 300 bins and 16 px, the metrics ask for 6 at 300 and 24 px"):
+        evaluate.evaluate_draws(ref, draws, **{**kw, "resolution": 24}, reference=no_fid)
 
 
 def test_table_set_scores_like_its_field():

@@ -115,6 +115,17 @@ def load_reference(path) -> dict:
     return modelfile.load(path)
 
 
+def _check_reference(reference: dict, ref, resolution: int, bins) -> None:
+    """A prepared reference made for another set or other settings would score silently wrong."""
+    n, width = reference["values"].shape
+    got = (n, width // 3, reference["images"].shape[1])
+    want = (len(ref) if ref is not None else n, len(bins), resolution)
+    if got != want:
+        raise ValueError(f"prepared reference (rule metrics_reference) holds {got[0]} materials at "
+                         f"{got[1]} bins and {got[2]} px, the metrics ask for {want[0]} at {want[1]} "
+                         f"and {want[2]} px: rebuild metrics/reference.pt")
+
+
 def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_model=None,
                    fid_unavailable: str = "", device="cpu", refs=None,
                    reference: dict | None = None) -> pd.DataFrame:
@@ -129,6 +140,7 @@ def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_
 
     shared = shared_self = shared_fid = None
     if reference is not None:
+        _check_reference(reference, ref, resolution, bins)
         shared, shared_self = (reference["values"], reference["images"]), reference["self"]
         if fid_model is not None and "fid" in reference:
             shared_fid = {d: f.numpy() for d, f in reference["fid"].items()}
