@@ -8,6 +8,7 @@ the metrics stage for the run's columns both ways (every column but the halves s
 the shared file), with the CPU model and ISA.
 
     OMP_NUM_THREADS=2 python benchmarks/metrics_reference.py --results results/default [--model ours]
+        [--config C]   # settings: the run's recorded config (report/index.md), else the schema
 """
 from __future__ import annotations
 
@@ -18,10 +19,8 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
-from neumat import machine, seeds
+from neumat import cli, machine, seeds
 from neumat.metrics import distances, evaluate, inception, materials
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def main():
@@ -29,16 +28,22 @@ def main():
     ap.add_argument("--results", required=True, help="a finished run: results/<run>")
     ap.add_argument("--model", default="ours", help="the column timed (samples/<model>/)")
     ap.add_argument("--draws", type=int, default=1, help="draws of that column timed")
-    ap.add_argument("--config", help="the run's config (default: the schema's defaults)")
+    ap.add_argument("--config", help="a config whose keys override the run's recorded config "
+                                     "(default: that, or the schema's defaults)")
     a = ap.parse_args()
-    schema = yaml.safe_load((ROOT / "config/schema.yaml").read_text())["properties"]
+    run = Path(a.results)
+    recorded = cli.Run(run)  # the run's config as `report` recorded it, else the schema defaults
     cfg = yaml.safe_load(Path(a.config).read_text()) if a.config else {}
 
-    def setting(section, key):
-        return cfg.get(section, {}).get(key, schema[section]["properties"][key].get("default"))
+    def setting(*keys):
+        node = cfg
+        for k in keys:
+            if not isinstance(node, dict) or k not in node:
+                return recorded.setting(*keys)
+            node = node[k]
+        return node
 
-    run = Path(a.results)
-    seed = seeds.seed_for(cfg.get("seed", schema["seed"]["default"]), "metrics")
+    seed = seeds.seed_for(setting("seed"), "metrics")
     draws = setting("metrics", "draws")
     kw = dict(resolution=setting("render", "resolution"),
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"), seed),

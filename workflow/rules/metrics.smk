@@ -7,6 +7,17 @@
 
 METRICS = config["metrics"]
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each
+# what a reference render, BRDF-L1 bin or Inception feature depends on: the params of both the
+# shared reference (metrics_reference) and every model's metrics, so they change together
+METRIC_SETTINGS = dict(
+    resolution=config["render"]["resolution"],
+    brdf_samples=METRICS["brdf_samples"],
+    inception_weights=METRICS["inception_weights"],
+    activation=config["fit"]["activation"],
+    seed=METRICS_SEED,
+)
+# pairwise SSIM works in bounded chunks (~1 GB); renders add n * res^2 * 12 bytes
+METRICS_MEM_MB = 3000 + config["render"]["resolution"] ** 2 // 40
 
 
 rule metrics_reference:
@@ -17,11 +28,7 @@ rule metrics_reference:
     output:
         out("metrics/reference.pt"),
     params:
-        resolution=config["render"]["resolution"],
-        brdf_samples=METRICS["brdf_samples"],
-        inception_weights=METRICS["inception_weights"],
-        activation=config["fit"]["activation"],
-        seed=METRICS_SEED,
+        **METRIC_SETTINGS,
     log:
         log("metrics_reference"),
     benchmark:
@@ -30,7 +37,7 @@ rule metrics_reference:
         CONDA_ENV
     threads: 2
     resources:
-        mem_mb=lambda wc: 3000 + config["render"]["resolution"] ** 2 // 40,
+        mem_mb=METRICS_MEM_MB,
         runtime=60,
     script:
         "../scripts/metrics_reference.py"
@@ -49,11 +56,7 @@ rule metrics:
     wildcard_constraints:
         model="|".join(sorted(MODEL_WEIGHTS)),
     params:
-        resolution=config["render"]["resolution"],
-        brdf_samples=METRICS["brdf_samples"],
-        inception_weights=METRICS["inception_weights"],
-        activation=config["fit"]["activation"],
-        seed=METRICS_SEED,
+        **METRIC_SETTINGS,
         draws=DRAWS,
         novelty_bins=config["diffusion"]["nn_bins"],
         halves_seeds=lambda wc: draw_seeds("halves", wc.model) if wc.model == "reference_halves" else [],
@@ -65,8 +68,7 @@ rule metrics:
         CONDA_ENV
     threads: 2
     resources:
-        # pairwise SSIM works in bounded chunks (~1 GB); renders add n * res^2 * 12 bytes
-        mem_mb=lambda wc: 3000 + config["render"]["resolution"] ** 2 // 40,
+        mem_mb=METRICS_MEM_MB,
         runtime=120 * DRAWS,
     script:
         "../scripts/metrics_eval.py"
