@@ -215,3 +215,23 @@ def test_fetch_local_verifies_header_and_lock(tmp_path, tiny_btf):
     with pytest.raises(ValueError, match="sha256"):
         ubo2014.fetch("wood06", out, **kw)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("shape", [(200, 30), (30, 200), (12, 200)])
+def test_tucker_core_from_the_smaller_gram_matrix(shape):
+    """Both Gram routes span the top-k right singular subspace: Y W W^T is the rank-k SVD
+    truncation, W is orthonormal, and Y @ W is returned (the last shape is rank-deficient: 12
+    rows, k = 16)."""
+    from neumat.btf.classical import _top_right_vectors
+    g = torch.Generator().manual_seed(0)
+    Y = torch.randn(*shape, generator=g, dtype=torch.float64)
+    k = 16
+    YW, W = _top_right_vectors(Y, k)
+    U, S, Vh = torch.linalg.svd(Y, full_matrices=False)
+    r = min(k, *shape)
+    best = (U[:, :r] * S[:r]) @ Vh[:r]
+    assert torch.allclose(YW @ W.T, best, atol=1e-8)
+    assert torch.allclose(YW, Y @ W, atol=1e-8)
+    live = W.norm(dim=0) > 0.5
+    assert int(live.sum()) == r
+    assert torch.allclose(W[:, live].T @ W[:, live], torch.eye(r, dtype=Y.dtype), atol=1e-8)
