@@ -13,7 +13,6 @@ Fits stream texels in chunks through `BTFData.abrdf`, so the dense tensor is nev
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from neumat.btf.grid import GridBTF, bilinear_texels
