@@ -26,13 +26,7 @@ _tiny: dict = {}  # the background tiny run: its directory, process and output f
 
 
 def _needs_tiny(item) -> bool:
-    """The test waits for the finished tiny run before it starts (`tiny_run`)."""
     return "tiny_run" in getattr(item, "fixturenames", ())
-
-
-def _uses_tiny(item) -> bool:
-    """The test uses the tiny run, at its start or later (`tiny_run_later`)."""
-    return "tiny_run_later" in getattr(item, "fixturenames", ())
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m` deselects: the mark below must be seen
@@ -40,7 +34,7 @@ def pytest_collection_modifyitems(config, items):
     """A test that needs the tiny run is `slow` (end to end), whether or not it says so, so
     `-m "not slow"` never starts the run. Those tests go last (a stable sort: the order is
     otherwise kept), so the others run while it builds in the background."""
-    for item in filter(_uses_tiny, items):
+    for item in filter(_needs_tiny, items):
         item.add_marker(pytest.mark.slow)
     items.sort(key=_needs_tiny)
 
@@ -48,7 +42,7 @@ def pytest_collection_modifyitems(config, items):
 def pytest_collection_finish(session):
     """Start the tiny run as soon as the selected tests are known, if one of them needs it: it is
     the suite's longest piece (~4 min on 2 cores) and runs while the unit tests do."""
-    if session.config.option.collectonly or not any(map(_uses_tiny, session.items)):
+    if session.config.option.collectonly or not any(map(_needs_tiny, session.items)):
         return
     wd = session.config._tmp_path_factory.mktemp("tiny")
     for item in ("Snakefile", "workflow", "config"):
@@ -68,25 +62,15 @@ def pytest_sessionfinish(session):
 
 
 @pytest.fixture(scope="session")
-def tiny_run_later():
-    """A function that waits for the background tiny run and returns its directory: for a test
-    that has work of its own to do first."""
-    if not _tiny:  # the collection hook did not see this fixture requested
-        pytest.fail("the tiny run was requested by a test that does not declare it")
-
-    def wait() -> Path:
-        proc, out, err = _tiny["proc"], _tiny["out"], _tiny["err"]
-        if proc.wait() != 0:
-            out.seek(0), err.seek(0)
-            raise AssertionError(f"{' '.join(TINY_CMD)} failed:\n{out.read()[-4000:]}\n"
-                                 f"{err.read()[-8000:]}")
-        return _tiny["wd"]
-    return wait
-
-
-@pytest.fixture(scope="session")
-def tiny_run(tiny_run_later):
+def tiny_run():
     """config/tiny.yaml run once to its report, in a copy of the workflow (the checkout's
     results/ stay untouched), started in the background at collection; every test that needs a
     finished run shares it. Tests may add files next to it, never change its results."""
-    return tiny_run_later()
+    if not _tiny:  # collected without the hook seeing it (e.g. requested dynamically)
+        pytest.fail("tiny_run was requested by a test that does not declare it")
+    proc, out, err = _tiny["proc"], _tiny["out"], _tiny["err"]
+    if proc.wait() != 0:
+        out.seek(0), err.seek(0)
+        raise AssertionError(f"{' '.join(TINY_CMD)} failed:\n{out.read()[-4000:]}\n"
+                             f"{err.read()[-8000:]}")
+    return _tiny["wd"]

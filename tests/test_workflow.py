@@ -235,10 +235,9 @@ def _interrupt_during_fit(wd: Path, sig: int, *args):
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="jobs die with snakemake via "
                     "prctl(PR_SET_PDEATHSIG), Linux only")
-def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run_later, tmp_path):
+def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run, tmp_path):
     """SIGINT, then SIGKILL, of snakemake while a fit runs: no job survives, and the README's
-    resume commands ("When a run is interrupted") give the uninterrupted run's bytes (the tiny
-    run's, waited for at the end: this test runs while it builds)."""
+    resume commands ("When a run is interrupted") give the uninterrupted run's bytes."""
     import signal
     wd = _copy_workflow(tmp_path)
     assert _interrupt_during_fit(wd, signal.SIGINT) == []
@@ -247,7 +246,6 @@ def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run_later, 
     assert _interrupt_during_fit(wd, signal.SIGKILL, "--forcerun", "fit_template") == []
     _snakemake(wd, NEUMERL, "--unlock", "--configfile", "config/tiny.yaml")
     _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
-    tiny_run = tiny_run_later()
     for f in SAME_BYTES:
         assert (wd / "results/tiny" / f).read_bytes() == (tiny_run / "results/tiny" / f).read_bytes(), f
 
