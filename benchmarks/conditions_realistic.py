@@ -142,7 +142,7 @@ def cmd_evaluate(a):
     smp = dict(dr.settings(1)[3])
     smp["steps"] = a.sample_steps or smp["steps"]
     sampler = Sampler(modelfile.load(OUT / f"multimodal_{a.objective}.pt"), "cpu")
-    txt, img = np.load(OUT / "text.npy"), np.load(OUT / f"image_{a.objective}.npy")
+    img = np.load(OUT / f"image_{a.objective}.npy")
     te = dataset.reference_rows(man)
     tests = man.iloc[te].drop_duplicates("description")
     # descriptions whose type some training material has first: only they can score a hit

@@ -1,4 +1,6 @@
+import os
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -18,18 +20,57 @@ def one_thread():
     torch.set_num_threads(n)
 
 
-@pytest.fixture(scope="session")
-def tiny_run(tmp_path_factory):
-    """config/tiny.yaml run once to its report, in a copy of the workflow (the checkout's
-    results/ stay untouched); every test that needs a finished run shares it. Tests may add
-    files next to it, never change its results."""
-    wd = tmp_path_factory.mktemp("tiny")
+TINY_CMD = [sys.executable, "-m", "snakemake", "--cores", "2", "report", "--configfile",
+            "config/tiny.yaml"]
+_tiny: dict = {}  # the background tiny run: its directory, process and output files
+
+
+def _needs_tiny(item) -> bool:
+    return "tiny_run" in getattr(item, "fixturenames", ())
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects: the mark below must be seen
+def pytest_collection_modifyitems(config, items):
+    """A test that needs the tiny run is `slow` (end to end), whether or not it says so, so
+    `-m "not slow"` never starts the run. Those tests go last (a stable sort: the order is
+    otherwise kept), so the others run while it builds in the background."""
+    for item in filter(_needs_tiny, items):
+        item.add_marker(pytest.mark.slow)
+    items.sort(key=_needs_tiny)
+
+
+def pytest_collection_finish(session):
+    """Start the tiny run as soon as the selected tests are known, if one of them needs it: it is
+    the suite's longest piece (~4 min on 2 cores) and runs while the unit tests do."""
+    if session.config.option.collectonly or not any(map(_needs_tiny, session.items)):
+        return
+    wd = session.config._tmp_path_factory.mktemp("tiny")
     for item in ("Snakefile", "workflow", "config"):
         src = ROOT / item
         (shutil.copytree if src.is_dir() else shutil.copy)(src, wd / item)
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "report", "--configfile",
-           "config/tiny.yaml"]
-    res = subprocess.run(cmd, cwd=wd, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise AssertionError(f"{' '.join(cmd)} failed:\n{res.stdout[-4000:]}\n{res.stderr[-8000:]}")
-    return wd
+    out, err = (open(wd / f"tiny_run.{s}", "w+") for s in ("out", "err"))
+    proc = subprocess.Popen(TINY_CMD, cwd=wd, stdout=out, stderr=err, start_new_session=True)
+    _tiny.update(wd=wd, proc=proc, out=out, err=err)
+
+
+def pytest_sessionfinish(session):
+    """An unfinished tiny run (the session was cut short) is stopped with all its jobs."""
+    proc = _tiny.get("proc")
+    if proc is not None and proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait()
+
+
+@pytest.fixture(scope="session")
+def tiny_run():
+    """config/tiny.yaml run once to its report, in a copy of the workflow (the checkout's
+    results/ stay untouched), started in the background at collection; every test that needs a
+    finished run shares it. Tests may add files next to it, never change its results."""
+    if not _tiny:  # collected without the hook seeing it (e.g. requested dynamically)
+        pytest.fail("tiny_run was requested by a test that does not declare it")
+    proc, out, err = _tiny["proc"], _tiny["out"], _tiny["err"]
+    if proc.wait() != 0:
+        out.seek(0), err.seek(0)
+        raise AssertionError(f"{' '.join(TINY_CMD)} failed:\n{out.read()[-4000:]}\n"
+                             f"{err.read()[-8000:]}")
+    return _tiny["wd"]

@@ -13,7 +13,6 @@ import torch
 from neumat import constrained as C
 from neumat import nbrdf
 from neumat.data import synthetic_merl as sm
-from neumat.io import merl
 
 ROOT = Path(__file__).resolve().parents[1]
 

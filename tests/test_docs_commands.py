@@ -4,11 +4,12 @@ touching this file.
 
 - `snakemake ...` (README, Snakefile header, profiles' headers): run verbatim with --dry-run
   added, in a copy of the workflow (the checkout's .snakemake/ and results/ stay untouched).
-- `neumat ...` (README code blocks, and inline spans with arguments): run verbatim, in document
-  order, against the tiny run (conftest.py `tiny_run`), as `python -m neumat.cli ...` (the
-  console script's module). One mechanical substitution: the README names the default
-  config's run, `results/default`; the commands run in a directory where `results/default` is a
-  link to the tiny run's `results/tiny`, so their text is unchanged.
+- `neumat ...` (README code blocks, and inline spans with arguments): run verbatim against the
+  tiny run (conftest.py `tiny_run`), as `python -m neumat.cli ...` (the console script's
+  module), side by side; a command that reads another's output runs after it. One mechanical
+  substitution: the README names the default config's run, `results/default`; the commands run
+  in a directory where `results/default` is a link to the tiny run's `results/tiny`, so their
+  text is unchanged.
 - The Quickstart's shell chains and the other commands (`python benchmarks/...`,
   `./.ci/run`): too costly to run here (an install, the whole suite, realistic data), so each
   part is checked cheaply: the file or extra it names exists, every flag it passes is one its
@@ -152,13 +153,53 @@ def cli_dir(tiny_run, tmp_path_factory):
     return d
 
 
+def reads_from(cmds: list[str]) -> list[set[int]]:
+    """For each command, the earlier commands whose `--out` it names (or a path under it): it
+    must wait for them. Any other command may run alongside."""
+    outs, deps = {}, []
+    for i, cmd in enumerate(cmds):
+        args = shlex.split(cmd)
+        deps.append({j for j, o in outs.items() for a in args[1:]
+                     if a == o or a.startswith(o.rstrip("/") + "/")})
+        if "--out" in args:
+            outs[i] = args[args.index("--out") + 1]
+    return deps
+
+
+def test_reads_from_orders_what_depends():
+    cmds = ["neumat sample -n 2 --out a", "neumat sample -n 2 --out b",
+            "neumat sample --image a/sample_000.png --out c", "neumat render b/scene.xml --out b.png",
+            "neumat render ab/x.binary --out d.png"]
+    assert reads_from(cmds) == [set(), set(), {0}, {1}, set()]
+
+
+@pytest.fixture(scope="module")
+def cli_runs(cli_dir):
+    """Every README `neumat` command, each started once the commands it reads from have
+    finished, one per CPU (each is one process of about one core): the README's order where
+    it matters, the suite's wall time where it does not."""
+    from concurrent.futures import ThreadPoolExecutor
+    deps, futures = reads_from(NEUMAT), []
+
+    def run(i):
+        for j in deps[i]:  # submitted earlier, so started earlier: no deadlock
+            futures[j].result()
+        args = shlex.split(NEUMAT[i])
+        return subprocess.run([sys.executable, "-m", "neumat.cli", *args[1:]], cwd=cli_dir,
+                              capture_output=True, text=True)
+
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        for i in range(len(NEUMAT)):
+            futures.append(pool.submit(run, i))
+        yield dict(zip(NEUMAT, futures))
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("cmd", NEUMAT, ids=NEUMAT)
-def test_readme_neumat_command_runs_on_the_tiny_run(cli_dir, cmd):
-    """In README order: a later command may read what an earlier one wrote (`render mirrors/...`)."""
+def test_readme_neumat_command_runs_on_the_tiny_run(cli_dir, cli_runs, cmd):
+    """A later command may read what an earlier one wrote (`render diffuse/...`): it waits."""
     args = shlex.split(cmd)
-    res = subprocess.run([sys.executable, "-m", "neumat.cli", *args[1:]], cwd=cli_dir,
-                         capture_output=True, text=True)
+    res = cli_runs[cmd].result()
     assert res.returncode == 0, f"{cmd!r} (README) fails on the tiny run:\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}"
     if "--out" in args:
         out = cli_dir / args[args.index("--out") + 1]

@@ -9,7 +9,6 @@ import json
 import logging
 import platform
 
-import numpy as np
 import pytest
 import torch
 

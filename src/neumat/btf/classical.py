@@ -13,7 +13,6 @@ Fits stream texels in chunks through `BTFData.abrdf`, so the dense tensor is nev
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from neumat.btf.grid import GridBTF, bilinear_texels
@@ -139,8 +138,23 @@ class Tucker(GridBTF):
             X = data.abrdf(t).permute(3, 0, 1, 2)                         # (3, n, V, L)
             Y[:, t] = torch.einsum("cnvl,cvj,cli->cnij", X, m.C, m.B).reshape(3, len(t), -1)
         for c in range(3):
-            Yc = Y[c].double()
-            W = torch.linalg.eigh(Yc.T @ Yc)[1][:, -rt:].flip(1)        # (rl*rv, rt)
-            m.A[c] = (Yc @ W).float()
+            A, W = _top_right_vectors(Y[c].double(), rt)                # (T, rt), (rl*rv, rt)
+            m.A[c] = A.float()
             m.G[c] = W.T.reshape(rt, rl, rv).float()
         return m
+
+
+def _top_right_vectors(Y: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Y @ W, W) for W the top-k right singular vectors of Y (n, d), from the smaller Gram
+    matrix: Y^T Y (d x d), or Y Y^T (n x n) when there are fewer rows, whose eigenvectors U give
+    W = Y^T U / s and Y @ W = U s. Same subspace, O(min(n, d)^3): a 64-texel crop with 40 x 40
+    angular ranks is a 64² eigenproblem, not 1600²."""
+    n, d = Y.shape
+    if d <= n:
+        W = torch.linalg.eigh(Y.T @ Y)[1][:, -k:].flip(1)
+        return Y @ W, W
+    w, U = torch.linalg.eigh(Y @ Y.T)
+    s, U = w[-k:].flip(0).clamp_min(0).sqrt(), U[:, -k:].flip(1)
+    live = s > s.max() * 1e-12                  # a rank-deficient Y has no direction for s = 0
+    W = (Y.T @ U) / torch.where(live, s, 1.0)
+    return U * s, W * live

@@ -3,7 +3,6 @@ for the classical fits, and the interpolated reference `btf(u, wi, wo)` (it is a
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from neumat.btf.grid import GridBTF
