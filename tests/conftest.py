@@ -44,6 +44,8 @@ def pytest_collection_finish(session):
     the suite's longest piece (~4 min on 2 cores) and runs while the unit tests do."""
     if session.config.option.collectonly or not any(map(_needs_tiny, session.items)):
         return
+    # pytest's tmp_path_factory (a hook gets no fixtures): the run lands with the other tmp
+    # dirs, its output in tiny_run.out / tiny_run.err there
     wd = session.config._tmp_path_factory.mktemp("tiny")
     for item in ("Snakefile", "workflow", "config"):
         src = ROOT / item
