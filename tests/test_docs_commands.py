@@ -174,12 +174,17 @@ def test_reads_from_orders_what_depends():
 
 
 @pytest.fixture(scope="module")
-def cli_runs(cli_dir):
-    """Every README `neumat` command, each started once the commands it reads from have
-    finished, one per CPU (each is one process of about one core): the README's order where
-    it matters, the suite's wall time where it does not."""
+def cli_runs(cli_dir, request):
+    """The selected README `neumat` commands and those they read from, each started once the
+    commands it reads from have finished, one per CPU (each is one process of about one core):
+    the README's order where it matters, the suite's wall time where it does not."""
     from concurrent.futures import ThreadPoolExecutor
-    deps, futures = reads_from(NEUMAT), []
+    deps, futures = reads_from(NEUMAT), {}
+    selected = {it.callspec.params["cmd"] for it in request.session.items
+                if getattr(it, "originalname", "") == "test_readme_neumat_command_runs_on_the_tiny_run"}
+    needed = {i for i, c in enumerate(NEUMAT) if c in selected}
+    for i in sorted(needed, reverse=True):  # deps point to earlier commands: one pass closes
+        needed |= deps[i]
 
     def run(i):
         for j in deps[i]:  # submitted earlier, so started earlier: no deadlock
@@ -189,9 +194,9 @@ def cli_runs(cli_dir):
                               capture_output=True, text=True)
 
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
-        for i in range(len(NEUMAT)):
-            futures.append(pool.submit(run, i))
-        yield dict(zip(NEUMAT, futures))
+        for i in sorted(needed):
+            futures[i] = pool.submit(run, i)
+        yield {NEUMAT[i]: f for i, f in futures.items()}
 
 
 @pytest.mark.slow
