@@ -50,9 +50,6 @@ enum { AJ = 6, AS = 2 };
 #ifndef AHEAD
 #define AHEAD 2     /* tiles HPB's taps are prefetched ahead */
 #endif
-#ifndef DIST
-#define DIST 8      /* queries ahead HPB's taps are moved from L2 into L1 */
-#endif
 
 typedef float vf __attribute__((vector_size(4 * VL), aligned(4), may_alias));  /* may_alias: it reads and writes float arrays */
 typedef int vi __attribute__((vector_size(4 * VL), aligned(4), may_alias));
@@ -358,10 +355,7 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    for (int q = 0; q < T; q++) {
-        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
-            for (int k = 0; k < 12; k++)
-                __builtin_prefetch(s->gauss + p->off[k][q + DIST]);
+    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
         float acc[C];
         for (int c = 0; c < C; c++)
             acc[c] = 0;
@@ -448,10 +442,7 @@ hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
 {
     const float *g = s->gauss;
     float lum[3][T], wt[3][T], bil[3][T][C + 1];
-    for (int q = 0; q < T; q++) {
-        if (q + DIST < T)  /* from L2 into L1, DIST queries ahead */
-            for (int k = 0; k < 12; k++)
-                __builtin_prefetch(g + p->off[k][q + DIST]);
+    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
         for (int v = 0; v < 3; v++) {
             const float *a = g + p->off[4 * v][q], *b = g + p->off[4 * v + 1][q],
                         *d = g + p->off[4 * v + 2][q], *e = g + p->off[4 * v + 3][q];
@@ -524,7 +515,9 @@ static void fill(const struct source *src, long t0, int nt, const struct prepare
             interp(src->fu, Cu, p->off[q], p->w[q], X, q);
 }
 
-static void run(long N, const struct source *src, const float *wi, const float *wo,
+/* always_inline: each entry point gets its own copy, specialised on its source (GCC's
+ * constprop clone served the plain query alone) */
+static inline __attribute__((always_inline)) void run(long N, const struct source *src, const float *wi, const float *wo,
                 const float *fh, const float *fd, int R, int C, int L, const int *dims,
                 const float *params, float *out, int raw)
 {
