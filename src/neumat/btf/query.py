@@ -16,8 +16,11 @@ is folded into the first layer (`fold_pca`). A `HexTile` (neumat.btf.synthesis.h
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
 plane with the luminance channel, and hex-tiling's blend).
 
+On a CUDA GPU the plain query (no `features_u`) of a Triple Plane runs as one Triton kernel
+(`neumat.btf.query_triton`) where Triton is installed (CUDA builds of torch bring it).
+
 Falls back to the model's torch path (same results) for other models (NeuMIP, the classical
-ones), tensors off the CPU, autograd, or where the kernel cannot be built (no compiler; see
+ones), other devices, autograd, or where the kernel cannot be built (no compiler; see
 neumat.cbuild).
 """
 
@@ -32,6 +35,7 @@ from typing import Callable
 import torch
 
 from neumat import cbuild
+from neumat.btf import query_triton
 
 SOURCE = Path(__file__).with_name("query_kernel.c")
 MAX_WIDTH = 128  # MAXW in query_kernel.c: the widest layer its scratch holds
@@ -120,6 +124,8 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     raw=True: the MLP output log(1 + RGB) instead. `features_u`: see the module docstring.
     Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
     (e.g. x86-64-v3 for the AVX2 one, in tests)."""
+    if features_u is None and wi.device.type == "cuda" and query_triton.supported(model, u, wi, wo):
+        return query_triton.query(model, u, wi, wo, raw=raw, packed=query_triton.packed(model))
     hpb = _hpb(features_u) if supported(model, u, wi, wo, march=march) else None
     if callable(features_u) and hpb is None:
         features_u = features_u(u)

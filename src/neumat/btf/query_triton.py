@@ -1,0 +1,138 @@
+"""Triple Plane queries on a CUDA GPU in one Triton kernel: per block of 64 queries the
+half/difference frame, the three bilinear plane fetches and the whole MLP (`tl.dot` at IEEE fp32,
+no TF32), with the activations in registers. The torch path runs these as separate kernels, its
+fetches as gathers and its layers as batched gemv; it stays the path everywhere else (CPU: the
+fused C query, `neumat.btf.query`).
+
+    rgb = query(model, u, wi, wo)        # = model(u, wi, wo), u, wi, wo and model on the GPU
+
+`neumat.btf.query.query` calls it for CUDA tensors when `supported` says so. Without Triton
+(CPU-only torch wheels do not ship it) `available()` is False and the torch path runs.
+
+Tested on the CPU through Triton's interpreter (TRITON_INTERPRET=1; tests/test_btf_query_triton.py)
+against the torch path to float tolerance. The interpreter checks the arithmetic, not the GPU
+compile or its speed: the ms per frame comes from `benchmarks/btf_query.py --device cuda` on a
+GPU, and is not measured here without one.
+"""
+
+from __future__ import annotations
+
+import os
+from functools import cache
+
+import torch
+
+BLOCK = 64  # queries per program
+
+
+@cache
+def _triton():
+    """(triton, triton.language) or None."""
+    try:
+        import triton
+        import triton.language as tl
+    except ImportError:
+        return None
+    return triton, tl
+
+
+def interpreting() -> bool:
+    """Triton's CPU interpreter is on: kernels run on CPU tensors (tests only; slow)."""
+    return os.environ.get("TRITON_INTERPRET") == "1"
+
+
+def available(device: torch.device | str = "cuda") -> bool:
+    """Whether the kernel can run on tensors of `device`."""
+    dev = torch.device(device)
+    if _triton() is None:
+        return False
+    return dev.type == "cuda" or (dev.type == "cpu" and interpreting())
+
+
+def supported(model, *tensors) -> bool:
+    """A Triple Plane model and tensors on one device the kernel runs on, and no autograd."""
+    from neumat.btf.neural import TriplePlane
+    if not isinstance(model, TriplePlane):
+        return False
+    devices = {t.device for t in (model.f_u, *tensors)}
+    if len(devices) != 1 or not available(next(iter(devices))):
+        return False
+    if model.f_h.shape != model.f_d.shape or model.f_h.shape[0] != model.f_h.shape[1]:
+        return False
+    if max(model.f_u.numel(), model.f_h.numel()) >= 2 ** 31:  # int32 texel offsets
+        return False
+    if torch.is_grad_enabled() and any(p.requires_grad for p in model.parameters()):
+        return False
+    return True
+
+
+def _pow2(n: int, least: int = 16) -> int:
+    """tl.arange and tl.dot want power-of-two extents of at least 16."""
+    return max(least, 1 << (int(n) - 1).bit_length())
+
+
+def pack(model) -> dict:
+    """The MLP as the kernel reads it: transposed, zero-padded to power-of-two widths; layer 1
+    split into its f_U, f_H and f_D rows (three dots, no concatenated input)."""
+    lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
+    cu, cd = model.kwargs["u_channels"], model.kwargs["dir_channels"]
+    hidden = lin[0].out_features
+    pu, pd, hp = _pow2(cu), _pow2(cd), _pow2(hidden)
+    dev = model.f_u.device
+    z = lambda *s: torch.zeros(*s, device=dev, dtype=torch.float32)
+
+    def block(w, rows, cols):  # w (out, in) -> (rows, cols) holding w.T
+        out = z(rows, cols)
+        out[: w.shape[1], : w.shape[0]] = w.detach().float().T
+        return out.contiguous()
+
+    w1 = lin[0].weight
+    hid = lin[1:-1]
+    wh = torch.stack([block(l.weight, hp, hp) for l in hid]) if hid else z(1, hp, hp)
+    bh = z(max(len(hid), 1), hp)
+    for i, l in enumerate(hid):
+        bh[i, : l.out_features] = l.bias.detach().float()
+    b1, bl = z(hp), z(16)
+    b1[:hidden] = lin[0].bias.detach().float()
+    bl[:3] = lin[-1].bias.detach().float()
+    return dict(w1u=block(w1[:, :cu], pu, hp), w1h=block(w1[:, cu:cu + cd], pd, hp),
+                w1d=block(w1[:, cu + cd:], pd, hp), b1=b1, wh=wh.contiguous(), bh=bh,
+                wl=block(lin[-1].weight, hp, 16), bl=bl, cu=cu, cd=cd, pu=pu, pd=pd, hp=hp,
+                n_hidden=len(hid))
+
+
+def _kernel():
+    from neumat.btf import triton_kernels  # imports triton: only where it is installed
+    return triton_kernels.triple_plane
+
+
+def packed(model) -> dict:
+    """`pack(model)`, kept on the model until a parameter changes (a frame's queries come in
+    chunks: repacking would launch a dozen small kernels per chunk)."""
+    key = tuple((p.data_ptr(), p._version) for p in model.parameters())
+    cached = getattr(model, "_triton_pack", None)
+    if cached is None or cached[0] != key:
+        cached = (key, pack(model))
+        model._triton_pack = cached
+    return cached[1]
+
+
+def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None) -> torch.Tensor:
+    """RGB (N, 3) of a Triple Plane `model` at u (N, 2), wi, wo (N, 3), all on the GPU (or on
+    the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `packed`: `pack(model)`, to
+    reuse across calls. Callers check `supported` first."""
+    p = packed or pack(model)
+    f32 = lambda t: t.detach().to(torch.float32).contiguous()
+    u, wi, wo = f32(u), f32(wi), f32(wo)
+    fu, fh, fd = f32(model.f_u), f32(model.f_h), f32(model.f_d)
+    n = wi.shape[0]
+    out = torch.empty(n, 3, device=wi.device, dtype=torch.float32)
+    if n == 0:
+        return out
+    triton, _ = _triton()
+    _kernel()[(triton.cdiv(n, BLOCK),)](
+        u, wi, wo, fu, fh, fd, p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"],
+        p["wl"], p["bl"], out, n, fu.shape[0], fu.shape[1], fh.shape[0],
+        CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
+        RAW=bool(raw), BLOCK=BLOCK)
+    return out

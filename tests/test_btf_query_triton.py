@@ -1,0 +1,96 @@
+"""The GPU query's Triton kernel (neumat.btf.query_triton) against the torch path, run on the CPU
+through Triton's interpreter: the same arithmetic as on a GPU, none of its speed."""
+
+import importlib
+import sys
+
+import pytest
+import torch
+
+from neumat.btf import models, query, query_triton
+
+pytest.importorskip("triton", reason="Triton is not installed (pip install -e '.[test]')")
+
+
+@pytest.fixture
+def interpreter(monkeypatch):
+    """TRITON_INTERPRET=1 when the kernels are defined (triton.jit reads it then)."""
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    if "neumat.btf.triton_kernels" in sys.modules:
+        importlib.reload(sys.modules["neumat.btf.triton_kernels"])
+    yield
+    monkeypatch.delenv("TRITON_INTERPRET")
+    importlib.reload(sys.modules["neumat.btf.triton_kernels"])
+
+
+def queries(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    u = (torch.rand(n, 2, generator=g) - 0.5) * 1e3  # wraps many times, negative included
+    def hemi():
+        w = torch.randn(n, 3, generator=g)
+        w[:, 2] = w[:, 2].abs() + 0.05
+        return torch.nn.functional.normalize(w, dim=-1)
+    wi, wo = hemi(), hemi()
+    wi[0] = wo[0] = torch.tensor([0.0, 0.0, 1.0])  # h at the pole: phi_h = 0
+    wi[1], wo[1] = torch.tensor([0.6, 0.0, 0.8]), torch.tensor([-0.6, 0.0, 0.8])  # h = n
+    wi[2], wo[2] = torch.tensor([1.0, 0.0, 0.0]), torch.tensor([0.0, 1.0, 0.0])  # grazing
+    return u, wi, wo
+
+
+@pytest.mark.parametrize("kw", [{}, dict(u_channels=6, dir_channels=5, hidden=24, layers=3),
+                                dict(hidden=40, layers=2), dict(dir_res=7, layers=5)])
+@torch.no_grad()
+def test_kernel_equals_the_torch_path(interpreter, kw):
+    """Every shape the kernel pads (channels to 16, hidden to a power of two, 3 outputs to 16),
+    1, 2 or 3 hidden layers, wrap and clamp, and a last block that is not full."""
+    torch.manual_seed(0)
+    m = models.TriplePlane(23, 17, **kw).eval()
+    for p in m.parameters():  # larger than the init, so the MLP's nonlinearity shows
+        p.normal_(0, 0.3)
+    m.requires_grad_(False)
+    u, wi, wo = queries(333, 1)
+    assert query_triton.supported(m, u, wi, wo)
+    for raw in (False, True):
+        got = query_triton.query(m, u, wi, wo, raw=raw)
+        want = m.raw(u, wi, wo) if raw else m(u, wi, wo)
+        torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-5)
+
+
+def test_packing_is_kept_until_a_parameter_changes(interpreter):
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    first = query_triton.packed(m)
+    assert query_triton.packed(m) is first
+    with torch.no_grad():
+        m.net[0].weight.add_(1.0)
+    second = query_triton.packed(m)
+    assert second is not first
+    torch.testing.assert_close(second["w1u"][:8, :32], m.net[0].weight[:, :8].T)
+
+
+def test_not_supported_where_it_cannot_run(monkeypatch):
+    """Without the interpreter a CPU tensor never goes to Triton (the C query serves the CPU);
+    NeuMIP and autograd use the torch path."""
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    m = models.TriplePlane(8, 8).eval()
+    u, wi, wo = queries(10, 2)
+    assert not query_triton.supported(m, u, wi, wo)  # CPU, and parameters require grad
+    m.requires_grad_(False)
+    assert not query_triton.supported(m, u, wi, wo)  # CPU
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    assert query_triton.supported(m, u, wi, wo)
+    assert not query_triton.supported(models.NeuMIP(8, 8).requires_grad_(False), u, wi, wo)
+    m.requires_grad_(True)
+    assert not query_triton.supported(m, u, wi, wo)
+
+
+@torch.no_grad()
+def test_query_routes_only_cuda_tensors_to_triton(interpreter, monkeypatch):
+    """query.query keeps the C kernel for CPU tensors, even with the interpreter on."""
+    calls = []
+    monkeypatch.setattr(query_triton, "query", lambda *a, **k: calls.append(1))
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    u, wi, wo = queries(50, 3)
+    torch.testing.assert_close(query.query(m, u, wi, wo), m(u, wi, wo), rtol=1e-5, atol=1e-6)
+    assert not calls
