@@ -5,6 +5,9 @@
 updates the EMA with one multi-tensor kernel, uses fused AdamW on a GPU and copies the CPU-drawn
 randomness from pinned memory without waiting. The baseline is the same loop forced to read the
 loss every step (an `on_step` callback, i.e. one host sync per step, as the loop did before).
+Where the device computes bfloat16 natively, a third row times the loop with
+`diffusion.train.precision: bf16` (bfloat16 autocast of the forward; its loss curve against
+fp32: benchmarks/diffusion_precision.py), against the bf16 matmul rate measured here.
 ms/step is the difference between a run of `--warmup` steps and one of `--warmup + --steps`
 steps, so set-up and the first steps' allocations cancel. Also printed: FLOP per step (torch's
 FlopCounterMode on one forward + backward) and the achieved rate as a fraction of the device's
@@ -32,6 +35,7 @@ from neumat.diffusion import Denoiser, DenoiserConfig, Diffusion, ScheduleConfig
 
 train_mod = importlib.import_module("neumat.diffusion.train")  # the package exports `train`
 ROOT = Path(__file__).resolve().parents[1]
+BF16 = "neumat loop, bf16 autocast"
 
 
 def model_settings(config: Path) -> tuple[dict, dict, dict]:
@@ -41,8 +45,10 @@ def model_settings(config: Path) -> tuple[dict, dict, dict]:
     return cfg.get("model", {}), cfg.get("schedule", {}), cfg.get("train", {})
 
 
-def run_seconds(weights, labels, mcfg, scfg, tcfg, steps, device, sync_each_step):
-    cfg = TrainConfig(**{**tcfg, "steps": steps, "log_every": steps, "checkpoint_every": 10**9})
+def run_seconds(weights, labels, mcfg, scfg, tcfg, steps, device, sync_each_step,
+                precision="fp32"):
+    cfg = TrainConfig(**{**tcfg, "steps": steps, "log_every": steps, "checkpoint_every": 10**9,
+                         "precision": precision})
     with tempfile.TemporaryDirectory() as tmp:
         t, c = time.perf_counter(), time.process_time()
         train_mod.train(weights, labels, [f"t{i}" for i in range(mcfg.n_classes)], mcfg, scfg,
@@ -65,13 +71,14 @@ def flop_per_step(mcfg, scfg, batch, device) -> float:
     return float(fc.get_total_flops())
 
 
-def matmul_rate(device) -> float:
+def matmul_rate(device, dtype=torch.float32) -> float:
     """FLOP per wall second on a GPU, per CPU second of this process on the CPU (which does not
     depend on what else runs on a shared machine)."""
     if device.type != "cuda":
-        return machine.sgemm_peak()[1]
+        return machine.sgemm_peak(dtype=dtype)[1]
     n = 8192
-    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
+    a = torch.randn(n, n, device=device, dtype=dtype)
+    b = torch.randn(n, n, device=device, dtype=dtype)
     torch.mm(a, b)
     torch.cuda.synchronize()
     t = time.perf_counter()
@@ -104,21 +111,31 @@ def main():
     print(f"# {a.config.name}: width {mcfg.width}, depth {mcfg.depth}, heads {mcfg.heads}, "
           f"batch {t['batch_size']}; {a.steps} timed steps on {device}")
     ms, busy = {}, {}
-    for name, sync in (("per-step sync (baseline)", True), ("neumat loop", False)):
-        short = run_seconds(weights, labels, mcfg, scfg, t, a.warmup, device, sync)
-        long = run_seconds(weights, labels, mcfg, scfg, t, a.warmup + a.steps, device, sync)
+    variants = [("per-step sync (baseline)", True, "fp32"), ("neumat loop", False, "fp32")]
+    no_bf16 = train_mod.native_bf16(device)
+    if no_bf16 is None:
+        variants.append((BF16, False, "bf16"))
+    for name, sync, prec in variants:
+        short = run_seconds(weights, labels, mcfg, scfg, t, a.warmup, device, sync, prec)
+        long = run_seconds(weights, labels, mcfg, scfg, t, a.warmup + a.steps, device, sync, prec)
         ms[name] = 1e3 * (long[0] - short[0]) / a.steps
         busy[name] = ms[name] if device.type == "cuda" else 1e3 * (long[1] - short[1]) / a.steps
     flop = flop_per_step(mcfg, scfg, t["batch_size"], device)
-    rate = matmul_rate(device)
+    rate = {"fp32": matmul_rate(device)}
+    if BF16 in ms:
+        rate["bf16"] = matmul_rate(device, torch.bfloat16)
     per = "wall s" if device.type == "cuda" else "CPU s"
     for name, v in ms.items():
-        r = flop / (busy[name] / 1e3)
+        r, kind = flop / (busy[name] / 1e3), "bf16" if name == BF16 else "fp32"
         print(f"{name:26s} {v:9.2f} ms/step (wall), {busy[name]:9.2f} ms/step ({per})  "
-              f"{r / 1e9:8.1f} GFLOP per {per}  {r / rate:6.1%} of the fp32 matmul rate "
-              f"({rate / 1e9:.0f} GFLOP per {per})")
+              f"{r / 1e9:8.1f} GFLOP per {per}  {r / rate[kind]:6.1%} of the {kind} matmul rate "
+              f"({rate[kind] / 1e9:.0f} GFLOP per {per})")
     print(f"speed-up over the baseline: {ms['per-step sync (baseline)'] / ms['neumat loop']:.2f}x; "
           f"{flop / 1e9:.1f} GFLOP per step")
+    if BF16 in ms:
+        print(f"bf16 autocast over the fp32 loop: {ms['neumat loop'] / ms[BF16]:.2f}x")
+    else:
+        print(f"bf16 autocast: not timed ({no_bf16})")
 
 
 if __name__ == "__main__":

@@ -68,10 +68,25 @@ def test_library_defaults_equal_schema_defaults(name):
 def test_speed_and_cosmetic_keys_are_schema_keys():
     """config/speed_keys.yaml names real schema keys, each with why and a value to try."""
     kinds = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/speed_keys.yaml").read_text())
-    assert set(kinds) == {"speed", "cosmetic"} and not set(kinds["speed"]) & set(kinds["cosmetic"])
+    assert set(kinds) == {"speed", "cosmetic", "neutral"}
+    assert not set(kinds["speed"]) & set(kinds["cosmetic"])
     for key, entry in {**kinds["speed"], **kinds["cosmetic"]}.items():
         node = SCHEMA
         for part in key.split("."):
             assert part in node.get("properties", {}), f"{key}: not in config/schema.yaml"
             node = node["properties"][part]
         assert entry.get("why") and "try" in entry, key
+
+
+def test_neutral_keys_default_to_their_neutral_value():
+    """A neutral key leaves params only at the value that reproduces results made before it
+    existed, and that value is its default: a config that does not set it reruns nothing."""
+    kinds = yaml.safe_load((Path(__file__).resolve().parents[1] / "config/speed_keys.yaml").read_text())
+    assert kinds["neutral"]
+    for key, entry in kinds["neutral"].items():
+        assert key not in kinds["speed"] and key not in kinds["cosmetic"], key
+        node = SCHEMA
+        for part in key.split("."):
+            assert part in node.get("properties", {}), f"{key}: not in config/schema.yaml"
+            node = node["properties"][part]
+        assert entry.get("why") and node.get("default") == entry["value"], key

@@ -333,6 +333,24 @@ def test_negative_step_reruns_only_sampling(tiny_run):
     assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_plain"))], jobs
 
 
+@pytest.mark.slow
+def test_bf16_training_is_a_param_and_fp32_reruns_nothing(tiny_run):
+    """diffusion.train.precision (config/speed_keys.yaml `neutral`): bf16 retrains the diffusion
+    models; fp32, set explicitly, is the arithmetic the run was made with and reruns nothing."""
+    import yaml
+    for value, expect in (("bf16", True), ("fp32", False)):
+        cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+        _set(cfg, "diffusion.train.precision", value)
+        (tiny_run / f"config/precision_{value}.yaml").write_text(yaml.safe_dump(cfg))
+        jobs = _planned_jobs(tiny_run, f"config/precision_{value}.yaml")
+        if expect:
+            assert {j for j in jobs if j.startswith("train_")} == {"train_diffusion",
+                                                                    "train_multimodal"}, jobs
+            assert not [j for j in jobs if j.startswith(HEAVY) and not j.startswith("train_")], jobs
+        else:
+            assert jobs == [], jobs
+
+
 def test_every_model_file_loads_with_weights_only(tiny_run):
     """Users share model files: all the tiny run writes are tensors and plain values."""
     import torch

@@ -76,10 +76,12 @@ def describe(march: str | None = None) -> str:
     return s
 
 
-def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> tuple[float, float]:
-    """fp32 matmul rate of this machine from n^3 torch.mm (CPU) with `threads` torch threads
-    (default: as set): (FLOP per wall second, FLOP per CPU second of the process), each the best
-    of `repeat`. On a shared machine the second is the load-independent one."""
+def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5,
+               dtype=None) -> tuple[float, float]:
+    """fp32 (or `dtype`, e.g. torch.bfloat16) matmul rate of this machine from n^3 torch.mm
+    (CPU) with `threads` torch threads (default: as set): (FLOP per wall second, FLOP per CPU
+    second of the process), each the best of `repeat`. On a shared machine the second is the
+    load-independent one."""
     import torch
     old = torch.get_num_threads()
     if threads:
@@ -87,6 +89,8 @@ def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5) -> tu
     try:
         g = torch.Generator().manual_seed(0)
         a, b = torch.randn(n, n, generator=g), torch.randn(n, n, generator=g)
+        if dtype is not None:
+            a, b = a.to(dtype), b.to(dtype)
         c = torch.mm(a, b)  # warm-up
         wall = cpu = float("inf")
         for _ in range(repeat):

@@ -60,6 +60,8 @@ _floats_where_numbers(config, _load_yaml("schema.yaml"))
 _KEY_KINDS = _load_yaml("speed_keys.yaml")
 SPEED_KEYS = set(_KEY_KINDS["speed"])  # never params
 COSMETIC_KEYS = set(_KEY_KINDS["cosmetic"])  # params of report/figure rules only
+# at these values, params as before the key existed (results made then stay valid)
+NEUTRAL = {k: v["value"] for k, v in _KEY_KINDS.get("neutral", {}).items()}
 
 
 def canon(value):
@@ -85,11 +87,14 @@ def settings(section, keys=None, drop=()):
 
 
 def substantive(d, path="", keep=()):
-    """`d` (config or a section at `path`) without speed-only and cosmetic keys, at any depth."""
+    """`d` (config or a section at `path`) without speed-only and cosmetic keys, and without
+    neutral keys at their neutral value, at any depth."""
     kept = {}
     for k, v in d.items():
         key = f"{path}.{k}" if path else k
         if key in SPEED_KEYS or (key in COSMETIC_KEYS and key not in keep):
+            continue
+        if key in NEUTRAL and v == NEUTRAL[key]:
             continue
         kept[k] = substantive(v, key, keep) if isinstance(v, dict) else v
     return kept

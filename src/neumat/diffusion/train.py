@@ -45,6 +45,7 @@ class TrainConfig:
     grad_clip: float = 1.0
     checkpoint_every: int = 250
     log_every: int = 50
+    precision: str = "fp32"  # "bf16": the denoiser's forward under bfloat16 autocast
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -64,6 +65,29 @@ def ema_update(ema: torch.nn.Module, model: torch.nn.Module, step: int, decay: f
     torch._foreach_lerp_(list(ema.parameters()), list(model.parameters()), 1 - d)
     for e, b in zip(ema.buffers(), model.buffers()):
         e.copy_(b)
+
+
+PRECISIONS = ("fp32", "bf16")
+
+
+def native_bf16(dev: torch.device) -> str | None:
+    """None if `dev` computes bfloat16 natively, else why not (a CPU without AVX512-BF16 or
+    AMX would emulate it, far slower than fp32)."""
+    if dev.type == "cuda":
+        return None if torch.cuda.is_bf16_supported() else f"{torch.cuda.get_device_name(dev)} has no bf16"
+    if dev.type == "cpu":
+        if torch.cpu._is_avx512_bf16_supported() or torch.cpu._is_amx_tile_supported():
+            return None
+        return "this CPU has neither AVX512-BF16 nor AMX (bf16 would be emulated, far slower)"
+    return f"bf16 autocast is not set up for {dev.type}"
+
+
+def check_precision(cfg: TrainConfig, dev: torch.device) -> None:
+    if cfg.precision not in PRECISIONS:
+        raise ValueError(f"diffusion.train.precision must be one of {PRECISIONS}, got {cfg.precision!r}")
+    why = native_bf16(dev) if cfg.precision == "bf16" else None
+    if why:
+        raise ValueError(f"diffusion.train.precision: bf16 on {dev}: {why}; set it to fp32")
 
 
 def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | None = None) -> str:
@@ -106,6 +130,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         raise ValueError(f"{len(class_names)} class names for n_classes={model_cfg.n_classes}")
     vectors = check_vectors(vectors, model_cfg, len(weights))
     dev = resolve_device(device)
+    check_precision(cfg, dev)
     ckpt_path, out_path = Path(checkpoint_path), Path(out_path)
     fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg, vectors=vectors)
 
@@ -162,7 +187,10 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
                 cond[k] = v[idx, view]
             else:
                 cond[k] = v[idx]
-        loss = diffusion.loss(model, x_all[idx], cond or None, drops or None, gen)
+        # bf16: the denoiser's matmuls in bfloat16; weights, loss (the prediction minus an fp32
+        # target promotes back), gradients, AdamW and the EMA stay fp32
+        with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
+            loss = diffusion.loss(model, x_all[idx], cond or None, drops or None, gen)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip:
