@@ -94,3 +94,35 @@ def test_query_routes_only_cuda_tensors_to_triton(interpreter, monkeypatch):
     u, wi, wo = queries(50, 3)
     torch.testing.assert_close(query.query(m, u, wi, wo), m(u, wi, wo), rtol=1e-5, atol=1e-6)
     assert not calls
+
+
+@torch.no_grad()
+def test_a_failing_kernel_is_logged_once_and_the_torch_path_takes_over(interpreter, monkeypatch,
+                                                                         caplog):
+    """The kernel has not run on a GPU yet: if it fails there, the error is logged with the way
+    to turn it off, `available()` turns False, and nothing calls it again in this process."""
+    calls = []
+
+    def broken():
+        calls.append(1)
+        raise RuntimeError("no kernel for this GPU")
+
+    monkeypatch.setattr(query_triton, "_kernel", broken)
+    monkeypatch.setattr(query_triton, "_failed", [])
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    u, wi, wo = queries(20, 4)
+    with caplog.at_level("WARNING", logger="neumat.btf.query_triton"):
+        assert query_triton.try_query(m, u, wi, wo) is None
+    assert "NEUMAT_TRITON=0" in caplog.text and "no kernel for this GPU" in caplog.text
+    assert calls == [1] and not query_triton.available("cpu")
+    assert not query_triton.supported(m, u, wi, wo)
+
+
+def test_neumat_triton_0_turns_it_off(interpreter, monkeypatch):
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    u, wi, wo = queries(10, 5)
+    assert query_triton.supported(m, u, wi, wo)
+    monkeypatch.setenv("NEUMAT_TRITON", "0")
+    assert not query_triton.available("cpu") and not query_triton.supported(m, u, wi, wo)

@@ -125,7 +125,9 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
     (e.g. x86-64-v3 for the AVX2 one, in tests)."""
     if features_u is None and wi.device.type == "cuda" and query_triton.supported(model, u, wi, wo):
-        return query_triton.query(model, u, wi, wo, raw=raw, packed=query_triton.packed(model))
+        out = query_triton.try_query(model, u, wi, wo, raw=raw)
+        if out is not None:
+            return out
     hpb = _hpb(features_u) if supported(model, u, wi, wo, march=march) else None
     if callable(features_u) and hpb is None:
         features_u = features_u(u)

@@ -6,8 +6,11 @@ fused C query, `neumat.btf.query`).
 
     rgb = query(model, u, wi, wo)        # = model(u, wi, wo), u, wi, wo and model on the GPU
 
-`neumat.btf.query.query` calls it for CUDA tensors when `supported` says so. Without Triton
-(CPU-only torch wheels do not ship it) `available()` is False and the torch path runs.
+`neumat.btf.query.query` calls it (`try_query`) for CUDA tensors when `supported` says so.
+Without Triton (CPU-only torch wheels do not ship it), or with NEUMAT_TRITON=0, `available()` is
+False and the torch path runs. The kernel has not yet run on a GPU (see below): if it fails
+there, `try_query` logs the error once, names NEUMAT_TRITON=0, and the process keeps to the
+torch path, so a render does not die on it.
 
 Tested on the CPU through Triton's interpreter (TRITON_INTERPRET=1; tests/test_btf_query_triton.py)
 against the torch path to float tolerance. The interpreter checks the arithmetic, not the GPU
@@ -17,10 +20,14 @@ GPU, and is not measured here without one.
 
 from __future__ import annotations
 
+import logging
 import os
 from functools import cache
 
 import torch
+
+log = logging.getLogger(__name__)
+_failed: list[str] = []  # the first kernel failure of this process, if any
 
 BLOCK = 64  # queries per program
 
@@ -44,7 +51,7 @@ def interpreting() -> bool:
 def available(device: torch.device | str = "cuda") -> bool:
     """Whether the kernel can run on tensors of `device`."""
     dev = torch.device(device)
-    if _triton() is None:
+    if _triton() is None or os.environ.get("NEUMAT_TRITON") == "0" or _failed:
         return False
     return dev.type == "cuda" or (dev.type == "cpu" and interpreting())
 
@@ -136,3 +143,15 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None) -> to
         CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
         RAW=bool(raw), BLOCK=BLOCK)
     return out
+
+
+def try_query(model, u, wi, wo, raw: bool = False) -> torch.Tensor | None:
+    """`query` with the model's cached packing, or None after logging why if the kernel fails
+    (then `available()` is False for the rest of the process: the caller's torch path runs)."""
+    try:
+        return query(model, u, wi, wo, raw=raw, packed=packed(model))
+    except Exception as e:  # compile or launch errors of an untested GPU (Triton raises its own types)
+        _failed.append(f"{type(e).__name__}: {e}")
+        log.warning("Triton Triple Plane query failed on %s, using the torch path from now on "
+                    "(set NEUMAT_TRITON=0 to skip it): %s", wi.device, _failed[0])
+        return None
