@@ -7,6 +7,7 @@ import sys
 import pytest
 import torch
 
+import neumat.btf.synthesis as syn
 from neumat.btf import models, query, query_triton
 
 pytest.importorskip("triton", reason="Triton is not installed (pip install -e '.[test]')")
@@ -54,6 +55,32 @@ def test_kernel_equals_the_torch_path(interpreter, kw):
         got = query_triton.query(m, u, wi, wo, raw=raw)
         want = m.raw(u, wi, wo) if raw else m(u, wi, wo)
         torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-5)
+
+
+@pytest.mark.parametrize("kw", [{}, dict(u_channels=6, hidden=24, layers=3)])
+@torch.no_grad()
+def test_hpb_kernel_equals_the_torch_synthesis(interpreter, kw):
+    """HPB inside the kernel (float64 grid and fetch coordinates, integer hash, blend, LUT,
+    inverse PCA folded into layer 1) = Synthesized.torch_forward, near u = 0 and at |u| ~ 1e5
+    (where an fp32 grid constant alone moved results by ~1e-2); another seed, another result."""
+    torch.manual_seed(0)
+    m = models.TriplePlane(23, 17, **kw).eval()
+    for p in m.parameters():
+        p.normal_(0, 0.3)
+    m.requires_grad_(False)
+    h = syn.build(m, "hpb", 5, {})
+    _, wi, wo = queries(300, 6)
+    g = torch.Generator().manual_seed(7)
+    for scale in (10.0, 1e5):
+        u = (torch.rand(300, 2, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, hpb=h),
+                                   syn.Synthesized(m, h).torch_forward(u, wi, wo),
+                                   rtol=2e-5, atol=3e-5)
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, hpb=h),
+                                   m.decode(h.torch_features(u), wi, wo), rtol=2e-5, atol=3e-5)
+    other = syn.build(m, "hpb", 6, {})
+    assert not torch.allclose(query_triton.query(m, u, wi, wo, hpb=other),
+                              query_triton.query(m, u, wi, wo, hpb=h))
 
 
 def test_packing_is_kept_until_a_parameter_changes(interpreter):

@@ -78,9 +78,10 @@ def _pow2(n: int, least: int = 16) -> int:
     return max(least, 1 << (int(n) - 1).bit_length())
 
 
-def pack(model) -> dict:
+def pack(model, first: tuple | None = None) -> dict:
     """The MLP as the kernel reads it: transposed, zero-padded to power-of-two widths; layer 1
-    split into its f_U, f_H and f_D rows (three dots, no concatenated input)."""
+    split into its f_U, f_H and f_D rows (three dots, no concatenated input). `first`: (W1, b1)
+    in place of layer 1's (HPB's, with its inverse PCA folded in)."""
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     cu, cd = model.kwargs["u_channels"], model.kwargs["dir_channels"]
     hidden = lin[0].out_features
@@ -93,14 +94,15 @@ def pack(model) -> dict:
         out[: w.shape[1], : w.shape[0]] = w.detach().float().T
         return out.contiguous()
 
-    w1 = lin[0].weight
+    w1, b1_src = first if first is not None else (lin[0].weight, lin[0].bias)
+    w1 = w1.to(dev)
     hid = lin[1:-1]
     wh = torch.stack([block(l.weight, hp, hp) for l in hid]) if hid else z(1, hp, hp)
     bh = z(max(len(hid), 1), hp)
     for i, l in enumerate(hid):
         bh[i, : l.out_features] = l.bias.detach().float()
     b1, bl = z(hp), z(16)
-    b1[:hidden] = lin[0].bias.detach().float()
+    b1[:hidden] = b1_src.detach().float().to(dev)
     bl[:3] = lin[-1].bias.detach().float()
     return dict(w1u=block(w1[:, :cu], pu, hp), w1h=block(w1[:, cu:cu + cd], pd, hp),
                 w1d=block(w1[:, cu + cd:], pd, hp), b1=b1, wh=wh.contiguous(), bh=bh,
@@ -108,48 +110,89 @@ def pack(model) -> dict:
                 n_hidden=len(hid))
 
 
-def _kernel():
+def _kernel(hpb: bool = False):
     from neumat.btf import triton_kernels  # imports triton: only where it is installed
-    return triton_kernels.triple_plane
+    return triton_kernels.triple_plane_hpb if hpb else triton_kernels.triple_plane
 
 
-def packed(model) -> dict:
-    """`pack(model)`, kept on the model until a parameter changes (a frame's queries come in
-    chunks: repacking would launch a dozen small kernels per chunk)."""
-    key = tuple((p.data_ptr(), p._version) for p in model.parameters())
+def packed(model, hpb=None) -> dict:
+    """`pack(model)` (with HPB: its folded layer 1, Gaussianised plane and LUT on the model's
+    device), kept on the model until a parameter or the synthesis changes (a frame's queries
+    come in chunks: repacking would launch a dozen small kernels per chunk)."""
+    key = (tuple((p.data_ptr(), p._version) for p in model.parameters()), id(hpb),
+           None if hpb is None else tuple((t.data_ptr(), t._version) for t in _hpb_tensors(hpb)))
     cached = getattr(model, "_triton_pack", None)
     if cached is None or cached[0] != key:
-        cached = (key, pack(model))
+        cached = (key, pack(model) if hpb is None else _pack_hpb(model, hpb))
         model._triton_pack = cached
     return cached[1]
 
 
-def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None) -> torch.Tensor:
+def _hpb_tensors(hpb):
+    return hpb.mean, hpb.basis, hpb.gauss, hpb.lut
+
+
+def _pack_hpb(model, hpb) -> dict:
+    from neumat.btf.query import fold_pca
+    lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
+    w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)
+    dev = model.f_u.device
+    p = pack(model, (w1, b1))
+    p["gauss"] = hpb.gauss.detach().float().to(dev).contiguous()
+    p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
+    s = int(hpb.seed) & 0xFFFFFFFF
+    p["hs"] = _mix32(s)
+    return p
+
+
+def _mix32(x: int) -> int:
+    """neumat.btf.synthesis.grid._mix of one 32-bit int, as a signed 32-bit int (a kernel
+    argument the kernel bitcasts back to uint32)."""
+    m = 0xFFFFFFFF
+    x ^= x >> 16
+    x = (x * 0x7FEB352D) & m
+    x ^= x >> 15
+    x = (x * 0x2C1B3C6D) & m
+    x ^= x >> 16
+    return x - (1 << 32) if x >= 1 << 31 else x
+
+
+def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
+          hpb=None) -> torch.Tensor:
     """RGB (N, 3) of a Triple Plane `model` at u (N, 2), wi, wo (N, 3), all on the GPU (or on
-    the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `packed`: `pack(model)`, to
-    reuse across calls. Callers check `supported` first."""
-    p = packed or pack(model)
+    the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `hpb`: an HPB synthesis
+    (neumat.btf.synthesis.hpb) in place of the f_U fetch, u then float64 and unbounded.
+    `packed`: `packed(model, hpb)`, to reuse across calls. Callers check `supported` first."""
+    p = packed or (pack(model) if hpb is None else _pack_hpb(model, hpb))
     f32 = lambda t: t.detach().to(torch.float32).contiguous()
-    u, wi, wo = f32(u), f32(wi), f32(wo)
-    fu, fh, fd = f32(model.f_u), f32(model.f_h), f32(model.f_d)
+    wi, wo = f32(wi), f32(wo)
+    fh, fd = f32(model.f_h), f32(model.f_d)
     n = wi.shape[0]
     out = torch.empty(n, 3, device=wi.device, dtype=torch.float32)
     if n == 0:
         return out
     triton, _ = _triton()
-    _kernel()[(triton.cdiv(n, BLOCK),)](
-        u, wi, wo, fu, fh, fd, p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"],
-        p["wl"], p["bl"], out, n, fu.shape[0], fu.shape[1], fh.shape[0],
-        CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
-        RAW=bool(raw), BLOCK=BLOCK)
+    grid = (triton.cdiv(n, BLOCK),)
+    mlp = (p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"], p["wl"], p["bl"], out, n)
+    shapes = dict(CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
+                  RAW=bool(raw), BLOCK=BLOCK)
+    if hpb is None:
+        fu = f32(model.f_u)
+        _kernel()[grid](f32(u), wi, wo, fu, fh, fd, *mlp, fu.shape[0], fu.shape[1],
+                        fh.shape[0], **shapes)
+    else:
+        g = p["gauss"]
+        _kernel(hpb=True)[grid](u.detach().double().contiguous(), wi, wo, g, p["lut"], fh, fd,
+                                *mlp, g.shape[0], g.shape[1], p["lut"].shape[1], fh.shape[0],
+                                p["hs"], **shapes)
     return out
 
 
-def try_query(model, u, wi, wo, raw: bool = False) -> torch.Tensor | None:
+def try_query(model, u, wi, wo, raw: bool = False, hpb=None) -> torch.Tensor | None:
     """`query` with the model's cached packing, or None after logging why if the kernel fails
     (then `available()` is False for the rest of the process: the caller's torch path runs)."""
     try:
-        return query(model, u, wi, wo, raw=raw, packed=packed(model))
+        return query(model, u, wi, wo, raw=raw, packed=packed(model, hpb), hpb=hpb)
     except Exception as e:  # compile or launch errors of an untested GPU (Triton raises its own types)
         _failed.append(f"{type(e).__name__}: {e}")
         log.warning("Triton Triple Plane query failed on %s, using the torch path from now on "

@@ -45,23 +45,17 @@ def rows(ptr, R: tl.constexpr, K: tl.constexpr):
     """A (R, K) row-major block."""
     return tl.load(ptr + tl.arange(0, R)[:, None] * K + tl.arange(0, K)[None, :])
 
+
 @triton.jit
-def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr,
-                 b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HU, WU, R,
-                 CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
-                 HP: tl.constexpr, NH: tl.constexpr, RAW: tl.constexpr,
-                 BLOCK: tl.constexpr):
-    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    m = q < N
-    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
-    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+def frame(wi_ptr, wo_ptr, q, m):
+    """neumat.btf.directions.half_diff: the f_H and f_D plane coordinates of queries q."""
     ix = tl.load(wi_ptr + 3 * q, mask=m, other=0.0)
     iy = tl.load(wi_ptr + 3 * q + 1, mask=m, other=0.0)
     iz = tl.load(wi_ptr + 3 * q + 2, mask=m, other=1.0)
     ox = tl.load(wo_ptr + 3 * q, mask=m, other=0.0)
     oy = tl.load(wo_ptr + 3 * q + 1, mask=m, other=0.0)
     oz = tl.load(wo_ptr + 3 * q + 2, mask=m, other=1.0)
-    # neumat.btf.directions.half_diff: h = normalize(wi + wo), d = R_b(-th) R_n(-ph) wi
+    # h = normalize(wi + wo), d = R_b(-theta_h) R_n(-phi_h) wi
     sx = ix + ox
     sy = iy + oy
     sz = iz + oz
@@ -76,9 +70,15 @@ def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr
     sp = tl.where(big, hy / sc, 0.0)
     rx = cp * ix + sp * iy
     ry = -sp * ix + cp * iy
-    fu = bilinear(fu_ptr, ux, uy, HU, WU, CU, PU, True, m)
-    fh = bilinear(fh_ptr, (hx + 1) / 2, (hy + 1) / 2, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, (ct * rx - st * iz + 1) / 2, (ry + 1) / 2, R, R, CD, PD, False, m)
+    return (hx + 1) / 2, (hy + 1) / 2, (ct * rx - st * iz + 1) / 2, (ry + 1) / 2
+
+
+@triton.jit
+def mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU: tl.constexpr, PD: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr,
+        RAW: tl.constexpr):
+    """The MLP on the three feature blocks (layer 1 as three dots), stored as (N, 3) RGB, or
+    log(1 + RGB) if RAW."""
     x = (tl.dot(fu, rows(w1u_ptr, PU, HP), input_precision="ieee")
          + tl.dot(fh, rows(w1h_ptr, PD, HP), input_precision="ieee")
          + tl.dot(fd, rows(w1d_ptr, PD, HP), input_precision="ieee")
@@ -93,3 +93,110 @@ def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr
         y = tl.maximum(tl.exp(y) - 1.0, 0.0)
     k = tl.arange(0, 16)
     tl.store(out_ptr + 3 * q[:, None] + k[None, :], y, mask=m[:, None] & (k < 3)[None, :])
+
+
+@triton.jit
+def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr,
+                 b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HU, WU, R,
+                 CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
+                 HP: tl.constexpr, NH: tl.constexpr, RAW: tl.constexpr,
+                 BLOCK: tl.constexpr):
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fu = bilinear(fu_ptr, ux, uy, HU, WU, CU, PU, True, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, RAW)
+
+
+@triton.jit
+def mix(x):
+    """neumat.btf.synthesis.grid._mix on uint32 (wrapping multiplies)."""
+    x = x ^ (x >> 16)
+    x = x * 0x7FEB352D
+    x = x ^ (x >> 15)
+    x = x * 0x2C1B3C6D
+    return x ^ (x >> 16)
+
+
+@triton.jit
+def hpb_tap(gauss_ptr, fx, fy, bx, by, hs, H, W, C: tl.constexpr, P: tl.constexpr, m):
+    """One triangle vertex (bx, by) (int64) of HPB: its hashed offset (grid.vertex_hash),
+    the fetch position frac(frac(u) + offset) in float64 then float32 (grid.wrap_fetch_coords),
+    and the bilinear fetch of the Gaussianised plane (BLOCK, P)."""
+    h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
+    px = h.to(tl.float64) * (1.0 / 4294967296.0)
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
+    py = h.to(tl.float64) * (1.0 / 4294967296.0)
+    px = px + fx
+    py = py + fy
+    px = px - tl.floor(px)
+    py = py - tl.floor(py)
+    top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
+    x = tl.minimum(px.to(tl.float32), top)
+    y = tl.minimum(py.to(tl.float32), top)
+    return bilinear(gauss_ptr, x, y, H, W, C, P, True, m)
+
+
+@triton.jit
+def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_ptr,
+                     w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N,
+                     HG, WG, L, R, hs_bits, CU: tl.constexpr, CD: tl.constexpr,
+                     PU: tl.constexpr, PD: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr,
+                     RAW: tl.constexpr, BLOCK: tl.constexpr):
+    """The query with f_U synthesised by histogram-preserving blending (neumat.btf.synthesis.hpb,
+    its torch path `torch_features`): u float64, the triangle grid in float64, the integer vertex
+    hash, three bilinear fetches of the Gaussianised plane, the variance-preserving blend and
+    the inverse LUT; the inverse PCA is folded into layer 1 by the caller."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    # float64 constants: a Python float in a kernel is an fp32 constant, whose rounding
+    # (~1e-8) would move the grid by ~1e-3 at u = 1e5
+    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
+    stx = ux * (2 * S3)
+    sty = uy * (2 * S3)
+    s0 = stx - sty / S3
+    s1 = 2 * sty / S3
+    b0 = tl.floor(s0)
+    b1 = tl.floor(s1)
+    f0 = s0 - b0
+    f1 = s1 - b1
+    z = 1 - f0 - f1
+    up = z > 0
+    i0 = b0.to(tl.int64)
+    i1 = b1.to(tl.int64)
+    w0 = tl.where(up, z, -z).to(tl.float32)
+    w1 = tl.where(up, f1, 1 - f1).to(tl.float32)
+    w2 = tl.where(up, f0, 1 - f0).to(tl.float32)
+    fx = ux - tl.floor(ux)  # torch.remainder(u, 1); may round to 1, which the next frac folds
+    fy = uy - tl.floor(uy)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    g0 = hpb_tap(gauss_ptr, fx, fy, i0 + dn, i1 + dn, hs, HG, WG, CU, PU, m)
+    g1 = hpb_tap(gauss_ptr, fx, fy, i0 + dn, i1 + 1 - dn, hs, HG, WG, CU, PU, m)
+    g2 = hpb_tap(gauss_ptr, fx, fy, i0 + 1 - dn, i1 + dn, hs, HG, WG, CU, PU, m)
+    # hpb.blend: sum_k (g_k - 0.5) w_k / sqrt(sum w_k^2) + 0.5
+    num = (g0 - 0.5) * w0[:, None] + (g1 - 0.5) * w1[:, None] + (g2 - 0.5) * w2[:, None]
+    g = num / tl.sqrt(w0 * w0 + w1 * w1 + w2 * w2)[:, None] + 0.5
+    # hpb.inverse_lut per channel (row c of the (C, L) table), linear, clamped at both ends
+    x = tl.minimum(tl.maximum(tl.minimum(tl.maximum(g, 0.0), 1.0) * L - 0.5, 0.0), L - 1.0)
+    k0 = tl.minimum(tl.floor(x).to(tl.int32), L - 2)
+    c = tl.arange(0, PU)
+    mc = m[:, None] & (c < CU)[None, :]
+    base = lut_ptr + c[None, :] * L + k0
+    a = tl.load(base, mask=mc, other=0.0)
+    b = tl.load(base + 1, mask=mc, other=0.0)
+    qf = a + (x - k0.to(tl.float32)) * (b - a)
+    qf = tl.where(mc, qf, 0.0)
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, RAW)
