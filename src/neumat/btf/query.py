@@ -12,7 +12,7 @@ synthesised plane); u is then only passed to that callable. Everything else (dir
 f_H, f_D, MLP) is unchanged. An `HPB` synthesis (neumat.btf.synthesis.hpb) as `features_u`
 runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetches of its
 Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
-is folded into the first layer (`fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
+is folded into the first layer (`neumat.btf.fold.fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
 plane with the luminance channel, and hex-tiling's blend).
 
@@ -36,6 +36,7 @@ from typing import Callable
 import torch
 
 from neumat import cbuild
+from neumat.btf.fold import fold_pca
 from neumat.btf import query_triton
 
 SOURCE = Path(__file__).with_name("query_kernel.c")
@@ -106,17 +107,6 @@ def _hpb(features_u):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
     return features_u if H * W * C < 2 ** 31 else None  # int32 texel offsets
-
-
-def fold_pca(W1: torch.Tensor, b1: torch.Tensor, cu: int, mean, basis):
-    """First layer taking HPB's decorrelated q in place of f_U = mean + basis q:
-    W1[:, :cu] basis and b1 + W1[:, :cu] mean (in float64, then float32). numpy, because
-    torch's float64 matmul starts its OpenMP threads for these tiny matrices on every call."""
-    W = W1.detach().double().numpy().copy()
-    wu = W[:, :cu].copy()
-    W[:, :cu] = wu @ basis.detach().double().numpy()
-    b = b1.detach().double().numpy() + wu @ mean.detach().double().numpy()
-    return torch.from_numpy(W).float(), torch.from_numpy(b).float()
 
 
 def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,

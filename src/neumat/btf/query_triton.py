@@ -26,6 +26,8 @@ from functools import cache
 
 import torch
 
+from neumat.btf.fold import fold_pca
+
 log = logging.getLogger(__name__)
 _failed: list[str] = []  # the first kernel failure of this process, if any
 
@@ -133,7 +135,6 @@ def _hpb_tensors(hpb):
 
 
 def _pack_hpb(model, hpb) -> dict:
-    from neumat.btf.query import fold_pca
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)
     dev = model.f_u.device
