@@ -2,9 +2,12 @@
 half/difference frame, the three bilinear plane fetches and the whole MLP (`tl.dot` at IEEE fp32,
 no TF32), with the activations in registers. The torch path runs these as separate kernels, its
 fetches as gathers and its layers as batched gemv; it stays the path everywhere else (CPU: the
-fused C query, `neumat.btf.query`).
+fused C query, `neumat.btf.query`). A second kernel synthesises f_U by histogram-preserving
+blending in place of the f_U fetch (neumat.btf.synthesis.hpb: the triangle grid and fetch
+coordinates in float64, the integer hash, blend and LUT; the inverse PCA folded into layer 1).
 
-    rgb = query(model, u, wi, wo)        # = model(u, wi, wo), u, wi, wo and model on the GPU
+    rgb = query(model, u, wi, wo)            # = model(u, wi, wo), all on the GPU
+    rgb = query(model, u, wi, wo, hpb=h)     # = Synthesized(model, h).torch_forward(u, wi, wo)
 
 `neumat.btf.query.query` calls it (`try_query`) for CUDA tensors when `supported` says so.
 Without Triton (CPU-only torch wheels do not ship it), or with NEUMAT_TRITON=0, `available()` is
