@@ -144,21 +144,12 @@ def _pack_hpb(model, hpb) -> dict:
     p = pack(model, (w1, b1))
     p["gauss"] = hpb.gauss.detach().float().to(dev).contiguous()
     p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
-    s = int(hpb.seed) & 0xFFFFFFFF
-    p["hs"] = _mix32(s)
+    # the seed's hash (grid.vertex_hash's first step), as a signed 32-bit kernel argument the
+    # kernel bitcasts back to uint32
+    from neumat.btf.synthesis.grid import _mix  # lazily: the synthesis package imports `query`
+    hs = int(_mix(torch.tensor(int(hpb.seed) & 0xFFFFFFFF)))
+    p["hs"] = hs - (1 << 32) if hs >= 1 << 31 else hs
     return p
-
-
-def _mix32(x: int) -> int:
-    """neumat.btf.synthesis.grid._mix of one 32-bit int, as a signed 32-bit int (a kernel
-    argument the kernel bitcasts back to uint32)."""
-    m = 0xFFFFFFFF
-    x ^= x >> 16
-    x = (x * 0x7FEB352D) & m
-    x ^= x >> 15
-    x = (x * 0x2C1B3C6D) & m
-    x ^= x >> 16
-    return x - (1 << 32) if x >= 1 << 31 else x
 
 
 def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
