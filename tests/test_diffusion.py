@@ -134,6 +134,28 @@ def test_split_inverts_each_target(prediction):
     assert d.loss(oracle, x0, generator=torch.Generator().manual_seed(0)).item() < 1e-8
 
 
+@pytest.mark.parametrize("prediction", ["eps", "v"])
+def test_x0_loss_measures_the_implied_x0(prediction):
+    """loss x0: a model whose output implies x0_hat = x0 + delta has the x0 model's loss,
+    mean(delta^2), at every t, whatever it predicts; the default loss weights it by t."""
+    torch.manual_seed(0)
+    x0 = torch.randn(64, 5, dtype=torch.float64)
+    delta = 0.1 * torch.randn(64, 5, dtype=torch.float64)
+    losses = {}
+    for loss in ("prediction", "x0"):
+        d = Diffusion(ScheduleConfig(timesteps=100, kind="cosine", prediction=prediction, loss=loss))
+        def biased(x, tt, cond, drop):
+            a = d.alpha_bar[tt][:, None].to(x.dtype)
+            xh = x0 + delta
+            e = (x - a.sqrt() * xh) / (1 - a).sqrt()
+            return {"eps": e, "v": a.sqrt() * e - (1 - a).sqrt() * xh}[prediction]
+        losses[loss] = d.loss(biased, x0, generator=torch.Generator().manual_seed(0)).item()
+    assert losses["x0"] == pytest.approx(torch.mean(delta ** 2).item(), rel=1e-9)
+    assert losses["prediction"] > 2 * losses["x0"]  # v and eps weight x0 errors by 1/(1 - ab) or more
+    with pytest.raises(ValueError, match="diffusion.schedule.loss"):
+        Diffusion(ScheduleConfig(loss="eps"))
+
+
 @pytest.mark.parametrize("prediction", ["x0", "eps", "v"])
 def test_ddim_matches_closed_form_on_gaussian(prediction):
     """With the exact posterior mean, deterministic DDIM on Gaussian data is the linear map

@@ -8,6 +8,11 @@ connection for unit-variance data (Karras et al. 2022: x0 = sqrt(ab) x_t - sqrt(
 noise the network adds a small correction to x_t instead of rebuilding x0, and its loss,
 |x0 error|^2 / (1 - ab), weights the low-noise end that decides the fine detail.
 
+`loss` picks where the squared error is measured: on the prediction target itself, or on the x0
+it implies (`loss: x0`). v with the x0 loss keeps the skip connection, so the low-noise x0 error
+is sqrt(1 - ab) times the network's and has no floor, while every noise level keeps the weight
+that x0 training gives it (the high-noise end sets the image statistics; M3ashy trains on x0).
+
 DDIM (Song et al. 2021, eq. 12) on a sub-sequence tau_1 > ... > tau_S of timesteps:
   x_prev = sqrt(ab_prev) x0_hat + sqrt(1 - ab_prev - sigma^2) eps_hat + sigma z,
   sigma  = eta sqrt((1 - ab_prev) / (1 - ab_t)) sqrt(1 - ab_t / ab_prev),
@@ -26,6 +31,7 @@ import torch
 from neumat.device import to_device
 
 PREDICTIONS = ("x0", "eps", "v")
+LOSSES = ("prediction", "x0")
 SCHEDULES = ("cosine", "linear")
 
 
@@ -36,6 +42,7 @@ class ScheduleConfig:
     beta_start: float = 1e-4  # linear schedule only
     beta_end: float = 2e-2
     prediction: str = "x0"
+    loss: str = "prediction"  # squared error on the prediction target, or on the implied x0
 
     def to_dict(self):
         return asdict(self)
@@ -58,6 +65,8 @@ class Diffusion:
         if cfg.prediction not in PREDICTIONS:
             raise ValueError(f"diffusion.schedule.prediction: {cfg.prediction!r} is not one of "
                              f"{PREDICTIONS}")
+        if cfg.loss not in LOSSES:
+            raise ValueError(f"diffusion.schedule.loss: {cfg.loss!r} is not one of {LOSSES}")
         if cfg.timesteps < 1:
             raise ValueError("diffusion.schedule.timesteps must be >= 1")
         self.cfg = cfg
@@ -88,12 +97,15 @@ class Diffusion:
         t = to_device(torch.randint(0, self.T, (b,), generator=generator), x0.device)
         noise = to_device(torch.randn(x0.shape, generator=generator), x0.device, x0.dtype)
         x_t = self.q_sample(x0, t, noise)
+        ab = self._ab(t, x0)
+        out = model(x_t, t, cond, drop)
+        if self.cfg.loss == "x0":
+            return torch.mean((self.split(out, x_t, ab)[0] - x0) ** 2)
         if self.cfg.prediction == "v":
-            ab = self._ab(t, x0)
             target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
         else:
             target = x0 if self.cfg.prediction == "x0" else noise
-        return torch.mean((model(x_t, t, cond, drop) - target) ** 2)
+        return torch.mean((out - target) ** 2)
 
     def timesteps_for(self, steps: int) -> list[int]:
         """Evenly spaced DDIM timesteps, descending, always ending at t = 0."""
