@@ -190,3 +190,15 @@ def test_fused_hextile_other_widths():
     raw = m.decode(s(u), wi, wo)
     got = query.query(m, u, wi, wo, features_u=s, raw=True)
     torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
+
+
+def test_tune_is_part_of_the_build_and_its_cache_key():
+    """-mtune reaches the compiler, and a kernel tuned otherwise is a different cached library
+    (an old build is never loaded for new flags)."""
+    from neumat import cbuild
+    assert "-mtune=generic" in cbuild.flags("native", tune="generic")
+    assert not any(f.startswith("-mtune") for f in cbuild.flags("native"))
+    a = cbuild.library_path(query.SOURCE, "native")
+    b = cbuild.library_path(query.SOURCE, "native", tune="generic")
+    if a is not None:
+        assert a != b

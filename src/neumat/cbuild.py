@@ -36,9 +36,12 @@ def cpu_id() -> str:
         return platform.processor() + platform.machine()
 
 
-def flags(march: str, fast_math: bool = True) -> list[str]:
-    """Compile flags; fast_math=False keeps IEEE arithmetic (a kernel that must equal torch)."""
+def flags(march: str, fast_math: bool = True, tune: str | None = None) -> list[str]:
+    """Compile flags; fast_math=False keeps IEEE arithmetic (a kernel that must equal torch);
+    `tune` overrides the tuning that -march implies (-mtune)."""
     f = ["-O3", *(["-ffast-math"] if fast_math else []), f"-march={march}", "-fPIC"]
+    if tune:
+        f.append(f"-mtune={tune}")
     if X86:
         f.append("-mprefer-vector-width=512")  # use zmm registers where -march has them
     return f
@@ -53,20 +56,22 @@ def runs_here(march: str) -> bool:
     return X86 and need in cpu_id().split()
 
 
-def library_path(source: Path, march: str, fast_math: bool = True) -> Path | None:
+def library_path(source: Path, march: str, fast_math: bool = True,
+                 tune: str | None = None) -> Path | None:
     """Where the library of `source` for `march` is or will be cached; None without a compiler."""
     cc = os.environ.get("CC", "cc")
     if shutil.which(cc) is None:
         return None
     version = subprocess.run([cc, "--version"], capture_output=True, text=True).stdout
-    key = hashlib.sha256("\0".join([source.read_text(), version, " ".join(flags(march, fast_math)),
+    key = hashlib.sha256("\0".join([source.read_text(), version, " ".join(flags(march, fast_math, tune)),
                                     cpu_id() if march == "native" else ""]).encode())
     cache_dir = Path(os.environ.get("NEUMAT_CACHE", Path.home() / ".cache" / "neumat"))
     tag = "" if march == "native" else f"{march}-"
     return cache_dir / f"{source.stem}-{tag}{key.hexdigest()[:16]}.so"
 
 
-def _compile(cc: str, source: Path, march: str, out: Path, fast_math: bool = True) -> None:
+def _compile(cc: str, source: Path, march: str, out: Path, fast_math: bool = True,
+             tune: str | None = None) -> None:
     """Compile to a temporary name and rename: concurrent jobs never load a half-written file.
 
     -ffast-math only when compiling: linking a shared library with it would add crtfastmath,
@@ -74,7 +79,7 @@ def _compile(cc: str, source: Path, march: str, out: Path, fast_math: bool = Tru
     out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent) as tmp:
         obj, lib = Path(tmp) / f"{source.stem}.o", Path(tmp) / out.name
-        for cmd in ([cc, *flags(march, fast_math), "-c", str(source), "-o", str(obj)],
+        for cmd in ([cc, *flags(march, fast_math, tune), "-c", str(source), "-o", str(obj)],
                     [cc, "-shared", str(obj), "-o", str(lib), "-lm"]):
             r = subprocess.run(cmd, capture_output=True, text=True)
             if r.returncode:
@@ -82,10 +87,11 @@ def _compile(cc: str, source: Path, march: str, out: Path, fast_math: bool = Tru
         os.replace(lib, out)
 
 
-def build(source: Path, march: str, fallback: str, fast_math: bool = True) -> Path | None:
+def build(source: Path, march: str, fallback: str, fast_math: bool = True,
+          tune: str | None = None) -> Path | None:
     """The built library of `source` for `march`, or None with the reason logged (no compiler,
     a target this CPU cannot run, a failed build); `fallback` says what runs instead."""
-    path = library_path(source, march, fast_math)
+    path = library_path(source, march, fast_math, tune)
     if path is None:
         log.warning("no C compiler (%s): %s", os.environ.get("CC", "cc"), fallback)
         return None
@@ -96,7 +102,7 @@ def build(source: Path, march: str, fallback: str, fast_math: bool = True) -> Pa
     if not path.exists():
         log.info("compiling %s -march=%s -> %s", source.name, march, path)
         try:
-            _compile(os.environ.get("CC", "cc"), source, march, path, fast_math)
+            _compile(os.environ.get("CC", "cc"), source, march, path, fast_math, tune)
         except (RuntimeError, OSError) as e:
             log.warning("%s; %s", e, fallback)
             return None
