@@ -46,7 +46,7 @@ MAX_WIDTH = 128  # MAXW in query_kernel.c: the widest layer its scratch holds
 @cache
 def _library(march: str = "native"):
     # generic tuning: GCC 12 tunes -march=native on a Zen 4 for Zen 3 (no AVX-512), and there
-    # the query took 7.5 % more time (HPB 5 %) than with -mtune=generic (the fit kernel, by
+    # the query took 8 % more time (HPB 5 %) than with -mtune=generic (the fit kernel, by
     # contrast, was slower with generic tuning; it keeps -march's). x86-64-vN already imply it.
     path = cbuild.build(SOURCE, march, "BTF queries use the torch path", tune="generic")
     if path is None:
