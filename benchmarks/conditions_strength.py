@@ -30,24 +30,21 @@ from neumat.metrics import distances
 from neumat.seeds import seed_for
 
 
-def start_rows(mode, R, man, ts, seed, emb=None):
+def start_rows(mode, R, ts, seed, emb):
     """The training material each condition starts from: image - nearest metric-view
     embedding (retrieval); text - nearest description embedding (cosine) among the training
     materials; type - a training material of that type, drawn with `seed` (the types no
     training material has are left out: they cannot score a hit)."""
     if mode == "image":
         return image.retrieve(emb, np.load(f"{R}/conditions/image.npy")[ts.rows, 0], ts.rows)
-    if mode == "text":
-        lib = np.load(f"{R}/conditions/text.npy")[ts.rows]
-        lib = lib / np.linalg.norm(lib, axis=1, keepdims=True)
-        q = emb / np.linalg.norm(emb, axis=1, keepdims=True)
-        return ts.rows[(q @ lib.T).argmax(1)]
+    if mode == "text":  # text.embed's vectors are L2-normalised: a dot product is the cosine
+        return ts.rows[(emb @ np.load(f"{R}/conditions/text.npy")[ts.rows].T).argmax(1)]
     rng = np.random.default_rng(seed)
     return np.array([rng.choice(ts.typed[ts.types == t]) for t in emb])
 
 
 def conditions_for(mode, R, ts):
-    """(conditions for `sample`, embeddings or types, conditioning images or None, types asked)"""
+    """(embeddings or types asked, conditioning images or None, the types asked)"""
     if mode == "image":
         emb = np.load(f"{R}/samples/image/conditioning_embeddings.npy")
         table = pd.read_csv(f"{R}/samples/image/samples.tsv", sep="\t", keep_default_na=False)
@@ -80,10 +77,9 @@ def main():
     man = dataset.read_manifest(f"{R}/neumerl/manifest.tsv", len(weights))
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(a.bins, a.seed), "relu")
     emb, cond, types = conditions_for(mode, R, ts)
-    got = start_rows(mode, R, man, ts, a.seed, emb)
+    got = start_rows(mode, R, ts, a.seed, emb)
     asked = np.repeat(types, k)
     scorable = ts.scorable(asked)
-    hits = lambda w: (ts.nearest(w).nearest_type.to_numpy() == asked)[scorable].mean()
     ret = weights[got]
     ret_hits = (ts.nearest(ret).nearest_type.to_numpy() == types)[ts.scorable(types)].mean()
     line = f"retrieval: type hits {ret_hits:.3f} ({len(got)} conditions)"
@@ -92,15 +88,16 @@ def main():
         line += f", PSNR {rsc.psnr.mean():.2f} dB, SSIM {rsc.ssim.mean():.4f}"
     print(line, flush=True)
     sampler = Sampler(f"{R}/diffusion/multimodal/model.pt", "cpu")
-    key = {"image": "image", "text": "text", "type": "type"}[mode]
-    c = {key: list(np.repeat(emb, k)) if mode == "type" else np.repeat(emb, k, 0)}
+    c = {mode: list(np.repeat(emb, k)) if mode == "type" else np.repeat(emb, k, 0)}
     f_start = np.repeat(ts.fv(ret), k, 0)
     for st in a.strengths:
         t0 = time.perf_counter()
-        w = sample(sampler, len(emb) * k, a.seed, c, {key: a.guidance}, a.steps, 0.0, 256, None,
+        w = sample(sampler, len(emb) * k, a.seed, c, {mode: a.guidance}, a.steps, 0.0, 256, None,
                    negative_step=a.negative_step, start=weights[np.repeat(got, k)], strength=st)
         dt = time.perf_counter() - t0
-        line = f"strength {st:g}: type hits {hits(w):.3f} ({scorable.sum()} samples)"
+        near = ts.nearest(w)
+        hits = (near.nearest_type.to_numpy() == asked)[scorable].mean()
+        line = f"strength {st:g}: type hits {hits:.3f} ({scorable.sum()} samples)"
         if cond is not None:
             sc = ev.image_scores(w, cond.repeat_interleave(k, 0), a.resolution, "relu")
             per = sc.groupby(np.repeat(np.arange(len(emb)), k)).mean()
@@ -108,7 +105,7 @@ def main():
                      f"retrieval on {(per.psnr.to_numpy() > rsc.psnr.to_numpy()).sum()}/{len(emb)}")
         to_start = np.abs(np.asarray(ts.fv(w)) - np.asarray(f_start)).mean(1)
         neg = ev.negative_share(w, a.bins, seed_for(a.seed, "negative_share"), "relu").mean()
-        print(f"{line}; median BRDF-L1 to nearest training {ts.nearest(w).brdf_l1.median():.3f}, "
+        print(f"{line}; median BRDF-L1 to nearest training {near.brdf_l1.median():.3f}, "
               f"to its start {np.median(to_start):.3f}; clamping {neg:.3f}; sampling {dt:.0f} s",
               flush=True)
 

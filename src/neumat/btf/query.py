@@ -46,8 +46,9 @@ MAX_WIDTH = 128  # MAXW in query_kernel.c: the widest layer its scratch holds
 @cache
 def _library(march: str = "native"):
     # generic tuning: GCC 12 tunes -march=native on a Zen 4 for Zen 3 (no AVX-512), and there
-    # the query took 8 % more time (HPB 5 %) than with -mtune=generic (the fit kernel, by
-    # contrast, was slower with generic tuning; it keeps -march's). x86-64-vN already imply it.
+    # the query took 9 % more CPU time (benchmarks/btf_query.py: 233.0 against 213.6 CPU-ms per
+    # frame) and HPB 7-9 % (btf_synthesis.py: 274-280 against 257); AMD EPYC AVX-512, 2 cores.
+    # The fit kernel was slower with generic tuning and keeps -march's. x86-64-vN imply it.
     path = cbuild.build(SOURCE, march, "BTF queries use the torch path", tune="generic")
     if path is None:
         return None

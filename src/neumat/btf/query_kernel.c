@@ -158,9 +158,10 @@ static void prepare_u(const float *u, long t0, long N, const float *fu, int Hu, 
     for (int q = 0; q < T; q++) {
         long i = t0 + q < N ? t0 + q : N - 1;
         taps(Hu, Wu, Cu, u[2 * i], u[2 * i + 1], 1, off[q], w[q]);
-        for (int k = 0; k < 4; k++) {  /* locality 2 (prefetcht1): on Zen 4 the plain query
-                                          took 5 % less time than with prefetcht0, which
-                                          brings a tile's lines into L1 a tile early */
+        for (int k = 0; k < 4; k++) {  /* locality 2 (prefetcht1): the plain query took 4 %
+                                          less time than with prefetcht0, which brings a
+                                          tile's lines into L1 a tile early (btf_query.py,
+                                          AMD EPYC AVX-512: 231.7 against 242.3 CPU-ms) */
             __builtin_prefetch(fu + off[q][k], 0, 2);
             __builtin_prefetch(fu + off[q][k] + Cu - 1, 0, 2);  /* a texel may straddle two lines */
         }
@@ -330,8 +331,9 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
      * aligned); the lines' first and last floats then both need a prefetch */
     int straddle = 64 % (4 * C) != 0;
-    for (int k = 0; k < 12; k++)  /* locality 1 (prefetcht2): 12 taps two tiles ahead; on Zen 4
-                                     1.5-2 % less time than prefetcht1, 6 % less than prefetcht0 */
+    for (int k = 0; k < 12; k++)  /* locality 1 (prefetcht2): 12 taps two tiles ahead; HPB took
+                                     1.5-2 % less time than with prefetcht1, 6 % less than with
+                                     prefetcht0 (btf_synthesis.py --methods hpb, AMD EPYC AVX-512) */
         for (int q = 0; q < T; q++)
             __builtin_prefetch(s->gauss + p->off[k][q], 0, 1);
     if (straddle)  /* for each pair (x0, x1) of a row only x1's last float: x0 ends one float
