@@ -11,6 +11,36 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _parallel_workers(config) -> int:
+    """Workers for a run that selects no end-to-end test (`-m "not slow"`, the edit-test loop):
+    one per CPU up to 4, where pytest-xdist is installed and `-n` was not given. The full suite
+    stays in one process: its tiny run is started by this process and keeps both cores busy."""
+    if not config.pluginmanager.hasplugin("xdist") or config.getoption("numprocesses", None) is not None:
+        return 0
+    if "not slow" not in (config.option.markexpr or "") or os.environ.get("PYTEST_XDIST_WORKER"):
+        return 0
+    n = min(os.cpu_count() or 1, 4)
+    return n if n > 1 else 0
+
+
+@pytest.hookimpl(tryfirst=True)  # before pytest-xdist reads -n
+def pytest_cmdline_main(config):
+    n = _parallel_workers(config)
+    if n:
+        config.option.numprocesses = n
+        config.option.dist = "load"
+
+
+def pytest_report_header(config):
+    n = config.getoption("numprocesses", None)
+    if n and not os.environ.get("PYTEST_XDIST_WORKER"):
+        return f"unit tests on {n} pytest-xdist workers (tests/conftest.py); -n 0 runs them in one process"
+
+
+if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker: the cores are shared out between workers
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", 1))))
+
+
 @pytest.fixture
 def one_thread():
     """Tiny models: one thread is fastest, and avoids spin-waiting on a shared 2-core box."""

@@ -306,3 +306,29 @@ def test_ci_runs_the_readme_test_command():
     test_cmd = re.findall(r"```bash\n(.*?)\n```", quick, re.S)[1]
     tail = test_cmd.split("&&", 2)[2].strip()  # after creating and activating the venv
     assert tail in (ROOT / ".ci/run").read_text(), tail
+
+
+def test_unit_tests_alone_run_on_several_workers(monkeypatch):
+    """`pytest -m "not slow"` (README) spreads over pytest-xdist workers on a multi-core machine;
+    the full `pytest` stays in one process (its background tiny run needs the cores), and an
+    explicit `-n`, a missing xdist or a single CPU keep the user's choice."""
+    from types import SimpleNamespace
+
+    import conftest
+
+    def config(markexpr, n=None, xdist=True):
+        return SimpleNamespace(option=SimpleNamespace(markexpr=markexpr),
+                               pluginmanager=SimpleNamespace(hasplugin=lambda name: xdist),
+                               getoption=lambda name, default=None: n)
+
+    monkeypatch.delenv("PYTEST_XDIST_WORKER", raising=False)
+    monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
+    assert conftest._parallel_workers(config("not slow")) == 2
+    assert conftest._parallel_workers(config("")) == 0
+    assert conftest._parallel_workers(config("slow")) == 0
+    assert conftest._parallel_workers(config("not slow", n=0)) == 0
+    assert conftest._parallel_workers(config("not slow", xdist=False)) == 0
+    monkeypatch.setattr(conftest.os, "cpu_count", lambda: 1)
+    assert conftest._parallel_workers(config("not slow")) == 0
+    monkeypatch.setattr(conftest.os, "cpu_count", lambda: 16)
+    assert conftest._parallel_workers(config("not slow")) == 4
