@@ -19,6 +19,9 @@ Rows, each against the plain query of the same path:
 
     OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3] [--coherent]
                                                           [--model results/<run>/btf/models/<m>/triple_plane.pt]
+                                                          [--march x86-64-v3]
+--march builds the fused query for another target (x86-64-v3: the AVX2 kernel on an AVX-512
+host); "synthesis alone" stays native.
 """
 
 from __future__ import annotations
@@ -65,6 +68,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=5, help="interleaved rounds (best kept)")
     ap.add_argument("--no-torch", action="store_true", help="skip the (slow) torch-path rows")
     ap.add_argument("--device", default="cpu", help="cpu | cuda")
+    ap.add_argument("--march", default="native", help="-march of the fused C query")
     ap.add_argument("--coherent", action="store_true",
                     help="u of a x15 plane across the frame in pixel order (a rendered frame), "
                          "not uniform random u")
@@ -83,8 +87,8 @@ def main():
     dev = torch.device(a.device)
     m, u, u32, w = m.to(dev), u.to(dev), u32.to(dev), w.to(dev)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
-    fused = dev.type == "cuda" or query.supported(m, u32[:8], w[:8], w[:8])
-    where = machine.describe("native" if dev.type == "cpu" and fused else None)
+    fused = dev.type == "cuda" or query.supported(m, u32[:8], w[:8], w[:8], march=a.march)
+    where = machine.describe(a.march if dev.type == "cpu" and fused else None)
     if dev.type == "cuda":
         where += f"; GPU {torch.cuda.get_device_name(dev)}, Triton " + (
             "on" if query_triton.supported(m, u32[:8], w[:8], w[:8]) else "not available")
@@ -98,7 +102,7 @@ def main():
     K = "fused C" if dev.type == "cpu" else "GPU"  # the fused path of this device
     runs, refs = {}, {}   # name -> timed function; name -> the plain query it is measured against
     if fused:
-        runs[f"plain ({K})"] = run(lambda s: query.query(m, u32[s], w[s], w[s]))
+        runs[f"plain ({K})"] = run(lambda s: query.query(m, u32[s], w[s], w[s], march=a.march))
     if not a.no_torch:
         runs["plain (torch)"] = run(lambda s: m(u32[s], w[s], w[s]))
         runs["plain f_U fetch (torch)"] = run(lambda s: fetch(m.f_u, u32[s], True))
@@ -106,12 +110,14 @@ def main():
         st = {"scale": a.quilt_scale} if method == "quilting" else {}
         wr = syn.Synthesized(m, syn.build(m, method, 1, st))
         if fused:
-            runs[f"{method} ({K})"] = run(lambda s, wr=wr: wr(u[s], w[s], w[s]))
+            # Synthesized.forward, with the build chosen: query.query with the synthesis as f_U
+            runs[f"{method} ({K})"] = run(lambda s, wr=wr: query.query(
+                m, u[s], w[s], w[s], features_u=wr.synth, march=a.march))
             refs[f"{method} ({K})"] = f"plain ({K})"
             if method == "hpb":
                 hook = _Fn(wr.synth)  # not an HPB object: its features are fed to the kernel
                 runs[f"hpb (hook, {K})"] = run(
-                    lambda s, h=hook: query.query(m, u[s], w[s], w[s], features_u=h))
+                    lambda s, h=hook: query.query(m, u[s], w[s], w[s], features_u=h, march=a.march))
                 refs[f"hpb (hook, {K})"] = f"plain ({K})"
         runs[f"{method} synthesis alone"] = run(lambda s, wr=wr: wr.synth(u[s]))
         if not a.no_torch:

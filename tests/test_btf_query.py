@@ -202,3 +202,22 @@ def test_tune_is_part_of_the_build_and_its_cache_key():
     b = cbuild.library_path(query.SOURCE, "native", tune="generic")
     if a is not None:
         assert a != b
+
+
+@pytest.mark.parametrize("march", MARCHES)
+@pytest.mark.parametrize("lut_size", [128, 64])
+def test_fused_hpb_lut_in_registers_and_gathered_alike(lut_size, march):
+    """The kernel looks a 128-entry LUT up in registers (AVX-512) and any other size by
+    gathers: both equal HPB's torch path, and the wrapped plane the kernel reads is built once
+    per synthesis."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(1000, 12)
+    s = synthesis.build(m, "hpb", 3, {"lut_size": lut_size})
+    raw = m.decode(s.torch_features(u), wi, wo)
+    got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
+    torch.testing.assert_close(got, raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
+    plane = query.hpb_plane(s)
+    H, W, C = s.gauss.shape
+    assert plane.shape == (H + 1, W + 1, C) and query.hpb_plane(s) is plane
+    assert torch.equal(plane[:H, :W], s.gauss) and torch.equal(plane[H], plane[0])
+    assert torch.equal(plane[:, W], plane[:, 0])

@@ -77,6 +77,21 @@ def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
     return torch.stack([lut, slope], -1).contiguous()
 
 
+def hpb_plane(hpb) -> torch.Tensor:
+    """HPB's Gaussianised plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C), wrapped by
+    one row and column, so a bilinear footprint is one offset (struct hpb). Cached on the
+    synthesis object: a frame is queried in chunks, and the copy is a pass over the plane."""
+    g = hpb.gauss
+    cached = getattr(hpb, "_kernel_plane", None)
+    if cached is not None and cached[0] is g:
+        return cached[1]
+    p = _f32(g)
+    p = torch.cat([p, p[:, :1]], 1)
+    p = torch.cat([p, p[:1]], 0).contiguous()
+    hpb._kernel_plane = (g, p)
+    return p
+
+
 def available(march: str = "native") -> bool:
     return _library(march) is not None
 
@@ -110,7 +125,7 @@ def _hpb(features_u):
     if method not in ("hpb", "hextile"):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
-    return features_u if H * W * C < 2 ** 31 else None  # int32 texel offsets
+    return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None  # int32 offsets (hpb_plane: one row and column more)
 
 
 def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
@@ -175,13 +190,13 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     else:
         u = u.detach().double().contiguous()
         weights[:2] = fold_pca(weights[0], weights[1], cu, hpb.mean, hpb.basis)
-        gauss, lut = _f32(hpb.gauss), lut_pairs(hpb.lut)
+        gauss, lut = hpb_plane(hpb), lut_pairs(hpb.lut)
+        H, W = hpb.gauss.shape[:2]
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hpb(
                 n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
-                wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), gauss.shape[0], gauss.shape[1],
-                cu, lut.data_ptr(), lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(),
+                wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), H, W, cu, lut.data_ptr(), lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(),
                 fd.data_ptr(), fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(),
                 params.data_ptr(), out_ptr, int(raw))
     params = torch.cat([t.reshape(-1) for t in weights]).float()

@@ -26,6 +26,9 @@
 #include <stddef.h>
 #include <stdint.h>
 #include <string.h>
+#if defined(__AVX__)
+#include <immintrin.h>
+#endif
 
 #if defined(__AVX512F__)
 #define VL 16
@@ -45,6 +48,7 @@ enum { AJ = 7, AS = 2 };
 #else
 enum { AJ = 6, AS = 2 };
 #endif
+#define LUT_REG 128  /* the LUT size hpb_fill_c looks up in registers (AVX-512) */
 #define T 64        /* queries per tile: a multiple of AS * VL for every VL */
 #define MAXW 128    /* widest layer the scratch holds */
 #ifndef AHEAD
@@ -199,7 +203,8 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* (H, W, C) Gaussianised decorrelated plane; hex: (H, W, C + 1)
+    const float *gauss;     /* (H + 1, W + 1, C) Gaussianised decorrelated plane, wrapped by one
+                               row and column (neumat.btf.query.hpb_plane); hex: (H, W, C + 1)
                                f_U with the luminance channel last */
     int H, W;
     const float *lut;       /* (C, L, 2) inverse LUT (HPB only) as (value, slope) pairs: entry
@@ -210,13 +215,18 @@ struct hpb {
     int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
     double rotation;
     float contrast, exponent, gain;
+    const float *planar;    /* HPB, L = LUT_REG: (C, 2, L) values then slopes, for the register
+                               lookup (hpb_fill_c); else NULL */
 };
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
-    int32_t off[12][T];     /* texel offsets (in floats) into gauss */
-    float tw[12][T];        /* bilinear weights */
+    int32_t off[12][T];     /* texel offsets (in floats) into gauss; HPB: off[v], the first
+                               texel of vertex v's 2 x 2 (its plane is wrapped by one row and
+                               column: the others are C, pitch and pitch + C floats on) */
+    float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
     float w[3][T];          /* blend weights */
     float inv[T];           /* 1 / sqrt(sum of their squares) */
+    float bias[T];          /* HPB: 0.5 - 0.5 (sum of w) inv, G = acc inv + bias (hpb_fill_c) */
 };
 
 /* The grid, hash and taps without -ffast-math's reassociation: with it GCC formed the bilinear
@@ -230,6 +240,17 @@ static inline IEEE uint32_t mix(uint32_t x)  /* neumat.btf.synthesis.grid._mix *
     x ^= x >> 15;
     x *= 0x2C1B3C6Du;
     return x ^ (x >> 16);
+}
+
+/* An integral double b (|b| < 2^51) modulo 2^32, as (uint32_t)(int64_t)b: its low bits once
+ * 1.5 2^52 is added (two's complement for negative b). Plain arithmetic and bits: AVX2 has no
+ * vector double -> int64 conversion, and with one the grid loop ran scalar there. */
+static inline IEEE uint32_t low32(double b)
+{
+    double t = b + 6755399441055744.0;
+    uint64_t bits;
+    memcpy(&bits, &t, 8);
+    return (uint32_t)bits;
 }
 
 /* sin and cos of a (double, |a| < 2^20) as plain arithmetic the compiler vectorises (libm's
@@ -279,7 +300,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         double f0 = s0 - b0, f1 = s1 - b1, z = 1 - f0 - f1;
         int up = z > 0;
         bx[q] = b0, by[q] = b1, upq[q] = up;
-        uint32_t i0 = (uint32_t)(int64_t)b0, i1 = (uint32_t)(int64_t)b1;
+        uint32_t i0 = low32(b0), i1 = low32(b1);
         vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
         vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
         vx[2][q] = i0 + up, vy[2][q] = i1 + !up, wd[2][q] = up ? f0 : 1 - f0;
@@ -317,23 +338,47 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             float x0 = floorf(x), y0 = floorf(y), ax = x - x0, ay = y - y0;
             int32_t xa = (int32_t)x0, ya = (int32_t)y0, xb = xa + 1, yb = ya + 1;
             xa += xa < 0 ? s->W : 0, ya += ya < 0 ? s->H : 0;
+            float wv = (float)wd[v][q];
+            p->w[v][q] = wv;
+            if (!hex) {  /* one offset; the blend weight folded into the bilinear ones */
+                p->off[v][q] = (ya * (s->W + 1) + xa) * C;
+                p->tw[4 * v][q] = wv * ((1 - ax) * (1 - ay)), p->tw[4 * v + 1][q] = wv * (ax * (1 - ay));
+                p->tw[4 * v + 2][q] = wv * ((1 - ax) * ay), p->tw[4 * v + 3][q] = wv * (ax * ay);
+                continue;
+            }
             xb -= xb >= s->W ? s->W : 0, yb -= yb >= s->H ? s->H : 0;
             p->off[4 * v][q] = (ya * s->W + xa) * C, p->off[4 * v + 1][q] = (ya * s->W + xb) * C;
             p->off[4 * v + 2][q] = (yb * s->W + xa) * C, p->off[4 * v + 3][q] = (yb * s->W + xb) * C;
             p->tw[4 * v][q] = (1 - ax) * (1 - ay), p->tw[4 * v + 1][q] = ax * (1 - ay);
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
-            p->w[v][q] = (float)wd[v][q];
         }
     for (int q = 0; q < T && !hex; q++) {  /* hpb.blend's normalisation, in double: no approximate rsqrt */
         float ww = p->w[0][q] * p->w[0][q] + p->w[1][q] * p->w[1][q] + p->w[2][q] * p->w[2][q];
         p->inv[q] = (float)(1 / sqrt((double)ww));
+        p->bias[q] = 0.5f - 0.5f * ((p->w[0][q] + p->w[1][q]) + p->w[2][q]) * p->inv[q];
+    }
+    if (!hex) {  /* a 2 x 2 footprint: two rows of 2C floats, each in one or two lines (each
+                    row's first line alone: HPB's overhead +18.5 to +21.4 % CPU against +12.4
+                    to +13.8 %, interleaved rounds on btf_synthesis.py's frame, AMD EPYC
+                    AVX-512) */
+        const long pitch = (long)C * (s->W + 1);
+        for (int v = 0; v < 3; v++)
+            for (int q = 0; q < T; q++) {
+                const float *a = s->gauss + p->off[v][q];
+                __builtin_prefetch(a, 0, 1);
+                __builtin_prefetch(a + 2 * C - 1, 0, 1);
+                __builtin_prefetch(a + pitch, 0, 1);
+                __builtin_prefetch(a + pitch + 2 * C - 1, 0, 1);
+            }
+        return;
     }
     /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
      * aligned); the lines' first and last floats then both need a prefetch */
     int straddle = 64 % (4 * C) != 0;
-    for (int k = 0; k < 12; k++)  /* locality 1 (prefetcht2): 12 taps two tiles ahead; HPB took
-                                     1.5-2 % less time than with prefetcht1, 6 % less than with
-                                     prefetcht0 (btf_synthesis.py --methods hpb, AMD EPYC AVX-512) */
+    for (int k = 0; k < 12; k++)  /* locality 1 (prefetcht2): 12 taps two tiles ahead; HPB (then
+                                     on this path) took 1.5-2 % less time than with prefetcht1,
+                                     6 % less than with prefetcht0 (btf_synthesis.py --methods
+                                     hpb, AMD EPYC AVX-512) */
         for (int q = 0; q < T; q++)
             __builtin_prefetch(s->gauss + p->off[k][q], 0, 1);
     if (straddle)  /* for each pair (x0, x1) of a row only x1's last float: x0 ends one float
@@ -356,30 +401,97 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
 }
 
 /* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
- * inlining (one vector of channels per texel for C = 8). */
+ * inlining (one vector of channels per texel for C = 8). The blend weights are folded into the
+ * bilinear ones and the -0.5 into `bias` (grid_prepare): G = sum_v w_v (bil_v - 0.5) inv + 0.5
+ * = (sum of the weighted taps) inv + bias. */
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
+    const long pitch = (long)C * (s->W + 1);
+#if defined(__AVX2__) && defined(__FMA__)
+    if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
+                      into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
+        for (int q0 = 0; q0 < T; q0 += 8) {
+            __m256 r[8];
+            for (int k = 0; k < 8; k++) {
+                int q = q0 + k;
+                __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+                for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
+                    const float *a = s->gauss + p->off[v][q], *d = a + pitch;
+                    acc0 = _mm256_fmadd_ps(_mm256_loadu_ps(a), _mm256_set1_ps(p->tw[4 * v][q]), acc0);
+                    acc1 = _mm256_fmadd_ps(_mm256_loadu_ps(d), _mm256_set1_ps(p->tw[4 * v + 2][q]), acc1);
+                    acc0 = _mm256_fmadd_ps(_mm256_loadu_ps(a + 8), _mm256_set1_ps(p->tw[4 * v + 1][q]), acc0);
+                    acc1 = _mm256_fmadd_ps(_mm256_loadu_ps(d + 8), _mm256_set1_ps(p->tw[4 * v + 3][q]), acc1);
+                }
+                r[k] = _mm256_add_ps(acc0, acc1);
+            }
+            __m256 t[8], u[8];
+            for (int k = 0; k < 8; k += 2)
+                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]), t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
+            for (int k = 0; k < 8; k += 4)
+                for (int j = 0; j < 2; j++) {
+                    u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
+                    u[k + j + 2] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0xEE);
+                }
+            /* u[0..3]: queries 0-3 x channels (0, 4) (2, 6) (1, 5) (3, 7) in 128-bit halves;
+               u[4..7] the same for queries 4-7 */
+            static const int ch[4] = {0, 2, 1, 3};
+            for (int k = 0; k < 4; k++) {
+                _mm256_storeu_ps(X + ch[k] * T + q0, _mm256_permute2f128_ps(u[k], u[k + 4], 0x20));
+                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, _mm256_permute2f128_ps(u[k], u[k + 4], 0x31));
+            }
+        }
+    } else
+#endif
     for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
         float acc[C];
         for (int c = 0; c < C; c++)
             acc[c] = 0;
         for (int v = 0; v < 3; v++) {
-            const float *a = s->gauss + p->off[4 * v][q], *b = s->gauss + p->off[4 * v + 1][q],
-                        *d = s->gauss + p->off[4 * v + 2][q], *e = s->gauss + p->off[4 * v + 3][q];
+            const float *a = s->gauss + p->off[v][q], *d = a + pitch;
             float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
-                  t3 = p->tw[4 * v + 3][q], w = p->w[v][q];
+                  t3 = p->tw[4 * v + 3][q];
             for (int c = 0; c < C; c++)  /* two short chains: more in flight */
-                acc[c] += ((t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]) - 0.5f) * w;
+                acc[c] += (t0 * a[c] + t1 * a[C + c]) + (t2 * d[c] + t3 * d[C + c]);
         }
         for (int c = 0; c < C; c++)
             X[c * T + q] = acc[c];
     }
     const int L = s->L;
+#if defined(__AVX512F__)
+    if (s->planar) {  /* the 128-entry LUT of a channel in 16 registers (8 of values, 8 of
+                         slopes): entry i0 by two-register permutes on its 5 low bits and
+                         blends on bits 5 and 6, in place of a gather of 16 pairs */
+        for (int c = 0; c < C; c++) {
+            const float *tv = s->planar + 2L * c * LUT_REG, *ts = tv + LUT_REG;
+            __m512 v[8], sl[8];
+            for (int k = 0; k < 8; k++)
+                v[k] = _mm512_loadu_ps(tv + 16 * k), sl[k] = _mm512_loadu_ps(ts + 16 * k);
+            for (int q = 0; q < T; q += 16) {
+                __m512 g = _mm512_fmadd_ps(_mm512_loadu_ps(X + c * T + q), _mm512_loadu_ps(p->inv + q),
+                                           _mm512_loadu_ps(p->bias + q));
+                g = _mm512_min_ps(_mm512_max_ps(g, _mm512_setzero_ps()), _mm512_set1_ps(1));
+                __m512 x = _mm512_sub_ps(_mm512_mul_ps(g, _mm512_set1_ps(LUT_REG)), _mm512_set1_ps(0.5f));
+                x = _mm512_min_ps(_mm512_max_ps(x, _mm512_setzero_ps()), _mm512_set1_ps(LUT_REG - 1));
+                __m512i i0 = _mm512_min_epi32(_mm512_cvttps_epi32(x), _mm512_set1_epi32(LUT_REG - 2));
+                __mmask16 b5 = _mm512_test_epi32_mask(i0, _mm512_set1_epi32(32)),
+                          b6 = _mm512_test_epi32_mask(i0, _mm512_set1_epi32(64));
+#define LOOK(t) _mm512_mask_blend_ps(b6, \
+        _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[0], i0, t[1]), _mm512_permutex2var_ps(t[2], i0, t[3])), \
+        _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[4], i0, t[5]), _mm512_permutex2var_ps(t[6], i0, t[7])))
+                __m512 a = LOOK(v), slope = LOOK(sl);
+#undef LOOK
+                _mm512_storeu_ps(X + c * T + q,
+                                 _mm512_fmadd_ps(_mm512_sub_ps(x, _mm512_cvtepi32_ps(i0)), slope, a));
+            }
+        }
+        return;
+    }
+#endif
     for (int c = 0; c < C; c++) {
         const pair_t *restrict row = (const pair_t *)(s->lut + 2L * c * L);
         for (int q = 0; q < T; q++) {  /* linear interpolation, clamped at both ends */
-            float g = X[c * T + q] * p->inv[q] + 0.5f;
+            float g = X[c * T + q] * p->inv[q] + p->bias[q];
             g = g < 0 ? 0 : g > 1 ? 1 : g;
             float x = g * L - 0.5f;
             x = x < 0 ? 0 : x > L - 1 ? L - 1 : x;
@@ -475,6 +587,24 @@ static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, 
         hpb_fill_c(8, s, p, X);
     else
         hpb_fill_c(C, s, p, X);
+}
+
+/* The (value, slope) pairs of s->lut as (C, 2, L) in buf, for the register lookup: with
+ * AVX-512 and L = LUT_REG, else NULL (the gather path). */
+static const float *lut_planar(const struct hpb *s, int C, float *buf)
+{
+#if defined(__AVX512F__)
+    if (s->L == LUT_REG) {
+        for (int c = 0; c < C; c++)
+            for (int k = 0; k < LUT_REG; k++) {
+                buf[2 * c * LUT_REG + k] = s->lut[2 * (c * LUT_REG + k)];
+                buf[(2 * c + 1) * LUT_REG + k] = s->lut[2 * (c * LUT_REG + k) + 1];
+            }
+        return buf;
+    }
+#endif
+    (void)C, (void)buf;
+    return NULL;
 }
 
 /* Where a tile's f_U comes from: the plane fetch at u, the caller's features, or HPB. */
@@ -587,6 +717,8 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           const int *dims, const float *params, float *out, int raw)
 {
     struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
+    s.planar = lut_planar(&s, Cu, planar);
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
@@ -609,6 +741,8 @@ void hpb_features(long N, const double *u, const float *gauss, int H, int W, int
                   const float *basis, float *out)
 {
     struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
+    s.planar = lut_planar(&s, C, planar);
     struct hpb_taps p;
     float X[MAXW * T];
     for (long t0 = 0; t0 < N; t0 += T) {

@@ -96,7 +96,7 @@ class HPB:
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         """Features (N, C) at u: the fused C kernel where it is built, else `torch_features`."""
-        out = kernel.hpb_features(u, self.gauss, self.lut, self.mean, self.basis, self.seed)
+        out = kernel.hpb_features(u, self)
         return self.torch_features(u) if out is None else out
 
     def torch_features(self, u: torch.Tensor) -> torch.Tensor:

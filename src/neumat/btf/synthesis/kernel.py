@@ -23,15 +23,17 @@ def available() -> bool:
     return _library() is not None
 
 
-def hpb_features(u: torch.Tensor, gauss, lut, mean, basis, seed: int):
-    """(N, C) float32 HPB features of float64 u (N, 2) on the CPU, or None (no kernel)."""
+def hpb_features(u: torch.Tensor, hpb):
+    """(N, C) float32 features of the HPB synthesis `hpb` at float64 u (N, 2) on the CPU, or
+    None (no kernel)."""
     lib = _library()
-    H, W, C = gauss.shape
-    if lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH or H * W * C >= 2 ** 31:
+    H, W, C = hpb.gauss.shape
+    if lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH or (H + 1) * (W + 1) * C >= 2 ** 31:
         return None
     u = u.detach().double().contiguous()
-    g, mn, bs = (t.detach().float().contiguous() for t in (gauss, mean, basis))
-    lt = query.lut_pairs(lut)
+    g = query.hpb_plane(hpb)
+    mn, bs = (t.detach().float().contiguous() for t in (hpb.mean, hpb.basis))
+    lt = query.lut_pairs(hpb.lut)
     out = torch.empty(len(u), C, dtype=torch.float32)
     threads = max(1, min(torch.get_num_threads(), len(u) // 65536))
     bounds = [len(u) * k // threads for k in range(threads + 1)]
@@ -40,7 +42,7 @@ def hpb_features(u: torch.Tensor, gauss, lut, mean, basis, seed: int):
         a, b = bounds[k], bounds[k + 1]
         if b > a:
             lib.hpb_features(b - a, u.data_ptr() + 16 * a, g.data_ptr(), H, W, C, lt.data_ptr(),
-                             lt.shape[1], int(seed) & 0xFFFFFFFF, mn.data_ptr(), bs.data_ptr(),
+                             lt.shape[1], hpb.seed & 0xFFFFFFFF, mn.data_ptr(), bs.data_ptr(),
                              out.data_ptr() + 4 * C * a)
 
     query.parallel(part, threads)
