@@ -206,12 +206,15 @@ def test_tune_is_part_of_the_build_and_its_cache_key():
 
 @pytest.mark.parametrize("march", MARCHES)
 @pytest.mark.parametrize("lut_size", [128, 64])
-def test_fused_hpb_lut_in_registers_and_gathered_alike(lut_size, march):
+@pytest.mark.parametrize("channels", [8, 5])
+def test_fused_hpb_lut_in_registers_and_gathered_alike(channels, lut_size, march):
     """The kernel looks a 128-entry LUT up in registers (AVX-512) and any other size by
-    gathers: both equal HPB's torch path, and the wrapped plane the kernel reads is built once
-    per synthesis."""
+    gathers, and blends 8 channels with a register transpose and other widths by the generic
+    loop: all equal HPB's torch path, and the wrapped plane the kernel reads is built once per
+    synthesis."""
     from neumat.btf import synthesis
-    m, (u, wi, wo) = model(), hpb_queries(1000, 12)
+    kw = {} if channels == 8 else dict(u_channels=5, dir_res=9, dir_channels=3, hidden=19, layers=3)
+    m, (u, wi, wo) = model(**kw), hpb_queries(1000, 12)
     s = synthesis.build(m, "hpb", 3, {"lut_size": lut_size})
     raw = m.decode(s.torch_features(u), wi, wo)
     got = query.query(m, u, wi, wo, features_u=s, raw=True, march=march)
