@@ -12,12 +12,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _parallel_workers(config) -> int:
-    """Workers for a run that selects no end-to-end test (`-m "not slow"`, the edit-test loop):
-    one per CPU up to 4, where pytest-xdist is installed and `-n` was not given. The full suite
-    stays in one process: its tiny run is started by this process and keeps both cores busy."""
+    """Workers for the unit tests as a whole (`pytest -m "not slow"`, no test path or -k): one
+    per CPU up to 4, where pytest-xdist is installed and `-n` was not given. The full suite
+    stays in one process (its tiny run is started by this process and keeps both cores busy),
+    and so does a run of a few chosen tests, which workers' start-up would only slow."""
     if not config.pluginmanager.hasplugin("xdist") or config.getoption("numprocesses", None) is not None:
         return 0
     if "not slow" not in (config.option.markexpr or "") or os.environ.get("PYTEST_XDIST_WORKER"):
+        return 0
+    if config.getoption("file_or_dir", None) or config.getoption("keyword", ""):
         return 0
     n = min(os.cpu_count() or 1, 4)
     return n if n > 1 else 0

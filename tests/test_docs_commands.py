@@ -310,16 +310,18 @@ def test_ci_runs_the_readme_test_command():
 
 def test_unit_tests_alone_run_on_several_workers(monkeypatch):
     """`pytest -m "not slow"` (README) spreads over pytest-xdist workers on a multi-core machine;
-    the full `pytest` stays in one process (its background tiny run needs the cores), and an
-    explicit `-n`, a missing xdist or a single CPU keep the user's choice."""
+    the full `pytest` stays in one process (its background tiny run needs the cores), as do a
+    test path or -k (a few tests), and an explicit `-n`, a missing xdist or a single CPU keep
+    the user's choice."""
     from types import SimpleNamespace
 
     import conftest
 
-    def config(markexpr, n=None, xdist=True):
+    def config(markexpr, n=None, xdist=True, paths=(), keyword=""):
+        opts = {"numprocesses": n, "file_or_dir": list(paths), "keyword": keyword}
         return SimpleNamespace(option=SimpleNamespace(markexpr=markexpr),
                                pluginmanager=SimpleNamespace(hasplugin=lambda name: xdist),
-                               getoption=lambda name, default=None: n)
+                               getoption=lambda name, default=None: opts.get(name, default))
 
     monkeypatch.delenv("PYTEST_XDIST_WORKER", raising=False)
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
@@ -328,6 +330,8 @@ def test_unit_tests_alone_run_on_several_workers(monkeypatch):
     assert conftest._parallel_workers(config("slow")) == 0
     assert conftest._parallel_workers(config("not slow", n=0)) == 0
     assert conftest._parallel_workers(config("not slow", xdist=False)) == 0
+    assert conftest._parallel_workers(config("not slow", paths=["tests/test_fit.py"])) == 0
+    assert conftest._parallel_workers(config("not slow", keyword="psnr")) == 0
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 1)
     assert conftest._parallel_workers(config("not slow")) == 0
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 16)
