@@ -16,7 +16,9 @@ def _parallel_workers(config) -> int:
     per CPU up to 4, where pytest-xdist is installed and `-n` was not given. The full suite
     stays in one process (its tiny run is started by this process and keeps both cores busy),
     and so does a run of a few chosen tests, which workers' start-up would only slow."""
-    if not config.pluginmanager.hasplugin("xdist") or config.getoption("numprocesses", None) is not None:
+    if not config.pluginmanager.hasplugin("xdist"):
+        return 0
+    if config.getoption("numprocesses", None) is not None:
         return 0
     if "not slow" not in (config.option.markexpr or "") or os.environ.get("PYTEST_XDIST_WORKER"):
         return 0
@@ -37,11 +39,13 @@ def pytest_cmdline_main(config):
 def pytest_report_header(config):
     n = config.getoption("numprocesses", None)
     if n and not os.environ.get("PYTEST_XDIST_WORKER"):
-        return f"unit tests on {n} pytest-xdist workers (tests/conftest.py); -n 0 runs them in one process"
+        return (f"unit tests on {n} pytest-xdist workers (tests/conftest.py); "
+                "-n 0 runs them in one process")
 
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker: the cores are shared out between workers
-    torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", 1))))
+    _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", 1))
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // _workers))
 
 
 @pytest.fixture

@@ -125,7 +125,8 @@ def _hpb(features_u):
     if method not in ("hpb", "hextile"):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
-    return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None  # int32 offsets (hpb_plane: one row and column more)
+    # int32 texel offsets into hpb_plane's (H + 1, W + 1, C) (hex-tiling's plane is smaller)
+    return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None
 
 
 def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
@@ -196,8 +197,9 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hpb(
                 n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
-                wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), H, W, cu, lut.data_ptr(), lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(),
-                fd.data_ptr(), fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(),
+                wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), H, W, cu, lut.data_ptr(),
+                lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(), fd.data_ptr(), fh.shape[0],
+                fh.shape[2], len(lin), dims.data_ptr(),
                 params.data_ptr(), out_ptr, int(raw))
     params = torch.cat([t.reshape(-1) for t in weights]).float()
     out = torch.empty(N, 3)

@@ -342,8 +342,10 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             p->w[v][q] = wv;
             if (!hex) {  /* one offset; the blend weight folded into the bilinear ones */
                 p->off[v][q] = (ya * (s->W + 1) + xa) * C;
-                p->tw[4 * v][q] = wv * ((1 - ax) * (1 - ay)), p->tw[4 * v + 1][q] = wv * (ax * (1 - ay));
-                p->tw[4 * v + 2][q] = wv * ((1 - ax) * ay), p->tw[4 * v + 3][q] = wv * (ax * ay);
+                p->tw[4 * v][q] = wv * ((1 - ax) * (1 - ay));
+                p->tw[4 * v + 1][q] = wv * (ax * (1 - ay));
+                p->tw[4 * v + 2][q] = wv * ((1 - ax) * ay);
+                p->tw[4 * v + 3][q] = wv * (ax * ay);
                 continue;
             }
             xb -= xb >= s->W ? s->W : 0, yb -= yb >= s->H ? s->H : 0;
@@ -400,6 +402,30 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
     grid_prepare(s, C, t0, N, p, 1);
 }
 
+#if defined(__AVX2__) && defined(__FMA__)
+static inline __attribute__((always_inline)) IEEE __m256
+tap8(__m256 acc, const float *x, float w)  /* acc + w x[0:8] */
+{
+    return _mm256_fmadd_ps(_mm256_loadu_ps(x), _mm256_set1_ps(w), acc);
+}
+#endif
+#if defined(__AVX512F__)
+/* Entry i of a 128-entry table held in 8 registers, per lane: a two-register permute on i's 5
+ * low bits, then blends on bits 5 and 6. (always_inline and IEEE like hpb_fill_c: GCC does not
+ * inline a function whose optimize attributes differ, and a call per vector cost HPB a tenth.) */
+static inline __attribute__((always_inline)) IEEE __m512
+lut128(const __m512 t[8], __m512i i)
+{
+    __mmask16 b5 = _mm512_test_epi32_mask(i, _mm512_set1_epi32(32)),
+              b6 = _mm512_test_epi32_mask(i, _mm512_set1_epi32(64));
+    __m512 lo = _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[0], i, t[1]),
+                                     _mm512_permutex2var_ps(t[2], i, t[3]));
+    __m512 hi = _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[4], i, t[5]),
+                                     _mm512_permutex2var_ps(t[6], i, t[7]));
+    return _mm512_mask_blend_ps(b6, lo, hi);
+}
+#endif
+
 /* Rows c < C of X: the tile's q (hpb.blend, then hpb.inverse_lut). C is a constant after
  * inlining (one vector of channels per texel for C = 8). The blend weights are folded into the
  * bilinear ones and the -0.5 into `bias` (grid_prepare): G = sum_v w_v (bil_v - 0.5) inv + 0.5
@@ -418,16 +444,17 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
                 __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
                 for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
                     const float *a = s->gauss + p->off[v][q], *d = a + pitch;
-                    acc0 = _mm256_fmadd_ps(_mm256_loadu_ps(a), _mm256_set1_ps(p->tw[4 * v][q]), acc0);
-                    acc1 = _mm256_fmadd_ps(_mm256_loadu_ps(d), _mm256_set1_ps(p->tw[4 * v + 2][q]), acc1);
-                    acc0 = _mm256_fmadd_ps(_mm256_loadu_ps(a + 8), _mm256_set1_ps(p->tw[4 * v + 1][q]), acc0);
-                    acc1 = _mm256_fmadd_ps(_mm256_loadu_ps(d + 8), _mm256_set1_ps(p->tw[4 * v + 3][q]), acc1);
+                    acc0 = tap8(acc0, a, p->tw[4 * v][q]);
+                    acc1 = tap8(acc1, d, p->tw[4 * v + 2][q]);
+                    acc0 = tap8(acc0, a + 8, p->tw[4 * v + 1][q]);
+                    acc1 = tap8(acc1, d + 8, p->tw[4 * v + 3][q]);
                 }
                 r[k] = _mm256_add_ps(acc0, acc1);
             }
             __m256 t[8], u[8];
             for (int k = 0; k < 8; k += 2)
-                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]), t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
+                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]),
+                t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
             for (int k = 0; k < 8; k += 4)
                 for (int j = 0; j < 2; j++) {
                     u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
@@ -437,8 +464,10 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
                u[4..7] the same for queries 4-7 */
             static const int ch[4] = {0, 2, 1, 3};
             for (int k = 0; k < 4; k++) {
-                _mm256_storeu_ps(X + ch[k] * T + q0, _mm256_permute2f128_ps(u[k], u[k + 4], 0x20));
-                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, _mm256_permute2f128_ps(u[k], u[k + 4], 0x31));
+                __m256 lo = _mm256_permute2f128_ps(u[k], u[k + 4], 0x20),
+                       hi = _mm256_permute2f128_ps(u[k], u[k + 4], 0x31);
+                _mm256_storeu_ps(X + ch[k] * T + q0, lo);
+                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, hi);
             }
         }
     } else
@@ -468,19 +497,16 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
             for (int k = 0; k < 8; k++)
                 v[k] = _mm512_loadu_ps(tv + 16 * k), sl[k] = _mm512_loadu_ps(ts + 16 * k);
             for (int q = 0; q < T; q += 16) {
-                __m512 g = _mm512_fmadd_ps(_mm512_loadu_ps(X + c * T + q), _mm512_loadu_ps(p->inv + q),
-                                           _mm512_loadu_ps(p->bias + q));
+                __m512 g = _mm512_fmadd_ps(_mm512_loadu_ps(X + c * T + q),
+                                           _mm512_loadu_ps(p->inv + q), _mm512_loadu_ps(p->bias + q));
                 g = _mm512_min_ps(_mm512_max_ps(g, _mm512_setzero_ps()), _mm512_set1_ps(1));
-                __m512 x = _mm512_sub_ps(_mm512_mul_ps(g, _mm512_set1_ps(LUT_REG)), _mm512_set1_ps(0.5f));
-                x = _mm512_min_ps(_mm512_max_ps(x, _mm512_setzero_ps()), _mm512_set1_ps(LUT_REG - 1));
-                __m512i i0 = _mm512_min_epi32(_mm512_cvttps_epi32(x), _mm512_set1_epi32(LUT_REG - 2));
-                __mmask16 b5 = _mm512_test_epi32_mask(i0, _mm512_set1_epi32(32)),
-                          b6 = _mm512_test_epi32_mask(i0, _mm512_set1_epi32(64));
-#define LOOK(t) _mm512_mask_blend_ps(b6, \
-        _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[0], i0, t[1]), _mm512_permutex2var_ps(t[2], i0, t[3])), \
-        _mm512_mask_blend_ps(b5, _mm512_permutex2var_ps(t[4], i0, t[5]), _mm512_permutex2var_ps(t[6], i0, t[7])))
-                __m512 a = LOOK(v), slope = LOOK(sl);
-#undef LOOK
+                __m512 x = _mm512_sub_ps(_mm512_mul_ps(g, _mm512_set1_ps(LUT_REG)),
+                                         _mm512_set1_ps(0.5f));
+                x = _mm512_min_ps(_mm512_max_ps(x, _mm512_setzero_ps()),
+                                  _mm512_set1_ps(LUT_REG - 1));
+                __m512i i0 = _mm512_min_epi32(_mm512_cvttps_epi32(x),
+                                              _mm512_set1_epi32(LUT_REG - 2));
+                __m512 a = lut128(v, i0), slope = lut128(sl, i0);
                 _mm512_storeu_ps(X + c * T + q,
                                  _mm512_fmadd_ps(_mm512_sub_ps(x, _mm512_cvtepi32_ps(i0)), slope, a));
             }

@@ -28,7 +28,8 @@ def hpb_features(u: torch.Tensor, hpb):
     None (no kernel)."""
     lib = _library()
     H, W, C = hpb.gauss.shape
-    if lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH or (H + 1) * (W + 1) * C >= 2 ** 31:
+    if (lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH
+            or (H + 1) * (W + 1) * C >= 2 ** 31):  # int32 offsets into query.hpb_plane
         return None
     u = u.detach().double().contiguous()
     g = query.hpb_plane(hpb)
