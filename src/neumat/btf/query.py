@@ -125,7 +125,8 @@ def _hpb(features_u):
     if method not in ("hpb", "hextile"):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
-    # int32 texel offsets into hpb_plane's (H + 1, W + 1, C) (hex-tiling's plane is smaller)
+    # int32 texel offsets: HPB reads hpb_plane's (H + 1, W + 1, C); for hex-tiling's (H, W, C)
+    # plane the same bound is a little strict
     return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None
 
 

@@ -359,10 +359,9 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         p->inv[q] = (float)(1 / sqrt((double)ww));
         p->bias[q] = 0.5f - 0.5f * ((p->w[0][q] + p->w[1][q]) + p->w[2][q]) * p->inv[q];
     }
-    if (!hex) {  /* a 2 x 2 footprint: two rows of 2C floats, each in one or two lines (each
-                    row's first line alone: HPB's overhead +18.5 to +21.4 % CPU against +12.4
-                    to +13.8 %, interleaved rounds on btf_synthesis.py's frame, AMD EPYC
-                    AVX-512) */
+    if (!hex) {  /* a 2 x 2 footprint: two rows of 2C floats, each in one or two lines, so
+                    both ends of each row (a scratch build prefetching only each row's first
+                    line was clearly slower; figures in issue #18's note) */
         const long pitch = (long)C * (s->W + 1);
         for (int v = 0; v < 3; v++)
             for (int q = 0; q < T; q++) {
