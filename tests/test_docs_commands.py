@@ -77,12 +77,54 @@ def _missing_plugin(args: list[str]) -> str | None:
     return None
 
 
+def _threaded_run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """subprocess.run from a pool thread, with an explicit copy of the environment. Without
+    one, the vfork'ed child reads libc's `environ`, which the main thread may reallocate at that
+    moment (pytest sets and deletes PYTEST_CURRENT_TEST on every test phase): execve then failed
+    with "[Errno 14] Bad address" (CI of 35b1bc2; a 15-s repro spawning /bin/true in two threads
+    while the main thread sets and deletes variables: 718 of 805 spawns failed, none of 1533
+    with the copy)."""
+    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=dict(os.environ))
+
+
+
+def test_threaded_runs_survive_environment_changes(tmp_path):
+    """The pools below spawn while pytest's main thread changes the environment: no spawn may
+    fail for it (without the copy, most of them did in this test)."""
+    import threading
+    import time
+    errors, done, stop = [], [0], threading.Event()
+
+    def spawn():
+        while not stop.is_set():
+            try:
+                _threaded_run(["true"], tmp_path)
+                done[0] += 1
+            except OSError as e:
+                errors.append(e)
+
+    threads = [threading.Thread(target=spawn) for _ in range(2)]
+    for t in threads:
+        t.start()
+    t0, k = time.monotonic(), 0
+    try:
+        while time.monotonic() - t0 < 2 or done[0] < 20:
+            k += 1
+            for j in range(20):
+                os.environ[f"NEUMAT_TEST_CHURN_{j}_{k % 7}"] = "x" * 100
+            for j in range(20):
+                del os.environ[f"NEUMAT_TEST_CHURN_{j}_{k % 7}"]
+    finally:
+        stop.set()
+        for t in threads:
+            t.join()
+    assert not errors, f"{len(errors)} of {len(errors) + done[0]} spawns failed: {errors[0]}"
+
 def _dry_run(wd: Path, args: list[str]) -> subprocess.CompletedProcess:
     for item in ("Snakefile", "workflow", "config", "profiles", "src"):
         src = ROOT / item
         (shutil.copytree if src.is_dir() else shutil.copy)(src, wd / item)
-    full = [sys.executable, "-m", "snakemake", *args[1:], "--dry-run"]
-    return subprocess.run(full, cwd=wd, capture_output=True, text=True)
+    return _threaded_run([sys.executable, "-m", "snakemake", *args[1:], "--dry-run"], wd)
 
 
 @pytest.fixture(scope="module")
@@ -190,8 +232,7 @@ def cli_runs(cli_dir, request):
         for j in deps[i]:  # submitted earlier, so started earlier: no deadlock
             futures[j].result()
         args = shlex.split(NEUMAT[i])
-        return subprocess.run([sys.executable, "-m", "neumat.cli", *args[1:]], cwd=cli_dir,
-                              capture_output=True, text=True)
+        return _threaded_run([sys.executable, "-m", "neumat.cli", *args[1:]], cli_dir)
 
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         for i in sorted(needed):
