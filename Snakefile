@@ -2,6 +2,7 @@
 # Entry points (targets before --configfile: it takes every following word as a file):
 #   snakemake --cores 2 report
 #   snakemake --cores 2 report --configfile config/tiny.yaml
+from snakemake.exceptions import WorkflowError
 from snakemake.utils import min_version, validate
 
 min_version("9.0")
@@ -10,7 +11,19 @@ min_version("9.0")
 configfile: "config/config.yaml"
 
 
-validate(config, "config/schema.yaml")
+try:
+    validate(config, "config/schema.yaml")
+except WorkflowError as e:
+    # jsonschema's error as one line: Snakemake's own message is followed by a dump of the whole
+    # schema and config (3,400 lines for one misspelt key), whose tail shows the defaults
+    err = e.__cause__ or e.__context__  # WorkflowError keeps only the text of its arguments
+    if not hasattr(err, "absolute_path"):
+        raise
+    key = ".".join(map(str, err.absolute_path)) or "top level"
+    raise WorkflowError(
+        f"bad config ({key}): {err.message}. Every key, its type and default are in "
+        f"config/schema.yaml; fix it in the file given with --configfile."
+    ) from None
 
 
 include: "workflow/rules/common.smk"
