@@ -217,6 +217,21 @@ def test_fetch_local_verifies_header_and_lock(tmp_path, tiny_btf):
     assert not out.exists()
 
 
+
+def test_fetch_unreachable_says_what_to_do(tmp_path):
+    """Offline: the error names the material, the URL and the settings that avoid the download
+    (an InputError: a workflow job prints it without a traceback)."""
+    from neumat.logs import InputError
+    out = tmp_path / "res" / "wood06.btf"
+    with pytest.raises(ubo2014.FetchError) as e:
+        ubo2014.fetch("wood06", out, url="http://127.0.0.1:9/wood06.btf", retries=0,
+                      lock_file=tmp_path / "lock.tsv")
+    msg = str(e.value)
+    assert isinstance(e.value, InputError)
+    assert msg.startswith("wood06: could not download http://127.0.0.1:9/wood06.btf after 1 attempt(s)")
+    assert "ubo2014.source: local" in msg and "ubo2014.local_dir" in msg and "config/tiny.yaml" in msg
+    assert not out.exists()
+
 @pytest.mark.parametrize("shape", [(200, 30), (30, 200), (12, 200)])
 def test_tucker_core_from_the_smaller_gram_matrix(shape):
     """Both Gram routes span the top-k right singular subspace: Y W W^T is the rank-k SVD

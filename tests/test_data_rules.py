@@ -177,3 +177,29 @@ def test_dag_local_subset_uses_local_rule(tmp_path, good):
                                     "  subset: [chrome, gold-paint]\n")
     out = r.stdout + r.stderr
     assert "local_merl" in out and "download_merl" not in out, out[-2000:]
+
+
+def test_offline_download_job_says_what_to_do_without_tracebacks(tmp_path):
+    """A download job that cannot reach the server ends with the DownloadError's message and
+    its remedy, once per job, and no traceback on the terminal (an offline run of the default
+    config printed 385 lines, 10 tracebacks, the remedy 40 lines from the end); the traceback
+    stays in the job's log."""
+    (tmp_path / "extra.yaml").write_text(
+        "merl:\n  url: http://127.0.0.1:9/{name}.binary\n  retries: 0\n"
+        "  subset: [chrome, gold-paint]\n")
+    for item in ("Snakefile", "workflow", "config"):
+        (shutil.copytree if (ROOT / item).is_dir() else shutil.copy)(ROOT / item, tmp_path / item)
+    targets = ["resources/merl/chrome.binary", "resources/merl/gold-paint.binary"]
+    r = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "2", *targets,
+                        "--configfile", "config/config.yaml", "extra.yaml"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    out = r.stdout + r.stderr
+    assert r.returncode != 0
+    assert "Traceback" not in out, out[-3000:]
+    for name in ("chrome", "gold-paint"):
+        line = f"failed: DownloadError: {name}.binary: could not download http://127.0.0.1:9/{name}.binary"
+        assert out.count(line) == 1, out[-3000:]
+    assert out.count("merl.local_dir") == 2 and "config/tiny.yaml" in out
+    logs = list((tmp_path / "results").rglob("download_merl/chrome.log"))
+    assert logs and "Traceback" in logs[0].read_text()
+    assert not list((tmp_path / "resources/merl").glob("*.binary"))

@@ -23,3 +23,23 @@ def test_log_file_gets_messages_and_the_traceback(tmp_path, monkeypatch):
     text = (tmp_path / "job.log").read_text()
     assert "neumat.demo INFO: working on shard 007" in text
     assert "failed:" in text and "ValueError: bad input" in text
+
+
+def test_input_error_stops_with_its_message_and_logs_the_traceback(tmp_path, capsys):
+    """An InputError (a message that says what to do): the script exits 1 with that message
+    once on stderr, no traceback there; the log file keeps the traceback."""
+    from neumat.logs import InputError
+
+    class Unreachable(InputError, RuntimeError):
+        pass
+
+    smk = types.SimpleNamespace(log=[str(tmp_path / "job.log")], rule="demo")
+    with pytest.raises(SystemExit) as e:
+        with script_logging(smk):
+            raise Unreachable("x.binary: could not download; set merl.source: local")
+    assert e.value.code == 1
+    err = capsys.readouterr().err
+    assert err.count("failed: Unreachable: x.binary: could not download") == 1
+    assert "Traceback" not in err
+    text = (tmp_path / "job.log").read_text()
+    assert "failed: Unreachable: x.binary" in text and "Traceback" in text

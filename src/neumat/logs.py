@@ -14,6 +14,13 @@ import traceback
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
+class InputError(Exception):
+    """An error whose message names the file or key and what to do (a failed download, a
+    corrupt table): a script stops with that message alone on the terminal, and keeps its
+    traceback for the log file. Raised as a mixin, e.g. `class DownloadError(InputError,
+    RuntimeError)`."""
+
+
 @contextlib.contextmanager
 def script_logging(smk):
     """Route logging (and a crash's traceback) of a `script:` to `smk.log[0]`, and hold the
@@ -28,6 +35,14 @@ def script_logging(smk):
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     try:
         yield logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
+    except InputError as e:
+        # the terminal gets the message once, not two tracebacks per failed job (an offline run
+        # of the default config printed 385 lines, its remedy 40 lines from the end)
+        logging.getLogger("neumat").error("failed: %s: %s", type(e).__name__, e)
+        if path:
+            with open(path, "a") as f:
+                f.write(traceback.format_exc())
+        raise SystemExit(1) from None
     except BaseException:
         logging.getLogger("neumat").error("failed:\n%s", traceback.format_exc())
         raise

@@ -19,6 +19,7 @@ import urllib.request
 from pathlib import Path
 
 from neumat.io import merl
+from neumat.logs import InputError
 
 log = logging.getLogger(__name__)
 OFFLINE_HINT = ("Offline or the server is gone? Set `merl.source: local` with `merl.local_dir` "
@@ -26,11 +27,11 @@ OFFLINE_HINT = ("Offline or the server is gone? Set `merl.source: local` with `m
                 "synthetic config: --configfile config/tiny.yaml")
 
 
-class ChecksumError(ValueError):
+class ChecksumError(InputError, ValueError):
     """A file whose sha256 differs from the pinned one."""
 
 
-class DownloadError(RuntimeError):
+class DownloadError(InputError, RuntimeError):
     """A file that could not be fetched."""
 
 

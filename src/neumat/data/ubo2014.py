@@ -17,6 +17,7 @@ from pathlib import Path
 import pandas as pd
 
 from neumat.io import dfmf
+from neumat.logs import InputError
 
 log = logging.getLogger(__name__)
 CATEGORIES = ("carpet", "fabric", "felt", "leather", "stone", "wallpaper", "wood")
@@ -87,6 +88,14 @@ def check_local_dir(local_dir, files: list[str]) -> None:
             f"{', '.join(missing)} (copy them there, or change ubo2014.materials)")
 
 
+OFFLINE_HINT = ("Offline or the server is gone? Set `ubo2014.source: local` with "
+                "`ubo2014.local_dir` pointing at a directory of the .btf files, or run the offline "
+                "synthetic config: --configfile config/tiny.yaml")
+
+
+class FetchError(InputError, RuntimeError):
+    """A BTF that could not be downloaded."""
+
 def fetch(name: str, out, *, url: str | None = None, local_dir=None, link=False,
           lock_file, retries: int = 3, expect=(400, 400, 151)) -> None:
     """Download (url) or copy (local_dir) one material to `out`, verified; the output only
@@ -112,7 +121,8 @@ def fetch(name: str, out, *, url: str | None = None, local_dir=None, link=False,
                 break
             except OSError as e:
                 if attempt == retries:
-                    raise RuntimeError(f"download of {name} from {url} failed: {e}") from e
+                    raise FetchError(f"{name}: could not download {url} after {retries + 1} "
+                                     f"attempt(s): {e}. {OFFLINE_HINT}") from e
     try:
         check_header(tmp, *expect)
         verify_or_record(tmp, name, lock_file)

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumat.logs import InputError
+
 SIGNATURE = b"!DFMF08FCR"
 DRR_EPS = 1e-5  # dynamic-range epsilon, hard-coded in every Bonn reader (not stored in the file)
 YUV2RGB = np.array([[1.0, 0.0, 1.13983], [1.0, -0.39465, -0.5806], [1.0, 2.03211, 0.0]])
@@ -37,7 +39,7 @@ COLOR_MODELS = {0: "rgb", 11: "ylog_udivy_vdivy"}
 SCALARS = {2: np.float16, 4: np.float32, 8: np.float64}
 
 
-class DFMFError(ValueError):
+class DFMFError(InputError, ValueError):
     """A file that is not a readable DFMF BTF (message names the file)."""
 
 

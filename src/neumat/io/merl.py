@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumat.logs import InputError
+
 log = logging.getLogger(__name__)
 
 N_TH, N_TD, N_PD = 90, 90, 180
@@ -27,7 +29,7 @@ FILE_SIZE = 12 + 3 * N_BINS * 8  # 34,992,012 bytes
 HALF_PI = np.pi / 2
 
 
-class MerlFormatError(ValueError):
+class MerlFormatError(InputError, ValueError):
     """A file that is not a valid MERL .binary table."""
 
 
