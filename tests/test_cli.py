@@ -166,7 +166,26 @@ def test_info_lists_models_and_missing_config(run, capsys):
     assert main("info", run) == 0
     o = capsys.readouterr().out
     assert "ours" in o and "conditions: type" in o and "not recorded yet" in o
+    # an absolute run path still gives a target Snakemake accepts: relative to the workflow
+    assert Path(run).is_absolute()
+    assert f"`snakemake --cores 2 results/{Path(run).name}/report/index.md --configfile" in o
 
+
+
+def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, capsys):
+    """The report records the keys that change results; `info` shows those, and no `None` for
+    a speed-only key like device (the tiny run printed `device None`)."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\nseed: 3\n"
+                                         "merl: {source: synthetic}\naugmerl: {size: 64}\n"
+                                         "fit: {activation: relu}\n```\n")
+    assert main("info", rec) == 0
+    o = capsys.readouterr().out
+    assert "config: seed 3, merl.source synthetic, augmerl.size 64, fit.activation relu" in o
+    assert "None" not in o
 
 @pytest.mark.parametrize("args, message", [
     (["info", "{tmp}/nope"], "snakemake --cores 2 report"),

@@ -62,8 +62,11 @@ class Run:
         self.name = self.path.name
 
     def target(self, rel: str) -> str:
-        """The snakemake command that builds `rel` (inside this run)."""
-        return f"snakemake --cores 2 {self.path / rel} --configfile <the config whose run: is {self.name!r}>"
+        """The snakemake command that builds `rel` (inside this run), run in the workflow's
+        directory: targets are relative to it (an absolute run path gave an absolute target,
+        which Snakemake rejects with MissingRuleException)."""
+        return (f"snakemake --cores 2 results/{self.name}/{rel} --configfile <the config whose "
+                f"run: is {self.name!r}>")
 
     def models(self) -> dict[str, Path]:
         return {p.parent.name: p for p in sorted(self.path.glob("diffusion/*/model.pt"))}
@@ -543,10 +546,12 @@ def cmd_info(args) -> int:
     cfg = run.config()
     if cfg:
         merl_cfg = cfg.get("merl", {})
-        print(f"config: seed {cfg.get('seed')}, device {cfg.get('device')}, merl.source "
-              f"{merl_cfg.get('source')}, augmerl.size {cfg.get('augmerl', {}).get('size')}, "
+        # the report records the keys that change results; speed-only ones (device, threads:
+        # config/speed_keys.yaml) are left out, so they are not shown here either
+        print(f"config: seed {cfg.get('seed')}, merl.source {merl_cfg.get('source')}, "
+              f"augmerl.size {cfg.get('augmerl', {}).get('size')}, "
               f"fit.activation {cfg.get('fit', {}).get('activation')} "
-              f"(full config: {run.path / 'report/index.md'}, last section)")
+              f"(full config without speed-only keys: {run.path / 'report/index.md'}, last section)")
     else:
         print(f"config: not recorded yet (the report rule writes it into report/index.md: "
               f"`{run.target('report/index.md')}`)")
