@@ -96,6 +96,7 @@ OFFLINE_HINT = ("Offline or the server is gone? Set `ubo2014.source: local` with
 class FetchError(InputError, RuntimeError):
     """A BTF that could not be downloaded."""
 
+
 def fetch(name: str, out, *, url: str | None = None, local_dir=None, link=False,
           lock_file, retries: int = 3, expect=(400, 400, 151)) -> None:
     """Download (url) or copy (local_dir) one material to `out`, verified; the output only
