@@ -17,12 +17,15 @@ def test_log_file_gets_messages_and_the_traceback(tmp_path, monkeypatch):
             with script_logging(smk) as log:
                 assert torch.get_num_threads() == 1
                 log.info("working on shard 007")
+                import warnings
+                warnings.warn("array is not writable", UserWarning)
                 raise ValueError("bad input")
     finally:
         torch.set_num_threads(before)
     text = (tmp_path / "job.log").read_text()
     assert "neumat.demo INFO: working on shard 007" in text
     assert "failed:" in text and "ValueError: bad input" in text
+    assert "py.warnings WARNING" in text and "UserWarning: array is not writable" in text
 
 
 def test_input_error_stops_with_its_message_and_logs_the_traceback(tmp_path, capsys):

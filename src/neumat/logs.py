@@ -33,6 +33,7 @@ def script_logging(smk):
     handlers.append(logging.StreamHandler(sys.stderr))
     logging.basicConfig(level=logging.INFO, handlers=handlers, force=True,
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
+    logging.captureWarnings(True)  # library warnings in the job's log too, not only the terminal
     try:
         yield logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
     except InputError as e:
@@ -46,6 +47,8 @@ def script_logging(smk):
     except BaseException:
         logging.getLogger("neumat").error("failed:\n%s", traceback.format_exc())
         raise
+    finally:
+        logging.captureWarnings(False)
 
 
 def die_with_parent(sig: int = signal.SIGTERM) -> bool:
