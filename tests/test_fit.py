@@ -1,6 +1,7 @@
 """Batched NBRDF fitting: gradients, batch == single fits, splits, checkpoints, export, merge."""
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -208,6 +209,13 @@ def test_export_merl_round_trip(tmp_path):
     x, _ = fit.bin_inputs(idx)
     ref = nbrdf.forward(torch.as_tensor(w)[None], x)[0].numpy().T
     np.testing.assert_allclose(flat[:, idx], ref, rtol=1e-5, atol=1e-7)
+    # a row of a read-only memory map (neumerl_export's input): the same table, no warning
+    # (torch warns once per process: alone, this test failed before export_merl copied)
+    np.save(tmp_path / "w.npy", w[None])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        fit.export_merl(np.load(tmp_path / "w.npy", mmap_mode="r")[0], tmp_path / "mm.binary")
+    assert (tmp_path / "mm.binary").read_bytes() == (tmp_path / "m.binary").read_bytes()
 
 
 def test_psnr_known_answer():

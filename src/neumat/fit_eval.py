@@ -14,7 +14,8 @@ from neumat.io import merl
 
 def export_merl(weights, path: str | Path, activation: str = "relu") -> None:
     """One fitted field (675,) -> MERL .binary (evaluated at the 90x90x180 bin centres)."""
-    w = torch.as_tensor(np.asarray(weights, dtype=np.float32)).reshape(1, nbrdf.N_PARAMS)
+    # a copy: `weights` is often a row of a read-only memory map (torch warns on those)
+    w = torch.tensor(np.asarray(weights, dtype=np.float32)).reshape(1, nbrdf.N_PARAMS)
     merl.write_merl(path, nbrdf.evaluate_grid(w, activation)[0])
 
 
