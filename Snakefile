@@ -15,7 +15,7 @@ try:
     validate(config, "config/schema.yaml")
 except WorkflowError as e:
     # jsonschema's error as one line: Snakemake's own message is followed by a dump of the whole
-    # schema and config (3,400 lines for one misspelt key), whose tail shows the defaults
+    # schema and config (thousands of lines), whose tail shows the defaults, not the mistake
     err = e.__cause__ or e.__context__  # WorkflowError keeps only the text of its arguments
     if not hasattr(err, "absolute_path"):
         raise

@@ -37,8 +37,8 @@ def script_logging(smk):
     try:
         yield logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
     except InputError as e:
-        # the terminal gets the message once, not two tracebacks per failed job (an offline run
-        # of the default config printed 385 lines, its remedy 40 lines from the end)
+        # the terminal gets the message once, not two tracebacks per failed job, which buried
+        # the remedy (an offline run of the default config; issue #20's note)
         logging.getLogger("neumat").error("failed: %s: %s", type(e).__name__, e)
         if path:
             with open(path, "a") as f:
