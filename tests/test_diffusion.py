@@ -38,8 +38,8 @@ def test_denoiser_shapes_and_condition_interface():
     assert m(x, t).shape == (4, 675)
     out = m(x, t, {"type": torch.tensor([0, 1, -1, 4]), "text": torch.randn(4, 7)})
     assert out.shape == (4, 675) and torch.isfinite(out).all()
-    # 7 tensor tokens (W2's 441 values in two, token_values 256) + time + 2 conditions
-    assert m.pos.shape == (10, 32)
+    # 6 layer tokens + time + 2 conditions
+    assert m.pos.shape == (9, 32)
     with pytest.raises(ValueError, match="class labels"):
         m(x, t, {"type": torch.tensor([0, 1, 2, 5])})
     with pytest.raises(ValueError, match="unknown condition"):
@@ -77,6 +77,7 @@ def test_tokens_no_wider_than_the_model_reach_every_weight():
 def test_model_files_from_before_token_values_load():
     """A model file without `token_values` was written with one token per tensor."""
     cfg = DenoiserConfig(width=16, depth=1, heads=2, n_classes=0, token_values=0)
+    assert DenoiserConfig.from_dict({**cfg.to_dict(), "token_values": 8}).token_values == 8
     torch.manual_seed(0)
     m = Denoiser(cfg)
     old = {k: v for k, v in cfg.to_dict().items() if k != "token_values"}

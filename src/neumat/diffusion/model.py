@@ -7,7 +7,7 @@ tell the tokens apart. The output of each tensor token is projected back to its 
 and the pieces are concatenated to the 675-vector again. A token reaches only d - 1 directions
 (its final LayerNorm removes the mean), so a piece with more values than that cannot take every
 value: W2's 441 values through one 256-wide token put a floor under the default model's error at
-low noise. Keep token_values below d.
+low noise. token_values below d splits it (opt-in: README, Hyperdiffusion).
 
 Conditions plug in as modules that turn a batch of condition values into one (B, d) token and
 own a learned "null" token for classifier-free guidance:
@@ -41,7 +41,7 @@ class DenoiserConfig:
     n_classes: int = 48  # material types; index n_classes is the null class
     # most values per tensor token; a larger tensor is split into near-equal pieces (0: one
     # token per tensor, as model files from before this key hold)
-    token_values: int = 256
+    token_values: int = 0
     vector_conditions: dict[str, int] = field(default_factory=dict)  # name -> embedding size
 
     def to_dict(self):
