@@ -55,8 +55,10 @@ def load(model_path, results, model="ours", width=256, depth=4, heads=8, n_class
     b = modelfile.load(model_path)
     if "normalizer" not in b:  # a checkpoint: rebuild the bundle the way train() writes it
         norm = Normalizer.fit(torch.from_numpy(weights[rows]))
+        n_in = len({k.split(".")[1] for k in b["ema"] if k.startswith("embed_in.")})
         b = {"model_cfg": DenoiserConfig(width=width, depth=depth, heads=heads,
-                                         n_classes=n_classes).to_dict(),
+                                         n_classes=n_classes,  # 6 input maps: one per tensor
+                                         token_values=0 if n_in == 6 else 256).to_dict(),
              "sched_cfg": ScheduleConfig(timesteps=timesteps, kind=kind,
                                          prediction=prediction).to_dict(),
              "class_names": [f"c{i}" for i in range(n_classes)], "ema": b["ema"],
@@ -181,7 +183,7 @@ def cmd_roundtrip(a):
     g = torch.Generator().manual_seed(0)
     sets = {"train": weights[rows][torch.randperm(len(rows), generator=g)[:a.n].numpy()],
             "test": weights[dataset.reference_rows(man)][:a.n]}
-    sizes = list(sampler.model.sizes)
+    sizes = [int(np.prod(s)) for s in nbrdf.PARAM_SHAPES]  # per NBRDF tensor, not per token
     out = []
     for split, w in sets.items():
         x0 = norm.encode(torch.from_numpy(w))

@@ -36,7 +36,7 @@ def held_out_loss(bundle, weights, labels, scfg, seed=0, reps=4) -> tuple[float,
     """x0 error (MSE of the predicted x0) of the EMA model per held-out row, averaged over `reps` draws of (t, noise), in
     fp32: (mean, median) over the rows. The mean is dominated by the few rows whose weights lie
     far outside the training statistics (|w| up to ~2000); the median is the typical row."""
-    model = Denoiser(DenoiserConfig(**bundle["model_cfg"]))
+    model = Denoiser(DenoiserConfig.from_dict(bundle["model_cfg"]))
     model.load_state_dict(bundle["ema"])
     model.eval()
     norm = Normalizer()

@@ -272,3 +272,18 @@ def test_shard_roundtrip_and_shape_check(tmp_path):
     np.savez(tmp_path / "bad.npz", ids=ids, bins=bins, values=vals[:2])
     with pytest.raises(ValueError, match="bad.npz"):
         augment.load_shard(tmp_path / "bad.npz")
+
+
+def test_pca_gram_is_the_same_on_any_core_count():
+    """OpenBLAS split this product (300 rows over 7e4 bins) differently with 2 threads than with
+    1, so AugMERL's PCA, and every fit after it, depended on `snakemake --cores`."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    logs = rng.normal(size=(100, 3, 70000)).astype(np.float32)
+    src, perm = np.arange(100), np.zeros(100, dtype=int)
+    grams = []
+    for n in (1, 2):
+        with threadpool_limits(n):
+            grams.append(augment.row_gram(logs, src, perm))
+    assert np.array_equal(grams[0], grams[1])

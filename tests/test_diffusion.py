@@ -11,6 +11,7 @@ import torch
 from neumat import nbrdf
 from neumat.diffusion import (Denoiser, DenoiserConfig, Diffusion, Normalizer, Sampler,
                               ScheduleConfig, TrainConfig, guided, train)
+from neumat.diffusion.model import TENSOR_SIZES, token_sizes
 from neumat.diffusion.plausibility import albedo_quadrature, directional_albedo, plausibility
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
@@ -45,6 +46,44 @@ def test_denoiser_shapes_and_condition_interface():
         m(x, t, {"image": torch.randn(4, 3)})
     with pytest.raises(ValueError, match="size 3, expected 7"):
         m(x, t, {"text": torch.randn(4, 3)})
+
+
+def test_token_sizes_split_tensors_into_near_equal_pieces():
+    assert token_sizes(0) == TENSOR_SIZES == [126, 21, 441, 21, 63, 3]
+    assert token_sizes(256) == [126, 21, 221, 220, 21, 63, 3]
+    for k in (1, 5, 32, 100, 441, 1000):
+        pieces = iter(token_sizes(k))
+        for n in TENSOR_SIZES:  # each tensor in the fewest pieces of <= k, differing by <= 1
+            mine = [next(pieces) for _ in range(-(-n // k))]
+            assert sum(mine) == n and max(mine) <= k and max(mine) - min(mine) <= 1
+        assert next(pieces, None) is None
+
+
+def test_tokens_no_wider_than_the_model_reach_every_weight():
+    """Outputs for W2 span at most width - 1 dimensions when its 441 values share one token
+    (the final LayerNorm leaves a token width - 1 free directions): the low-noise error floor.
+    Split into pieces of fewer values than that, they span all 441."""
+    def w2_rank(token_values):
+        m = _model(DenoiserConfig(width=32, depth=1, heads=4, n_classes=0,
+                                  token_values=token_values))
+        with torch.no_grad():
+            out = m(torch.randn(600, 675), torch.full((600,), 3))
+        return int(torch.linalg.matrix_rank(out[:, 147:588]))  # float32 tolerance
+
+    assert w2_rank(0) <= 31
+    assert w2_rank(16) == 441
+
+
+def test_model_files_from_before_token_values_load():
+    """A model file without `token_values` was written with one token per tensor."""
+    cfg = DenoiserConfig(width=16, depth=1, heads=2, n_classes=0, token_values=0)
+    assert DenoiserConfig.from_dict({**cfg.to_dict(), "token_values": 8}).token_values == 8
+    torch.manual_seed(0)
+    m = Denoiser(cfg)
+    old = {k: v for k, v in cfg.to_dict().items() if k != "token_values"}
+    again = Denoiser(DenoiserConfig.from_dict(old))
+    again.load_state_dict(m.state_dict())  # raises on a token-count mismatch
+    assert again.sizes == TENSOR_SIZES
 
 
 def test_null_condition_paths_agree():

@@ -28,6 +28,7 @@ import pandas as pd
 
 from neumat.data.catalog import drop_colours
 from neumat.io import merl
+from neumat.linalg import one_blas_thread
 from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
@@ -216,9 +217,10 @@ def row_gram(logs: np.ndarray, row_src: np.ndarray, row_perm: np.ndarray,
     M, _, V = logs.shape
     flat = logs.reshape(M * 3, V)
     H = np.zeros((M * 3, M * 3))
-    for s in range(0, V, chunk):
-        blk = flat[:, s:s + chunk].astype(np.float64)
-        H += blk @ blk.T
+    with one_blas_thread():  # the same bits on any core count
+        for s in range(0, V, chunk):
+            blk = flat[:, s:s + chunk].astype(np.float64)
+            H += blk @ blk.T
     H = H.reshape(M, 3, M, 3)
     chans = np.array([["rgb".index(ch) for ch in PERMS[p]] for p in row_perm])  # (P, 3)
     G = np.zeros((len(row_src), len(row_src)))
@@ -235,7 +237,8 @@ def mixing_weights(G: np.ndarray, k: int, pairs_local) -> tuple[np.ndarray, np.n
     the coefficient of raw row j is m_j + (1 - sum m) / P."""
     P = G.shape[0]
     J = np.eye(P) - 1.0 / P
-    evals, U = np.linalg.eigh(J @ G @ J)
+    with one_blas_thread():
+        evals, U = np.linalg.eigh(J @ G @ J)
     order = np.argsort(evals)[::-1]
     evals, U = np.clip(evals[order], 0, None), U[:, order]
     k = min(k, P - 1)

@@ -14,6 +14,7 @@ import pandas as pd  # noqa: E402
 from neumat import report  # noqa: E402
 from neumat.device import resolve_device  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
+from neumat.diffusion.model import token_sizes  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 from neumat.render import sphere  # noqa: E402
@@ -114,7 +115,9 @@ with script_logging(snakemake) as log:
     md = [
         "## Hyperdiffusion",
         f"Transformer denoiser over the 675 NBRDF weights: one token per layer tensor "
-        f"(W1, b1, W2, b2, W3, b3) plus a timestep token and a material-type token "
+        f"(W1, b1, W2, b2, W3, b3), a tensor of more than {m['token_values']} weights split into "
+        f"near-equal pieces ({len(token_sizes(m['token_values']))} tensor tokens), "
+        f"plus a timestep token and a material-type token "
         f"({len(b0['class_names'])} classes + null), width {m['width']}, depth {m['depth']}, "
         f"{m['heads']} heads ({n_params / 1e6:.2f} M parameters); weights standardised per "
         f"coordinate. DDPM with T = {s['timesteps']}, {s['kind']} schedule, "

@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from neumat.io import merl
+from neumat.linalg import one_blas_thread
 
 EPS = 0.001  # Nielsen et al.'s offset in the log mapping
 COS_FLOOR = 0.01
@@ -36,10 +37,11 @@ class GaussianPCA:
         self.mean = X.mean(0)
         Xc = X - self.mean
         k = min(self.k, n - 1 if n > 1 else 1, X.shape[1])
-        evals, U = np.linalg.eigh(Xc @ Xc.T)  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
-        order = np.argsort(evals)[::-1][:k]
-        s = np.sqrt(np.clip(evals[order], 1e-300, None))
-        self.components = (U[:, order].T @ Xc) / s[:, None]  # rows = V^T, orthonormal
+        with one_blas_thread():  # the same bits on any core count
+            evals, U = np.linalg.eigh(Xc @ Xc.T)  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
+            order = np.argsort(evals)[::-1][:k]
+            s = np.sqrt(np.clip(evals[order], 1e-300, None))
+            self.components = (U[:, order].T @ Xc) / s[:, None]  # rows = V^T, orthonormal
         self.explained = evals[order].clip(0).sum() / max(evals.clip(0).sum(), 1e-300)
         return self
 

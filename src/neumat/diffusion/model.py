@@ -1,9 +1,13 @@
 """Transformer denoiser over NBRDF weight vectors (HyperDiffusion / G.pt style).
 
-Tokens: one per layer tensor of `neumat.nbrdf` (W1, b1, W2, b2, W3, b3), each projected to
-width d by its own linear map, plus a timestep token and one token per condition. Learned
-positional embeddings tell the tensors apart. The output of each tensor token is projected back
-to that tensor's size and the pieces are concatenated to the 675-vector again.
+Tokens: one per layer tensor of `neumat.nbrdf` (W1, b1, W2, b2, W3, b3), or per piece of it
+when the tensor holds more than `token_values` values, each projected to width d by its own
+linear map, plus a timestep token and one token per condition. Learned positional embeddings
+tell the tokens apart. The output of each tensor token is projected back to its piece's size
+and the pieces are concatenated to the 675-vector again. A token reaches only d - 1 directions
+(its final LayerNorm removes the mean), so a piece with more values than that cannot take every
+value: W2's 441 values through one 256-wide token put a floor under the default model's error at
+low noise. token_values below d splits it (opt-in: README, Hyperdiffusion).
 
 Conditions plug in as modules that turn a batch of condition values into one (B, d) token and
 own a learned "null" token for classifier-free guidance:
@@ -35,10 +39,29 @@ class DenoiserConfig:
     mlp_ratio: float = 4.0
     dropout: float = 0.0
     n_classes: int = 48  # material types; index n_classes is the null class
+    # most values per tensor token; a larger tensor is split into near-equal pieces (0: one
+    # token per tensor, as model files from before this key hold)
+    token_values: int = 0
     vector_conditions: dict[str, int] = field(default_factory=dict)  # name -> embedding size
 
     def to_dict(self):
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "DenoiserConfig":
+        """The config a model file records; files written before `token_values` existed have
+        one token per tensor."""
+        return cls(**{"token_values": 0, **d})
+
+
+def token_sizes(token_values: int) -> list[int]:
+    """Values per tensor token: each NBRDF tensor in near-equal pieces of at most token_values
+    (0: whole tensors)."""
+    sizes = []
+    for n in TENSOR_SIZES:
+        k = 1 if token_values <= 0 else -(-n // token_values)
+        sizes += [n // k + (i < n % k) for i in range(k)]
+    return sizes
 
 
 def timestep_embedding(t: torch.Tensor, dim: int, max_period: float = 10000.0) -> torch.Tensor:
@@ -121,7 +144,7 @@ class Denoiser(nn.Module):
         w = cfg.width
         if w % cfg.heads:
             raise ValueError(f"diffusion.model.width ({w}) must be divisible by heads ({cfg.heads})")
-        self.sizes = TENSOR_SIZES
+        self.sizes = token_sizes(cfg.token_values)
         self.embed_in = nn.ModuleList([nn.Linear(n, w) for n in self.sizes])
         self.time_mlp = nn.Sequential(nn.Linear(w, w), nn.SiLU(), nn.Linear(w, w))
         conds = {"type": ClassCondition(cfg.n_classes, w)} if cfg.n_classes > 0 else {}

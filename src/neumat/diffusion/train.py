@@ -242,7 +242,7 @@ class Sampler:
             bundle = modelfile.load(bundle)
         self.device = resolve_device(device)
         self.class_names = bundle["class_names"]
-        self.model = Denoiser(DenoiserConfig(**bundle["model_cfg"]))
+        self.model = Denoiser(DenoiserConfig.from_dict(bundle["model_cfg"]))
         self.model.load_state_dict(bundle["ema"])
         self.model.to(self.device).eval()
         self.norm = Normalizer()
