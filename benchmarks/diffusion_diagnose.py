@@ -55,10 +55,12 @@ def load(model_path, results, model="ours", width=256, depth=4, heads=8, n_class
     b = modelfile.load(model_path)
     if "normalizer" not in b:  # a checkpoint: rebuild the bundle the way train() writes it
         norm = Normalizer.fit(torch.from_numpy(weights[rows]))
-        n_in = len({k.split(".")[1] for k in b["ema"] if k.startswith("embed_in.")})
+        # the tokenisation from the input maps: 6 = one token per tensor, else the widest piece
+        ins = [v.shape[1] for k, v in b["ema"].items() if k.startswith("embed_in.") and
+               k.endswith(".weight")]
         b = {"model_cfg": DenoiserConfig(width=width, depth=depth, heads=heads,
-                                         n_classes=n_classes,  # 6 input maps: one per tensor
-                                         token_values=0 if n_in == 6 else 256).to_dict(),
+                                         n_classes=n_classes,
+                                         token_values=0 if len(ins) == 6 else max(ins)).to_dict(),
              "sched_cfg": ScheduleConfig(timesteps=timesteps, kind=kind,
                                          prediction=prediction).to_dict(),
              "class_names": [f"c{i}" for i in range(n_classes)], "ema": b["ema"],

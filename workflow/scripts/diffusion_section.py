@@ -52,6 +52,15 @@ def gallery(samples, near, weights, n, p, path, title):
     image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, title=title)
 
 
+def split_note(token_values: int) -> str:
+    """How the tensors are tokenised; diffusion.model.token_values is absent from params at 0
+    (a neutral key: config/speed_keys.yaml)."""
+    if not token_values:
+        return ""
+    return (f", a tensor of more than {token_values} weights split into near-equal pieces "
+            f"({len(token_sizes(token_values))} tensor tokens),")
+
+
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
     cfg = p.cfg
@@ -115,8 +124,7 @@ with script_logging(snakemake) as log:
     md = [
         "## Hyperdiffusion",
         f"Transformer denoiser over the 675 NBRDF weights: one token per layer tensor "
-        f"(W1, b1, W2, b2, W3, b3), a tensor of more than {m['token_values']} weights split into "
-        f"near-equal pieces ({len(token_sizes(m['token_values']))} tensor tokens), "
+        f"(W1, b1, W2, b2, W3, b3){split_note(m.get('token_values', 0))} "
         f"plus a timestep token and a material-type token "
         f"({len(b0['class_names'])} classes + null), width {m['width']}, depth {m['depth']}, "
         f"{m['heads']} heads ({n_params / 1e6:.2f} M parameters); weights standardised per "
