@@ -107,10 +107,17 @@ def test_derive_needs_two_types():
 
 
 class FakeSampler:
-    """Unconditional draws are metallic (constant 0.5), type-guided ones diffuse (0.1)."""
+    """Unconditional draws are metallic (constant 0.5), type-guided ones diffuse (0.1), and
+    category-guided ones fall into the category asked for."""
     class_names = ["felt", "steel"]
 
-    def sample(self, n, seed, types=None, *args, **kw):
+    def __init__(self):
+        self.steps = []  # category_step of every category-guided call
+
+    def sample(self, n, seed, types=None, *args, category=None, category_step=0.0, **kw):
+        if category:
+            self.steps.append(category_step)
+            return np.stack([constant_field({"diffuse": 0.1, "metallic": 0.5}[category])] * n)
         return np.stack([constant_field(0.1 if types else 0.5)] * n)
 
 
@@ -118,7 +125,8 @@ def test_sample_category_guides_and_reports_budget():
     th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
     cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None}
     bins = C.grid_bins(16384, 0)
-    r = C.sample_category(FakeSampler(), "diffuse", th, 5, 40, 4, 0, cfg, ["felt"], bins)
+    r = C.sample_category(FakeSampler(), "diffuse", th, 5, 40, 4, 0, cfg, ["felt"], bins,
+                          guidance_step=0)
     assert r.pilot == {"unconditional": 0.0, "type: felt": 1.0} and r.guide == "type: felt"
     assert len(r.weights) == 5 and r.drawn == 12  # pilots 4 + 4, then one more guided batch
     row = C.acceptance_row(r, 5)
@@ -126,6 +134,57 @@ def test_sample_category_guides_and_reports_budget():
     r = C.sample_category(FakeSampler(), "mirror", th, 5, 10, 4, 0, cfg, None, bins)
     row = C.acceptance_row(r, 5)
     assert r.drawn == 10 and len(r.weights) == 0 and not row["complete"] and row["acceptance"] == 0
+
+
+def test_sample_category_with_category_guidance():
+    th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
+    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None}
+    bins = C.grid_bins(16384, 0)
+    fake = FakeSampler()
+    r = C.sample_category(fake, "diffuse", th, 5, 40, 4, 0, cfg, None, bins, guidance_step=10)
+    mode = "category guidance: eq. 9, step 10"
+    assert r.pilot == {"unconditional": 0.0, mode: 1.0} and r.guide == mode
+    assert len(r.weights) == 5 and r.drawn == 12 and fake.steps == [10.0, 10.0]
+    # off (step 0) and for the five categories without a published formula: no such mode
+    assert list(C.sampling_modes("diffuse", ["felt"], 0.0)) == ["unconditional", "type: felt"]
+    assert list(C.sampling_modes("mirror", None, 10.0)) == ["unconditional"]
+    # a tie keeps the paper's unconditional draws
+    r = C.sample_category(FakeSampler(), "metallic", th, 2, 8, 4, 0, cfg, None, bins, guidance_step=1)
+    assert r.guide == "unconditional" and r.drawn == 8
+
+
+class _Identity:  # weights are their own normalised form
+    @staticmethod
+    def decode(z):
+        return z
+
+
+@pytest.mark.parametrize("start,category,other", [(0.1, "metallic", "diffuse"),
+                                                  (0.5, "diffuse", "metallic")])
+def test_category_guidance_moves_a_field_into_its_category(start, category, other):
+    """Known answer on a constant field c (raw = log1p(c) at every direction): the metallic
+    penalty is relu(TAU + MARGIN - raw), its gradient -1/3 on each channel's output bias (amax
+    shares it between the tied channels), so one step of 1 lifts the bias by 1/3 - past 1/pi by
+    eq. 10's rule on the statistics grid; the diffuse penalty mirrors it."""
+    from neumat.diffusion import constraints as K
+    th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
+    x0 = torch.as_tensor(constant_field(start))[None]
+    con = K.CategoryConstraint(_Identity(), category, 1.0, seed=0, n_directions=256)
+    raw = float(np.log1p(start))
+    want = K.TAU + K.MARGIN - raw if category == "metallic" else raw - K.TAU + K.MARGIN
+    assert float(K.category_penalty(x0, con.x, category)) == pytest.approx(want, rel=1e-6)
+    bins = C.grid_bins(16384, 0)
+    assert C.classify(C.field_stats(x0.numpy(), bins=bins), th)[0] == other
+    x1 = con(x0)
+    b3 = nbrdf.unflatten(x1)[-1]
+    np.testing.assert_allclose(b3.numpy(), raw + (1 if category == "metallic" else -1) / 3, rtol=1e-6)
+    assert C.classify(C.field_stats(x1.numpy(), bins=bins), th)[0] == category
+    assert float(K.category_penalty(x1, con.x, category)) == 0
+    assert torch.equal(con(x1), x1)  # inside the category nothing moves
+    with pytest.raises(ValueError, match="diffuse, metallic.*rejection"):
+        K.CategoryConstraint(_Identity(), "mirror", 1.0, seed=0)
+    with pytest.raises(ValueError, match="constrained.guidance_step"):
+        K.CategoryConstraint(_Identity(), category, -1.0, seed=0)
 
 
 def test_type_purity():

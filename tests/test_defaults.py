@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from neumat.constrained import sample_category
 from neumat.diffusion.model import DenoiserConfig
 from neumat.diffusion.plausibility import plausibility
 from neumat.diffusion.schedule import ScheduleConfig
@@ -44,7 +45,16 @@ CASES = {
     "TrainConfig": (_dataclass_defaults(TrainConfig), ("diffusion", "train"), {}),
     "Sampler.sample": (_signature_defaults(Sampler.sample), ("diffusion", "sample"),
                        {"types": "None = unconditional; the workflow lists them",
-                        "activation": "fit.activation: how the NBRDF decodes"}),
+                        "activation": "fit.activation: how the NBRDF decodes",
+                        "category": "None = no category: constrained.sample_category names one",
+                        "category_step": "constrained.guidance_step, which sample_category "
+                                         "(checked below) passes with its category"}),
+    # its `bins` is the bin indices (grid_bins(constrained.bins)), not the key's count
+    "sample_category": ({k: v for k, v in _signature_defaults(sample_category).items() if k != "bins"},
+                        ("constrained",),
+                        {"guide_types": "the workflow derives them (constrained.guide: auto)",
+                         "activation": "fit.activation: how the NBRDF decodes",
+                         "progress": "a callback, not a setting"}),
     "plausibility": (
         {"angles": _signature_defaults(plausibility)["n_angles"],
          "explode_factor": _signature_defaults(plausibility)["explode_factor"]},

@@ -541,3 +541,26 @@ def test_constrained_sampling_fewer_negative_bins_and_off_is_unchanged():
     # the library entry point (conditions, CLI) takes the same key
     from neumat.diffusion.sample import sample
     assert np.array_equal(sample(s, 16, 5, steps=10, negative_step=20.0), on)
+
+
+def test_category_guidance_composes_after_the_clamp_step():
+    from neumat.diffusion.constraints import (CategoryConstraint, NegativeConstraint,
+                                              category_penalty, constraint_for)
+    s = _tiny_sampler()
+    assert constraint_for(s, 0.0, 5, category="metallic", category_step=0.0) is None
+    assert isinstance(constraint_for(s, 0.0, 5, category="metallic", category_step=2.0),
+                      CategoryConstraint)
+    x0 = torch.randn(8, nbrdf.N_PARAMS, generator=torch.Generator().manual_seed(1))
+    both = constraint_for(s, 20.0, 5, category="metallic", category_step=2.0)
+    neg, cat = NegativeConstraint(s.norm, 20.0, 5), CategoryConstraint(s.norm, "metallic", 2.0, 5)
+    assert torch.equal(both(x0), cat(neg(x0)))  # in that order
+    assert not torch.equal(cat.x, neg.x)  # its own directions
+    kw = dict(steps=10, guidance=1.0, negative_step=20.0)
+    plain = s.sample(16, 5, **kw)
+    guided = s.sample(16, 5, category="metallic", category_step=5.0, **kw)
+    x = cat.x
+    pen = lambda w: category_penalty(torch.as_tensor(w), x, "metallic")  # noqa: E731
+    assert (pen(guided) < pen(plain)).all() and pen(guided).mean() < 0.8 * pen(plain).mean()
+    from neumat.diffusion.sample import sample
+    assert np.array_equal(sample(s, 16, 5, steps=10, negative_step=20.0, category="metallic",
+                                 category_step=5.0), guided)

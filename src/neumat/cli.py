@@ -287,14 +287,16 @@ class Composed:
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
-               activation: str = "relu") -> np.ndarray:
+               activation: str = "relu", category: str | None = None,
+               category_step: float = 0.0) -> np.ndarray:
         from neumat.diffusion.sample import sample
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
             cond["type"], scales["type"] = list(types), guidance
         return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
-                      negative_step=negative_step, activation=activation)
+                      negative_step=negative_step, activation=activation, category=category,
+                      category_step=category_step)
 
 
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
@@ -375,8 +377,11 @@ def _draw_category(args, run: Run, sampler, cfg):
             bar.n = drawn
             bar.set_postfix(accepted=hits)
             bar.refresh()
+        step = (float(run.setting("constrained", "guidance_step")) if args.category_step is None
+                else args.category_step)
         r = constrained.sample_category(sampler, args.category, th, args.n, args.budget, args.batch,
-                                        args.seed, cfg, guide, bins, args.activation, progress)
+                                        args.seed, cfg, guide, bins, args.activation, progress,
+                                        guidance_step=step)
     row = constrained.acceptance_row(r, args.n)
     also = f"; every draw also conditioned on {', '.join(sampler.fixed)}" if isinstance(sampler, Composed) else ""
     print(f"{args.category}: {row['hits']} of {row['drawn']} draws accepted "
@@ -414,6 +419,9 @@ def cmd_sample(args) -> int:
         from neumat.constrained import CATEGORIES
         if args.category not in CATEGORIES:
             raise CLIError(f"--category {args.category!r}: choose one of {', '.join(CATEGORIES)}")
+    if args.category_step is not None and (not args.category or args.category_step < 0):
+        raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
+                       f"number >= 0 (0 = rejection only)")
     args.activation = args.activation or run.activation()
     w, table = _draw(args, run, bundle, model_path, chosen)
     out = Path(args.out)
@@ -661,6 +669,9 @@ def parser() -> argparse.ArgumentParser:
                         "diffusion.sample.guidance for a type-only model such as ours")
     s.add_argument("--batch", type=int, default=64, help="samples per batch (default 64)")
     s.add_argument("--budget", type=int, default=512, help="--category: most draws before giving up (default 512)")
+    s.add_argument("--category-step", type=float, metavar="S",
+                   help="--category diffuse/metallic: category guidance step, 0 = off (default: the "
+                        "run's constrained.guidance_step)")
     s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")
     s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
     s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")

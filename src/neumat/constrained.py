@@ -310,38 +310,59 @@ class CategoryResult:
     weights: np.ndarray  # (accepted, 675)
     stats: pd.DataFrame  # statistics of the accepted samples
     drawn: int
-    guide: str  # 'unconditional' or 'type: a, b, ...'
+    guide: str  # the sampling mode drawn in after the pilot (`sampling_modes`)
     pilot: dict  # acceptance of each mode in the pilot batch
     hits: int = 0  # draws that fell into the category (>= len(weights): the last batch may overshoot)
 
 
-def _draw(sampler, n, seed, types, sample_cfg, activation="relu"):
+def _draw(sampler, n, seed, mode, sample_cfg, activation="relu"):
+    """n draws in one mode: {'types': list or None, 'category': str or None, 'step': float}."""
+    types = mode["types"]
     guidance = sample_cfg["guidance"] if types else 1.0
     ts = [types[i % len(types)] for i in range(n)] if types else None
+    extra = {"category": mode["category"], "category_step": mode["step"]} if mode["category"] else {}
     return sampler.sample(n, seed, ts, sample_cfg["steps"], sample_cfg["eta"], guidance,
                           sample_cfg["batch_size"], sample_cfg["clip"],
-                          sample_cfg.get("negative_step", 0.0), activation)
+                          sample_cfg.get("negative_step", 0.0), activation, **extra)
+
+
+def sampling_modes(category: str, guide_types: list[str] | None = None,
+                   guidance_step: float = 0.0) -> dict[str, dict]:
+    """The ways `sample_category` may draw for `category`, by name, in pilot order:
+    unconditionally; with category guidance (`guidance_step` > 0, diffuse and metallic only:
+    `neumat.diffusion.constraints.CategoryConstraint`); guided by `guide_types`."""
+    from neumat.diffusion.constraints import GUIDED_CATEGORIES
+
+    modes = {"unconditional": {"types": None, "category": None, "step": 0.0}}
+    # before type guidance, so that a budget of two batches still pilots it
+    if guidance_step > 0 and category in GUIDED_CATEGORIES:
+        eq = {"diffuse": 9, "metallic": 10}[category]
+        modes[f"category guidance: eq. {eq}, step {guidance_step:g}"] = {
+            "types": None, "category": category, "step": float(guidance_step)}
+    if guide_types:
+        modes[f"type: {', '.join(guide_types)}"] = {"types": list(guide_types), "category": None,
+                                                   "step": 0.0}
+    return modes
 
 
 def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int, batch: int,
                     seed: int, sample_cfg: dict, guide_types: list[str] | None = None,
                     bins: np.ndarray | None = None, activation: str = "relu",
-                    progress=None) -> CategoryResult:
+                    progress=None, guidance_step: float = 10.0) -> CategoryResult:
     """Draw from `sampler` in batches until `n` samples fall into `category` or `budget`
-    samples were drawn. With `guide_types`, the first batch is drawn both unconditionally and
-    guided by those types (cycling), and the rest with whichever accepted more (ties:
-    unconditional, the paper's setting). Seeds: seed + batch index (+ 1e6 for the guided
+    samples were drawn. The first batch is drawn in each of `sampling_modes` (unconditional;
+    category guidance when `guidance_step` > 0; guided by `guide_types`, cycling), and the rest
+    in whichever accepted more (ties: unconditional, the paper's setting). Every draw is judged
+    by the exact rule (`classify`). Seeds: seed + batch index (+ 1e6 x the mode's index for its
     pilot), so a category's draws do not depend on the others."""
-    modes = {"unconditional": None}
-    if guide_types:
-        modes[f"type: {', '.join(guide_types)}"] = list(guide_types)
+    modes = sampling_modes(category, guide_types, guidance_step)
     acc_w, acc_s, drawn, pilot = [], [], 0, {}
     chosen = "unconditional"
-    for k, (name, types) in enumerate(modes.items()):  # pilot batch of each mode
+    for k, (name, mode) in enumerate(modes.items()):  # pilot batch of each mode
         b = min(batch, budget - drawn)
         if b <= 0:
             break
-        w = _draw(sampler, b, seed + k * 1_000_000, types, sample_cfg, activation)
+        w = _draw(sampler, b, seed + k * 1_000_000, mode, sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         pilot[name] = float(ok.mean())

@@ -72,7 +72,7 @@ rule sample_constrained:
         acceptance=out("constrained/acceptance.tsv"),
     params:
         cfg=settings("constrained", ["categories", "per_category", "budget", "batch", "guide",
-                                     "bins", "thresholds"]),
+                                     "guidance_step", "bins", "thresholds"]),
         sample=settings("diffusion.sample"),
         seed=seed_for("sample_constrained"),
         activation=config["fit"]["activation"],

@@ -1,5 +1,6 @@
 """Constrained synthesis: for each category, draw from the `ours` model in batches until
-`per_category` samples fall into it or `budget` draws are spent -> samples/constrained/
+`per_category` samples fall into it or `budget` draws are spent (unconditionally, type-guided
+or with category guidance, whichever accepted most in a pilot batch) -> samples/constrained/
 (weights.npy, samples.tsv with each sample's category and statistics) and
 constrained/acceptance.tsv (acceptance rate per category; incomplete categories say so)."""
 import numpy as np
@@ -20,12 +21,14 @@ with script_logging(snakemake) as log:
     src = classes[classes["set"] == "source"]
     guides = constrained.category_types(src["type"], src["category"])
     bins = constrained.grid_bins(cfg["bins"], p.seed)
+    step = cfg["guidance_step"] if cfg["guide"] == "auto" else 0.0  # none: the paper's setting
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:
         types = [t for t in guides[cat] if t in sampler.class_names] if cfg["guide"] == "auto" else []
         r = constrained.sample_category(sampler, cat, th, cfg["per_category"], cfg["budget"],
                                         cfg["batch"], seed_for(p.seed, "category", cat), p.sample,
-                                        types, bins, p.activation)
+                                        types, bins, p.activation,
+                                        guidance_step=step)
         row = constrained.acceptance_row(r, cfg["per_category"])
         rows.append(row)
         log.info("%s", row)

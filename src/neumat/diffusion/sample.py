@@ -114,11 +114,13 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
            guidance: dict | float | None = None, steps: int = 50, eta: float = 0.0,
            batch_size: int = 256, clip: float | None = None, image_encoder=None,
            negative_step: float = 30.0, activation: str = "relu", start: np.ndarray | None = None,
-           strength: float = 1.0) -> np.ndarray:
+           strength: float = 1.0, category: str | None = None,
+           category_step: float = 0.0) -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies
-    the clamp-aware `NegativeConstraint` (NBRDF `activation`) at every DDIM step. `start`
+    the clamp-aware `NegativeConstraint` (NBRDF `activation`) at every DDIM step, and
+    `category` with `category_step` > 0 category guidance after it (`CategoryConstraint`). `start`
     (n, 675) weight vectors and `strength` < 1: each sample starts from its start vector
     noised to strength (T - 1) (`Diffusion.ddim_sample`'s x0_start), e.g. the retrieved
     training material of an image condition."""
@@ -130,7 +132,7 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     if not isinstance(guidance, dict):
         guidance = {k: 1.0 if guidance is None else float(guidance) for k in cond}
     gen = torch.Generator().manual_seed(seed)
-    constrain = constraint_for(sampler, negative_step, seed, activation)
+    constrain = constraint_for(sampler, negative_step, seed, activation, category, category_step)
     out = []
     for s in range(0, n, batch_size):
         b = min(batch_size, n - s)

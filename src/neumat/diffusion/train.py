@@ -260,16 +260,18 @@ class Sampler:
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
-               activation: str = "relu") -> np.ndarray:
+               activation: str = "relu", category: str | None = None,
+               category_step: float = 0.0) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
-        (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`)."""
+        (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`); `category` and
+        `category_step` > 0: category guidance after it (`CategoryConstraint`)."""
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
         gen = torch.Generator().manual_seed(seed)
-        constrain = constraint_for(self, negative_step, seed, activation)
+        constrain = constraint_for(self, negative_step, seed, activation, category, category_step)
         out = []
         for s in range(0, n, batch_size):
             b = min(batch_size, n - s)
