@@ -90,6 +90,9 @@ def test_tiny_constrained_synthesis_and_cli(tiny_run, tmp_path):
     assert (classes["set"] == "neumerl").sum() == 64 and (classes["set"] == "source").sum() == 8
     acc = pd.read_csv(res / "constrained/acceptance.tsv", sep="\t")
     assert len(acc) == 7 and (acc["drawn"] <= 16).all()
+    pilots = acc.set_index("category")["pilot"]  # category guidance piloted where it exists
+    assert all("category guidance" in pilots[c] for c in ("diffuse", "metallic"))
+    assert not any("category guidance" in pilots[c] for c in ("mirror", "plastic"))
     samples = pd.read_csv(res / "samples/constrained/samples.tsv", sep="\t")
     assert len(np.load(res / "samples/constrained/weights.npy")) == len(samples)
     assert samples.groupby("category").size().to_dict() == \

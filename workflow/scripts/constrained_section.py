@@ -69,8 +69,13 @@ with script_logging(snakemake) as log:
           "materials in its most common category; mean purity per set: "
           + ", ".join(f"{s} {v:.2f}" for s, v in pur["purity"].items()) + "):",
           report.md_table(purity[purity["set"] == "source"].drop(columns="set")),
-          "Acceptance per category (rejection sampling of `ours`; a category with "
-          "complete = False was not produced within the budget and is not padded):",
+          "Acceptance per category (rejection sampling of `ours`: every draw is judged by the "
+          "rules above. `guide` is how the draws after the pilot batch were made: "
+          "unconditionally, guided by type, or with category guidance toward eq. 9 or 10 "
+          "(`constrained.guidance_step`); `pilot` gives each mode's acceptance in its first "
+          "batch. A category with complete = False was not produced within the budget and is "
+          "not padded. Metallic samples, however drawn, reflect more energy than they receive: "
+          "eq. 10 admits no passive BRDF):",
           report.md_table(acc),
           "Not produced within the budget: " + (", ".join(missing) if missing else "none") + ".", fig,
           f"Rendered with Mitsuba 3 ({variant})."]
