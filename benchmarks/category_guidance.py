@@ -3,7 +3,8 @@ diffuse and metallic, the share of one batch of draws that paper eqs. 9-10 accep
 step and margin, against plain rejection sampling (step 0, the baseline, in the same run). Also
 how far the accepted draws sit from the training set (median BRDF-L1 to the nearest training
 material, the measure of rule diffusion_nearest) and the share of them that are passive
-(directional albedo <= 1, `plausibility`), so a gain in acceptance that leaves the data is
+(directional albedo <= 1, `plausibility`) and how bright and glossy they are (median body and
+peak, `neumat.constrained.features`) beside the real materials of that category, so a gain in acceptance that leaves the data is
 visible, and the sampling time as a ratio to step 0. Prints the ISA and the CPU model.
 
     python benchmarks/category_guidance.py --run results/<run> [-n 64] [--steps 0 3 10 30]
@@ -51,16 +52,21 @@ def main():
     nn_bins = distances.brdf_sample(a.nn_bins, 0)
     f_train = distances.field_values(weights[dataset.training_rows(man, "ours")], nn_bins)
     # the yardstick: the real test-split materials' distance to the training set, per category
-    test = dataset.reference_rows(man)
-    t_stats = C.field_stats(weights[test], bins=C.grid_bins(a.bins, 0))
-    t_cat = C.classify(t_stats, C.Thresholds())
-    _, t_dist = dataset.nearest(distances.field_values(weights[test], nn_bins), f_train)
-    for category in K.GUIDED_CATEGORIES + ("all",):
-        m = t_cat == category if category != "all" else np.ones(len(test), bool)
-        print(f"test split, {category}: {m.sum()} of {len(test)} materials, median BRDF-L1 to the "
-              f"nearest training material {np.median(t_dist[m]) if m.any() else float('nan'):.3f}")
+    # and how bright (body = max_c mean_c) and glossy (peak = max_c max_c) real ones are, 1/sr
     th = C.Thresholds()  # eqs. 9-10 are checked first: the derived thresholds do not matter here
     stat_bins = C.grid_bins(a.bins, 0)
+    test = dataset.reference_rows(man)
+    _, t_dist = dataset.nearest(distances.field_values(weights[test], nn_bins), f_train)
+    for split, rows in (("test", test), ("train", dataset.training_rows(man, "ours"))):
+        st = C.field_stats(weights[rows], bins=stat_bins)
+        cat, feat = C.classify(st, th), C.features(st)
+        for category in K.GUIDED_CATEGORIES + ("all",):
+            m = cat == category if category != "all" else np.ones(len(rows), bool)
+            near = f", median BRDF-L1 to the nearest training material {np.median(t_dist[m]):.3f}" \
+                if split == "test" and m.any() else ""
+            look = (f", median body {np.median(feat['body'][m]):.4f}, peak "
+                    f"{np.median(feat['peak'][m]):.3f}") if m.any() else ""
+            print(f"{split} split, {category}: {m.sum()} of {len(rows)} materials{near}{look}")
 
     def sample(category, step, margin):
         """Sampler.sample's draw (100 DDIM steps, no type guidance, negative_step 30), with the
@@ -81,7 +87,8 @@ def main():
             lib = sampler.sample(a.n, a.seed, None, 100, 0.0, 1.0, 256, None, 30.0, "relu",
                                  category if step else None, step)
             assert np.array_equal(lib, w), "benchmark and Sampler.sample disagree"
-        ok = C.classify(C.field_stats(w, bins=stat_bins), th) == category
+        st = C.field_stats(w, bins=stat_bins)
+        ok, feat = C.classify(st, th) == category, C.features(st)
         _, dist = dataset.nearest(distances.field_values(np.nan_to_num(w), nn_bins), f_train)
         passive = ~plausibility(w[ok])["passivity_violation"].to_numpy(bool) if ok.any() else []
         return {"category": category, "step": step, "margin": margin if step else float("nan"),
@@ -89,6 +96,8 @@ def main():
                 "nn_l1_accepted": float(np.median(dist[ok])) if ok.any() else float("nan"),
                 "nn_l1_all": float(np.median(dist)),
                 "passive_accepted": float(np.mean(passive)) if ok.any() else float("nan"),
+                "body_accepted": float(np.median(feat["body"][ok])) if ok.any() else float("nan"),
+                "peak_accepted": float(np.median(feat["peak"][ok])) if ok.any() else float("nan"),
                 "seconds": secs}
 
     rows = []
