@@ -331,6 +331,7 @@ def sampling_modes(category: str, guide_types: list[str] | None = None,
     """The ways `sample_category` may draw for `category`, by name, in pilot order:
     unconditionally; with category guidance (`guidance_step` > 0, diffuse and metallic only:
     `neumat.diffusion.constraints.CategoryConstraint`); guided by `guide_types`."""
+    # here, not at the top: the rules and section jobs import this module without sampling
     from neumat.diffusion.constraints import GUIDED_CATEGORIES
 
     modes = {"unconditional": {"types": None, "category": None, "step": 0.0}}
