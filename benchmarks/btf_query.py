@@ -91,6 +91,9 @@ def main():
     ap.add_argument("--unbatched", type=int, default=2000, help="queries timed one by one")
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--march", default="native", help="-march of the fused C query")
+    ap.add_argument("--sweep", action="store_true",
+                    help="GPU: time the Triton query, plain and with HPB, for each queries-per-"
+                         "program and warps-per-program launch shape")
     a = ap.parse_args()
     dev = torch.device(a.device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
@@ -127,7 +130,13 @@ def main():
             query.query(m, u[:4096], wi[:4096], wo[:4096])                  # warm-up, compile
             t_t, _ = timed(lambda: query.query(m, u, wi, wo), repeat=10, sync=sync)
             diff_t = (query.query(m, u[:n1], wi[:n1], wo[:n1]) - ref).abs().max().item()
+            # the log-space output too: a random model's RGB is often clamped to 0
+            raw_ref = m.raw(u[:n1], wi[:n1], wo[:n1])
+            diff_r = (query.query(m, u[:n1], wi[:n1], wo[:n1], raw=True) - raw_ref).abs().max()
+            diff_t = f"{diff_t:.2e} (raw {diff_r.item():.2e} of max |raw| {raw_ref.abs().max():.2f})"
 
+    if triton_ and a.sweep:
+        sweep(m, u, wi, wo, sync)
     fq = flops_per_query(m)
     n = 4096 if dev.type == "cuda" else 2048
     A = torch.randn(n, n, device=dev)
@@ -143,7 +152,7 @@ def main():
               f"{c_f * 1e3:.1f} CPU-ms/frame, max |fused - batched| {diff:.2e}  [{where}]")
     if triton_:
         print(f"Triton    : {t_t * 1e3:10.3f} ms/frame  {FRAME / t_t:12.4g} queries/s, "
-              f"max |Triton - batched| {diff_t:.2e}; fused/bound {FRAME / t_t / bound:.3f}, "
+              f"max |Triton - batched| {diff_t}; fused/bound {FRAME / t_t / bound:.3f}, "
               f"Triton/batched {t_b / t_t:.1f}x; goal <= {GPU_GOAL_MS} ms/frame: "
               f"{'met' if t_t * 1e3 <= GPU_GOAL_MS else 'not met'}  [{where}]")
     elif dev.type == "cuda":
@@ -160,6 +169,44 @@ def main():
         print(f"ratios    : fused/bound {FRAME / t_f / bound:.3f} (per CPU-s "
               f"{FRAME / c_f / bound_cpu:.3f}), fused/batched {t_b / t_f:.1f}x wall, "
               f"{c_b / c_f:.1f}x CPU  [{where}]")
+
+SHAPES = ((32, 1), (32, 4), (64, 2), (64, 4), (128, 4), (128, 8), (256, 8))
+
+
+@torch.no_grad()
+def sweep(m, u, wi, wo, sync, rounds=10):
+    """ms/frame of the plain and the HPB Triton query per launch shape (query_triton.LAUNCH:
+    queries and warps per program), best of `rounds` rounds that each time every shape once, so a
+    slow spell of the shared GPU host hits all shapes alike."""
+    from neumat.btf import synthesis as syn
+    h = syn.build(m, "hpb", 1, {})
+    u64 = (u.double() - 0.5) * 2e3
+    keep = dict(query_triton.LAUNCH)
+    runs = {}
+    for block, warps in SHAPES:
+        for hpb, uu in ((None, u), (h, u64)):
+            p = query_triton.packed(m, hpb)
+            def f(uu=uu, p=p, hpb=hpb, shape=dict(BLOCK=block, num_warps=warps)):
+                query_triton.LAUNCH.update(shape)
+                return query_triton.query(m, uu, wi, wo, packed=p, hpb=hpb)
+            f()  # compile
+            runs[block, warps, hpb is not None] = f
+    best = {k: float("inf") for k in runs}
+    for _ in range(rounds):
+        for k, f in runs.items():
+            best[k] = min(best[k], timed(f, repeat=1, sync=sync)[0] * 1e3)
+    print(f"sweep, ms/frame (best of {rounds} interleaved rounds), default {keep}:")
+    for block, warps in SHAPES:
+        pl, hp = best[block, warps, False], best[block, warps, True]
+        print(f"  BLOCK {block:4d} warps {warps}: plain {pl:7.3f}  HPB {hp:7.3f} "
+              f"({100 * (hp / pl - 1):+5.1f} %)")
+    bp = min((v, k) for k, v in best.items() if not k[2])
+    bh = min((v, k) for k, v in best.items() if k[2])
+    print(f"fastest plain {bp[0]:.3f} ms at {bp[1][:2]}, fastest HPB {bh[0]:.3f} ms at "
+          f"{bh[1][:2]}: HPB overhead {100 * (bh[0] / bp[0] - 1):+.1f} % (goal <= 10 %)")
+    query_triton.LAUNCH.clear()
+    query_triton.LAUNCH.update(keep)
+
 
 if __name__ == "__main__":
     main()

@@ -46,17 +46,21 @@ def model_settings(config: Path) -> tuple[dict, dict, dict]:
 
 
 def run_seconds(weights, labels, mcfg, scfg, tcfg, steps, device, sync_each_step,
-                precision="fp32"):
+                precision="fp32", compile="none"):
     cfg = TrainConfig(**{**tcfg, "steps": steps, "log_every": steps, "checkpoint_every": 10**9,
-                         "precision": precision})
-    with tempfile.TemporaryDirectory() as tmp:
+                         "precision": precision, "compile": compile})
+    # model files in memory where possible: each run ends with a checkpoint (600 MB at paper
+    # size) whose write time would otherwise add noise to the difference of two runs
+    shm = "/dev/shm" if Path("/dev/shm").is_dir() else None
+    with tempfile.TemporaryDirectory(dir=shm) as tmp:
         t, c = time.perf_counter(), time.process_time()
-        train_mod.train(weights, labels, [f"t{i}" for i in range(mcfg.n_classes)], mcfg, scfg,
-                        cfg, Path(tmp) / "m.pt", Path(tmp) / "ck.pt", 0, device,
-                        on_step=(lambda s, l: None) if sync_each_step else None)
+        r = train_mod.train(weights, labels, [f"t{i}" for i in range(mcfg.n_classes)], mcfg,
+                            scfg, cfg, Path(tmp) / "m.pt", Path(tmp) / "ck.pt", 0, device,
+                            on_step=(lambda s, l: None) if sync_each_step else None)
         if device.type == "cuda":
             torch.cuda.synchronize()
-        return time.perf_counter() - t, time.process_time() - c
+        # log_every = steps: the one history entry is the mean loss over all steps
+        return time.perf_counter() - t, time.process_time() - c, r["history"][-1][1]
 
 
 def flop_per_step(mcfg, scfg, batch, device) -> float:
@@ -95,6 +99,13 @@ def main():
     ap.add_argument("--steps", type=int, default=20, help="timed steps per variant")
     ap.add_argument("--warmup", type=int, default=5)
     ap.add_argument("--materials", type=int, default=2400, help="training set size (random)")
+    ap.add_argument("--compile", nargs="*", default=[], metavar="MODE",
+                    help="GPU: also time the fp32 and bf16 loops with diffusion.train.compile "
+                         "set to each MODE (default, reduce-overhead)")
+    ap.add_argument("--cprofile", type=int, default=0, metavar="STEPS",
+                    help="also print cProfile's top host functions of a STEPS-step fp32 run")
+    ap.add_argument("--profile", action="store_true",
+                    help="also print torch.profiler's top operators of 10 steps per precision")
     a = ap.parse_args()
     device = resolve_device(a.device)
     m, s, t = model_settings(a.config)
@@ -111,31 +122,80 @@ def main():
     print(f"# {a.config.name}: width {mcfg.width}, depth {mcfg.depth}, heads {mcfg.heads}, "
           f"batch {t['batch_size']}; {a.steps} timed steps on {device}")
     ms, busy = {}, {}
-    variants = [("per-step sync (baseline)", True, "fp32"), ("neumat loop", False, "fp32")]
+    variants = [("per-step sync (baseline)", True, "fp32", None), ("neumat loop", False, "fp32", None)]
     no_bf16 = train_mod.native_bf16(device)
     if no_bf16 is None:
-        variants.append((BF16, False, "bf16"))
-    for name, sync, prec in variants:
-        short = run_seconds(weights, labels, mcfg, scfg, t, a.warmup, device, sync, prec)
-        long = run_seconds(weights, labels, mcfg, scfg, t, a.warmup + a.steps, device, sync, prec)
+        variants.append((BF16, False, "bf16", None))
+    for mode in a.compile:
+        variants.append((f"neumat loop, compiled {mode}", False, "fp32", mode))
+        if no_bf16 is None:
+            variants.append((f"{BF16}, compiled {mode}", False, "bf16", mode))
+    mean_loss = {}
+    for name, sync, prec, mode in variants:
+        mode = mode or "none"
+        if device.type == "cuda":  # the first run of a variant pays CUDA's lazy set-up (cuBLAS
+            # handles, autocast caches, first allocations) and compilation
+            t0 = time.perf_counter()
+            run_seconds(weights, labels, mcfg, scfg, t, a.warmup, device, sync, prec, mode)
+            if mode != "none":
+                print(f"# {name}: first run (compilation) {time.perf_counter() - t0:.0f} s")
+        short = run_seconds(weights, labels, mcfg, scfg, t, a.warmup, device, sync, prec, mode)
+        long = run_seconds(weights, labels, mcfg, scfg, t, a.warmup + a.steps, device, sync,
+                           prec, mode)
         ms[name] = 1e3 * (long[0] - short[0]) / a.steps
         busy[name] = ms[name] if device.type == "cuda" else 1e3 * (long[1] - short[1]) / a.steps
+        mean_loss[name] = long[2]
     flop = flop_per_step(mcfg, scfg, t["batch_size"], device)
     rate = {"fp32": matmul_rate(device)}
     if BF16 in ms:
         rate["bf16"] = matmul_rate(device, torch.bfloat16)
     per = "wall s" if device.type == "cuda" else "CPU s"
     for name, v in ms.items():
-        r, kind = flop / (busy[name] / 1e3), "bf16" if name == BF16 else "fp32"
+        r, kind = flop / (busy[name] / 1e3), "bf16" if name.startswith(BF16) else "fp32"
         print(f"{name:26s} {v:9.2f} ms/step (wall), {busy[name]:9.2f} ms/step ({per})  "
               f"{r / 1e9:8.1f} GFLOP per {per}  {r / rate[kind]:6.1%} of the {kind} matmul rate "
-              f"({rate[kind] / 1e9:.0f} GFLOP per {per})")
+              f"({rate[kind] / 1e9:.0f} GFLOP per {per}); mean loss over the "
+              f"{a.warmup + a.steps} steps {mean_loss[name]:.6f}")
     print(f"speed-up over the baseline: {ms['per-step sync (baseline)'] / ms['neumat loop']:.2f}x; "
           f"{flop / 1e9:.1f} GFLOP per step")
     if BF16 in ms:
         print(f"bf16 autocast over the fp32 loop: {ms['neumat loop'] / ms[BF16]:.2f}x")
     else:
         print(f"bf16 autocast: not timed ({no_bf16})")
+    if a.cprofile:
+        host_profile(weights, labels, mcfg, scfg, t, device, a.cprofile)
+    if a.profile:
+        profile(weights, labels, mcfg, scfg, t, device, ["fp32"] + (["bf16"] if BF16 in ms else []))
+
+
+def host_profile(weights, labels, mcfg, scfg, t, device, steps):
+    """Where the host's time goes in the loop: cProfile over a `steps`-step run (set-up included),
+    top functions by own time. On a GPU the host launches work; where it is slower than the GPU,
+    this is the step's time."""
+    import cProfile
+    import pstats
+    run_seconds(weights, labels, mcfg, scfg, t, 3, device, False, "fp32")
+    pr = cProfile.Profile()
+    pr.enable()
+    run_seconds(weights, labels, mcfg, scfg, t, steps, device, False, "fp32")
+    pr.disable()
+    print(f"# cProfile, fp32, {steps} steps (set-up included), top 25 by own time")
+    pstats.Stats(pr).sort_stats("tottime").print_stats(25)
+
+
+def profile(weights, labels, mcfg, scfg, t, device, precisions, steps=10):
+    """Where a step's time goes: torch.profiler over `steps` steps, top operators by device time."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as prof
+    acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device.type == "cuda" else [])
+    key = "self_cuda_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    for prec in precisions:
+        run_seconds(weights, labels, mcfg, scfg, t, 3, device, False, prec)
+        with prof(activities=acts) as p:
+            run_seconds(weights, labels, mcfg, scfg, t, steps, device, False, prec)
+        print(f"# profile, {prec}, {steps} steps (set-up and the final checkpoint included: "
+              "its device-to-host copies are those, not the steps')")
+        print(p.key_averages().table(sort_by=key, row_limit=18, max_name_column_width=60))
 
 
 if __name__ == "__main__":

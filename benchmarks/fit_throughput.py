@@ -15,6 +15,13 @@ materials are random NBRDF fields (deterministic). --kernel torch times the batc
 torch path instead of the C kernel (`neumat.fit_kernel`), e.g. to see what the kernel adds.
 --march builds and times the C kernel for another target, e.g. x86-64-v3 (AVX2) or x86-64-v2
 (SSE4.2) on an AVX-512 host.
+
+--device cuda fits on a GPU (the batched fitter's torch path; the loop runs there too, as the
+released M3ashy code fits) and takes the peak from an 8192^3 fp32 torch.mm on that GPU. With
+--loop-materials N the loop fits only the first N materials and its time is scaled to all of
+them (per-material fits are independent), e.g. for paper.yaml's 2400:
+
+    python benchmarks/fit_throughput.py --device cuda --materials 2400 --loop-materials 20
 """
 import argparse
 import dataclasses
@@ -44,24 +51,25 @@ def load_data(args):
     return bins, nbrdf.forward(teach, fit.bin_inputs(bins)[0]).transpose(1, 2).numpy()
 
 
-def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
+def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed, device="cpu"):
     """Per-material baseline; returns final weights (M, 675) and val losses (M,)."""
     x_all, cos_all = fit.bin_inputs(bins)
     target_all = fit.log_target(values, cos_all)
+    x_all, cos_all, target_all = x_all.to(device), cos_all.to(device), target_all.to(device)
     weights, val = [], []
     for m, i in enumerate(ids):
         net = torch.nn.Sequential(torch.nn.Linear(6, 21), torch.nn.ReLU(), torch.nn.Linear(21, 21),
-                                  torch.nn.ReLU(), torch.nn.Linear(21, 3))
+                                  torch.nn.ReLU(), torch.nn.Linear(21, 3)).to(device)
         with torch.no_grad():
             for p, v in zip(net.parameters(), nbrdf.unflatten(torch.as_tensor(init)[None])):
                 p.copy_(v[0])
         opt = torch.optim.Adam(net.parameters(), lr=s.lr)
-        train, va = fit.split_bins(len(bins), seed, s.val_fraction)
+        train, va = (i.to(device) for i in fit.split_bins(len(bins), seed, s.val_fraction))
         spe = len(train) // s.batch
         for step in range(s.steps):
             epoch, k = divmod(step, spe)
             if k == 0:
-                order, mirror = fit.epoch_order(len(train), seed, epoch)
+                order, mirror = (i.to(device) for i in fit.epoch_order(len(train), seed, epoch))
             sl = slice(k * s.batch, (k + 1) * s.batch)
             idx = train[order[sl]]
             x, t, c = x_all[idx], target_all[m, idx], cos_all[idx, None]
@@ -74,9 +82,23 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed):
             loss.backward()
             opt.step()
         w = nbrdf.flatten([p.detach()[None] for p in net.parameters()])
-        weights.append(w[0])
+        weights.append(w[0].cpu())
         val.append(fit.field_loss(w, x_all[va], target_all[m, va][None], cos_all[va, None]).item())
     return torch.stack(weights).numpy(), np.array(val)
+
+
+def gpu_sgemm_peak(device, n=8192, repeat=5):
+    """fp32 matmul FLOP/s of the GPU (TF32 off, as torch's default), best of `repeat`."""
+    a = torch.randn(n, n, device=device)
+    c = a @ a
+    best = float("inf")
+    for _ in range(repeat):
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        torch.mm(a, a, out=c)
+        torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t)
+    return 2 * n ** 3 / best
 
 
 # matmul FLOPs per material-sample of one training step: forward 6-21-21-3 (630 multiply-adds),
@@ -94,7 +116,12 @@ def main():
     ap.add_argument("--kernel", choices=fit.KERNELS, default="auto", help="batched fitter's step")
     ap.add_argument("--march", default=None,
                     help="-march of the C kernel (default: native, or $NEUMAT_FIT_MARCH)")
+    ap.add_argument("--device", default="cpu", help="cpu | cuda")
+    ap.add_argument("--loop-materials", type=int, default=None,
+                    help="fit only this many materials in the loop and scale its time")
     args = ap.parse_args()
+    dev = torch.device(args.device)
+    sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
     if args.march:  # before the first library load: the fitter builds for this target
         os.environ["NEUMAT_FIT_MARCH"] = args.march
     march = fit_kernel.default_march()
@@ -109,29 +136,44 @@ def main():
 
     # wall and CPU time of the process: on a shared machine, CPU time (one thread) is the
     # load-independent measure; wall time is what a user waits
+    n_loop = min(args.loop_materials or args.materials, args.materials)
+    scale = args.materials / n_loop  # the loop's time for all materials, from the first n_loop
+    sync()
     t0, c0 = time.perf_counter(), time.process_time()
-    w_loop, val_loop = loop_fit(values, bins, ids, init, s, seed=0)
-    t_loop, c_loop = time.perf_counter() - t0, time.process_time() - c0
+    w_loop, val_loop = loop_fit(values[:n_loop], bins, ids[:n_loop], init, s, seed=0, device=dev)
+    sync()
+    t_loop, c_loop = scale * (time.perf_counter() - t0), scale * (time.process_time() - c0)
     t0, c0 = time.perf_counter(), time.process_time()
     x, cos = fit.bin_inputs(bins)
     f = fit.BatchFitter(x, cos, fit.log_target(values, cos), ids,
-                        torch.as_tensor(init).expand(len(ids), -1), s, seed=0).train()
-    val_batch, w_batch = f.eval_loss("val"), f.w.numpy()  # the loop also evaluates val only
+                        torch.as_tensor(init).expand(len(ids), -1), s, seed=0, device=dev).train()
+    val_batch, w_batch = f.eval_loss("val"), f.w.cpu().numpy()  # the loop evaluates val only
+    sync()
     t_batch, c_batch = time.perf_counter() - t0, time.process_time() - c0
 
-    peak, peak_cpu = machine.sgemm_peak(args.threads)
-    vl, vb = val_loop.mean(), val_batch.mean()
+    if dev.type == "cuda":  # the host's CPU time means nothing for a GPU fit: wall only
+        peak = peak_cpu = gpu_sgemm_peak(dev)
+    else:
+        peak, peak_cpu = machine.sgemm_peak(args.threads)
+    vl, vb = val_loop.mean(), val_batch[:n_loop].mean()
     where = machine.describe(march if f.kernel == "c" else None)
+    if dev.type == "cuda":
+        where += f"; GPU {torch.cuda.get_device_name(dev)}, torch {torch.__version__}"
     print(f"machine: {where}")
+    if n_loop < args.materials:
+        print(f"loop: fitted the first {n_loop} materials, time scaled x{scale:g}; its val loss "
+              f"and the weight difference are over those {n_loop}")
     print(f"{args.materials} materials x {args.steps} steps x batch {s.batch}, {len(bins)} bins, "
           f"{args.threads} threads, kernel {f.kernel}, data: {args.tables or 'random NBRDF fields'}")
     for what, t, c, v in (("per-material loop", t_loop, c_loop, vl),
-                          ("batched fitter   ", t_batch, c_batch, vb)):
+                          ("batched fitter   ", t_batch, c_batch, val_batch.mean())):
         print(f"{what}: wall {t:8.2f} s ({samples / t:10.4g} material-samples/s), "
               f"CPU {c:8.2f} s ({samples / c:10.4g} material-samples/CPU-s), final val loss {v:.5f}")
     print(f"speed-up: wall {t_loop / t_batch:.1f}x, CPU {c_loop / c_batch:.1f}x; "
           f"val loss batched/loop {vb / vl:.4f}; "
-          f"max |w_batched - w_loop| {np.abs(w_batch - w_loop).max():.2e}  [{where}]")
+          f"max |w_batched - w_loop| {np.abs(w_batch[:n_loop] - w_loop).max():.2e}  [{where}]")
+    print(f"per material-step: batched {1e6 * t_batch / (args.materials * args.steps):.3g} us, "
+          f"loop {1e6 * t_loop / (args.materials * args.steps):.4g} us (wall)  [{where}]")
     rate, rate_cpu = samples * STEP_FLOPS / t_batch, samples * STEP_FLOPS / c_batch
     print(f"batched fitter: {rate / 1e9:.1f} GFLOP/s wall = {100 * rate / peak:.1f} % of the fp32 "
           f"sgemm peak {peak / 1e9:.1f} GFLOP/s; {rate_cpu / 1e9:.1f} GFLOP/CPU-s = "

@@ -1,5 +1,6 @@
 """The GPU query's Triton kernel (neumat.btf.query_triton) against the torch path, run on the CPU
-through Triton's interpreter: the same arithmetic as on a GPU, none of its speed."""
+through Triton's interpreter (the same arithmetic as on a GPU, none of its speed) and, where a
+CUDA device is visible, compiled for it against the torch path on the CPU."""
 
 import importlib
 import sys
@@ -13,15 +14,31 @@ from neumat.btf import models, query, query_triton
 pytest.importorskip("triton", reason="Triton is not installed (pip install -e '.[test]')")
 
 
-@pytest.fixture
-def interpreter(monkeypatch):
+def _interpret(monkeypatch):
     """TRITON_INTERPRET=1 when the kernels are defined (triton.jit reads it then)."""
     monkeypatch.setenv("TRITON_INTERPRET", "1")
     if "neumat.btf.triton_kernels" in sys.modules:
         importlib.reload(sys.modules["neumat.btf.triton_kernels"])
-    yield
+    yield torch.device("cpu")
     monkeypatch.delenv("TRITON_INTERPRET")
     importlib.reload(sys.modules["neumat.btf.triton_kernels"])
+
+
+@pytest.fixture
+def interpreter(monkeypatch):
+    yield from _interpret(monkeypatch)
+
+
+@pytest.fixture(params=["interpreter", "cuda"])
+def kernel_device(request, monkeypatch):
+    """Where the kernel runs: Triton's interpreter on the CPU, or the compiled kernel on a GPU
+    (skipped without one). The reference is always the torch path on the CPU."""
+    if request.param == "cuda":
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA device: the compiled kernel runs only on a GPU")
+        yield torch.device("cuda")
+        return
+    yield from _interpret(monkeypatch)
 
 
 def queries(n, seed):
@@ -41,7 +58,7 @@ def queries(n, seed):
 @pytest.mark.parametrize("kw", [{}, dict(u_channels=6, dir_channels=5, hidden=24, layers=3),
                                 dict(hidden=40, layers=2), dict(dir_res=7, layers=5)])
 @torch.no_grad()
-def test_kernel_equals_the_torch_path(interpreter, kw):
+def test_kernel_equals_the_torch_path(kernel_device, kw):
     """Every shape the kernel pads (channels to 16, hidden to a power of two, 3 outputs to 16),
     1, 2 or 3 hidden layers, wrap and clamp, and a last block that is not full."""
     torch.manual_seed(0)
@@ -50,16 +67,18 @@ def test_kernel_equals_the_torch_path(interpreter, kw):
         p.normal_(0, 0.3)
     m.requires_grad_(False)
     u, wi, wo = queries(333, 1)
+    want = {False: m(u, wi, wo), True: m.raw(u, wi, wo)}
+    d = kernel_device
+    m, u, wi, wo = m.to(d), u.to(d), wi.to(d), wo.to(d)
     assert query_triton.supported(m, u, wi, wo)
     for raw in (False, True):
-        got = query_triton.query(m, u, wi, wo, raw=raw)
-        want = m.raw(u, wi, wo) if raw else m(u, wi, wo)
-        torch.testing.assert_close(got, want, rtol=2e-5, atol=2e-5)
+        got = query_triton.query(m, u, wi, wo, raw=raw).cpu()
+        torch.testing.assert_close(got, want[raw], rtol=2e-5, atol=2e-5)
 
 
 @pytest.mark.parametrize("kw", [{}, dict(u_channels=6, hidden=24, layers=3)])
 @torch.no_grad()
-def test_hpb_kernel_equals_the_torch_synthesis(interpreter, kw):
+def test_hpb_kernel_equals_the_torch_synthesis(kernel_device, kw):
     """HPB inside the kernel (float64 grid and fetch coordinates, integer hash, blend, LUT,
     inverse PCA folded into layer 1) = Synthesized.torch_forward, near u = 0 and at |u| ~ 1e5
     (where an fp32 grid constant alone moved results by ~1e-2); another seed, another result."""
@@ -71,14 +90,19 @@ def test_hpb_kernel_equals_the_torch_synthesis(interpreter, kw):
     h = syn.build(m, "hpb", 5, {})
     _, wi, wo = queries(300, 6)
     g = torch.Generator().manual_seed(7)
-    for scale in (10.0, 1e5):
-        u = (torch.rand(300, 2, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
-        torch.testing.assert_close(query_triton.query(m, u, wi, wo, hpb=h),
-                                   syn.Synthesized(m, h).torch_forward(u, wi, wo),
-                                   rtol=2e-5, atol=3e-5)
-        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, hpb=h),
-                                   m.decode(h.torch_features(u), wi, wo), rtol=2e-5, atol=3e-5)
     other = syn.build(m, "hpb", 6, {})
+    us = [(torch.rand(300, 2, generator=g, dtype=torch.float64) - 0.5) * 2 * s
+          for s in (10.0, 1e5)]
+    want = [(syn.Synthesized(m, h).torch_forward(u, wi, wo), m.decode(h.torch_features(u), wi, wo))
+            for u in us]
+    d = kernel_device
+    m, wi, wo = m.to(d), wi.to(d), wo.to(d)  # the HPB tables follow the model in the kernel
+    for u, (out, raw) in zip(us, want):
+        u = u.to(d)
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, hpb=h).cpu(), out,
+                                   rtol=2e-5, atol=3e-5)
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, hpb=h).cpu(), raw,
+                                   rtol=2e-5, atol=3e-5)
     assert not torch.allclose(query_triton.query(m, u, wi, wo, hpb=other),
                               query_triton.query(m, u, wi, wo, hpb=h))
 

@@ -21,7 +21,8 @@ with script_logging(snakemake) as log:
     bundle = train(weights[rows], labels, p.class_names,
                    DenoiserConfig(**cfg["model"], n_classes=len(p.class_names)),
                    ScheduleConfig(**cfg["schedule"]),
-                   TrainConfig(**cfg["train"], checkpoint_every=c["train"]["checkpoint_every"]),
+                   TrainConfig(**cfg["train"], checkpoint_every=c["train"]["checkpoint_every"],
+                               compile=c["train"]["compile"]),
                    snakemake.output.model, p.checkpoint, p.seed, snakemake.config["device"])
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")

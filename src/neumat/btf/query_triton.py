@@ -34,7 +34,10 @@ from neumat.btf.fold import fold_pca
 log = logging.getLogger(__name__)
 _failed: list[str] = []  # the first kernel failure of this process, if any
 
-BLOCK = 64  # queries per program
+# queries and warps per program: speed only (each query's arithmetic is the same). 64 and 2 were
+# the fastest of 7 shapes for both the plain and the HPB query on an H200, in two sweeps
+# (benchmarks/btf_query.py --device cuda --sweep)
+LAUNCH = {"BLOCK": 64, "num_warps": 2}
 
 
 @cache
@@ -167,10 +170,10 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
     if n == 0:
         return out
     triton, _ = _triton()
-    grid = (triton.cdiv(n, BLOCK),)
+    grid = (triton.cdiv(n, LAUNCH["BLOCK"]),)
     mlp = (p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"], p["wl"], p["bl"], out, n)
     shapes = dict(CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
-                  RAW=bool(raw), BLOCK=BLOCK)
+                  RAW=bool(raw), **LAUNCH)
     if hpb is None:
         fu = f32(model.f_u)
         _kernel()[grid](f32(u), wi, wo, fu, fh, fd, *mlp, fu.shape[0], fu.shape[1],

@@ -46,6 +46,7 @@ class TrainConfig:
     checkpoint_every: int = 250
     log_every: int = 50
     precision: str = "fp32"  # "bf16": the denoiser's forward under bfloat16 autocast
+    compile: str = "none"  # GPU only: the forward under torch.compile in this mode (speed only)
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -82,6 +83,23 @@ def native_bf16(dev: torch.device) -> str | None:
     return f"bf16 autocast is not set up for {dev.type}"
 
 
+COMPILE_MODES = ("none", "default", "reduce-overhead")
+
+
+def forward_of(model: torch.nn.Module, cfg: TrainConfig, dev: torch.device):
+    """The module training calls: the model, or on a GPU with `compile` set, the model under
+    torch.compile (same parameters, so AdamW, the EMA and checkpoints see no difference). On a
+    GPU the step is bound by the host launching kernels (benchmarks/diffusion_step.py);
+    reduce-overhead replays forward and backward as CUDA graphs. The CPU ignores it: compiling
+    costs tens of seconds there and does not pay off at these sizes."""
+    if cfg.compile not in COMPILE_MODES:
+        raise ValueError(f"diffusion.train.compile must be one of {COMPILE_MODES}, "
+                         f"got {cfg.compile!r}")
+    if cfg.compile == "none" or dev.type != "cuda":
+        return model
+    return torch.compile(model, mode=cfg.compile, dynamic=False)
+
+
 def check_precision(cfg: TrainConfig, dev: torch.device) -> None:
     if cfg.precision not in PRECISIONS:
         raise ValueError(f"diffusion.train.precision must be one of {PRECISIONS}, got {cfg.precision!r}")
@@ -95,7 +113,9 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | 
     h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
     for k in sorted(vectors or {}):
         h.update(k.encode() + np.ascontiguousarray(vectors[k], dtype=np.float32).tobytes())
-    h.update(json.dumps([asdict(c) for c in cfgs], sort_keys=True).encode())
+    # `compile` is how the steps run, not what they compute: a run resumes across it
+    d = [{k: v for k, v in asdict(c).items() if k != "compile"} for c in cfgs]
+    h.update(json.dumps(d, sort_keys=True).encode())
     return h.hexdigest()
 
 
@@ -138,6 +158,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     norm = Normalizer.fit(torch.from_numpy(weights)).to(dev)
     model = Denoiser(model_cfg).to(dev)
     ema = copy.deepcopy(model).requires_grad_(False)
+    fwd = forward_of(model, cfg, dev)
     # fused AdamW on a GPU (one kernel for every parameter); the CPU keeps the default
     # implementation, so CPU results do not change
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
@@ -190,7 +211,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         # bf16: the denoiser's matmuls in bfloat16; weights, loss (the prediction minus an fp32
         # target promotes back), gradients, AdamW and the EMA stay fp32
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
-            loss = diffusion.loss(model, x_all[idx], cond or None, drops or None, gen)
+            loss = diffusion.loss(fwd, x_all[idx], cond or None, drops or None, gen)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip:

@@ -30,11 +30,10 @@ DEFAULTS = {"rotation": 1.0, "contrast": 0.6, "exponent": 7.0, "gain": 0.7}
 def luminance(model) -> torch.Tensor:
     """(H, W) Rec. 601 luminance of the model at its texel centres, wi = wo = normal, / max."""
     H, W, _ = model.f_u.shape
-    ys, xs = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
-    u = torch.stack([(xs.reshape(-1) + 0.5) / W, (ys.reshape(-1) + 0.5) / H], -1)
-    n = torch.tensor([[0.0, 0.0, 1.0]]).expand(len(u), 3)
+    dev = model.f_u.device  # a model on a GPU builds there
+    n = torch.tensor([[0.0, 0.0, 1.0]], device=dev).expand(H * W, 3)
     rgb = torch.relu(torch.expm1(model.decode(model.f_u.reshape(-1, model.f_u.shape[-1]), n, n)))
-    lum = rgb @ torch.tensor([0.299, 0.587, 0.114])
+    lum = rgb @ torch.tensor([0.299, 0.587, 0.114], device=dev)
     return (lum / lum.max().clamp_min(1e-12)).reshape(H, W)
 
 
