@@ -1,5 +1,6 @@
 """Dynamic BTF synthesis on the positional plane (neumat.btf.synthesis)."""
 
+import copy
 import math
 
 import numpy as np
@@ -255,3 +256,17 @@ def test_wrapper_answers_the_query_api_and_round_trips(tmp_path):
         for k in models:
             assert torch.equal(back[k].synth(u), synths[k](u))
             assert back[k](u, wi, wi).shape == (n, 3)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="no CUDA device: building from a model on a GPU needs one")
+@pytest.mark.parametrize("method", DYNAMIC)
+def test_builds_from_a_model_on_the_gpu(method):
+    """A synthesis built from a model on CUDA computes what the CPU build does (hex-tiling's
+    luminance once made its tensors on the CPU and failed there)."""
+    u = (torch.rand(500, 2, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+         - 0.5) * 50
+    m = _plane_model()  # one model: its MLP's init (which hex-tiling's luminance reads) is not
+    want = syn.build(m, method, 5)(u)  # seeded by _plane_model, so two calls differ
+    got = syn.build(copy.deepcopy(m).cuda(), method, 5)(u.cuda()).cpu()
+    torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
