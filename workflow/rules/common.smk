@@ -86,6 +86,14 @@ def settings(section, keys=None, drop=()):
     return canon(substantive(chosen, section, keep))
 
 
+def neutral_params(section, keys):
+    """Keyword params for single keys of `section` (`**neutral_params(...)` in a rule's params):
+    each key that is not at its neutral value (config/speed_keys.yaml), so that a key added
+    after results existed reruns nothing at its default. Scripts read them with getattr(p, key,
+    neutral value)."""
+    return settings(section, keys)
+
+
 def substantive(d, path="", keep=()):
     """`d` (config or a section at `path`) without speed-only and cosmetic keys, and without
     neutral keys at their neutral value, at any depth."""

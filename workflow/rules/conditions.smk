@@ -164,6 +164,7 @@ rule sample_image:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
+        **neutral_params("conditions.image", ["render_step"]),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
         mode="image",

@@ -2,11 +2,14 @@
 ('image': test-split metric-view renders and config images), or the same-run baselines for the
 test prompts: their types ('mm_type') and no condition ('mm_uncond'). Images with
 `conditions.image.strength` < 1 start from their retrieved training material (nearest
-metric-view embedding) noised to that fraction of the schedule."""
+metric-view embedding) noised to that fraction of the schedule; with
+`conditions.image.render_step` > 0 each image's samples are also pulled toward its metric-view
+render (render guidance)."""
 import time
 
 import numpy as np
 import pandas as pd
+import torch
 
 from neumat.conditions import image
 from neumat.diffusion import Sampler, dataset
@@ -42,6 +45,7 @@ with script_logging(snakemake) as log:
     s, k = p.sample, p.per_prompt
     sampler = Sampler(inp.model, snakemake.config["device"])
     start, strength = None, getattr(p, "strength", 1.0)
+    targets, render_step = None, getattr(p, "render_step", 0.0)  # absent at its neutral 0
     if p.mode == "image":
         weights = np.load(inp.weights)
         man = dataset.read_manifest(inp.manifest, len(weights))
@@ -54,6 +58,10 @@ with script_logging(snakemake) as log:
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
             start = weights[np.repeat(got, k)]
+        if render_step:  # render guidance toward each sample's own conditioning image
+            targets = np.repeat(imgs, k, 0)
+            log.info("render guidance, step %g, toward %d conditioning images", render_step,
+                     len(imgs))
     else:
         conds = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
         if p.mode != "text":  # baselines for the test-split descriptions only
@@ -73,7 +81,9 @@ with script_logging(snakemake) as log:
     t0 = time.perf_counter()
     w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
                s["batch_size"], s["clip"], negative_step=s["negative_step"],
-               activation=p.activation, start=start, strength=strength)
+               activation=p.activation, start=start, strength=strength,
+               render_targets=None if targets is None else torch.as_tensor(targets),
+               render_step=render_step)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table.to_csv(out.table, sep="\t", index=False)

@@ -19,6 +19,15 @@ largest channel is raw > TAU = log(1 + 1/pi), so at the same kind of direction s
 and x0 <- x0 - lambda * dP/dx0 after the clamp-aware step. Rejection sampling still decides:
 a guided draw counts only if the exact rule on the statistics grid accepts it.
 
+3. Render guidance (`RenderConstraint`, config conditions.image.render_step = lambda), for an
+image condition shown in the metric view (`neumat.render.sphere`): each sample has its target
+image y, and with r(x0) the sRGB metric-view render of the NBRDF x0 decodes to,
+    P(x0) = sqrt(mean over the sphere's pixels and channels of (r(x0) - y)^2),
+    x0 <- x0 - lambda * dP/dx0   (the RMSE, so a step's size does not scale with the error),
+after the other steps: reconstruction guidance as in diffusion posterior sampling (Chung et al.
+2023), the diffusion model as the prior of an inverse rendering. It needs the image's view
+and lighting, so it applies to metric-view renders, not to arbitrary photographs.
+
 Its own module, imported by both `train.Sampler.sample` and `sample.py` (which imports train).
 """
 
@@ -158,3 +167,43 @@ def constraint_for(sampler, negative_step: float, seed: int, activation: str = "
     cat = (CategoryConstraint(sampler.norm, category, category_step, seed, activation)
            if category is not None and category_step else None)
     return chain(neg, cat)
+
+
+class RenderConstraint(_PenaltyStep):
+    """Render guidance (module docstring, 3): targets (B, H, W, 3) linear HDR metric-view images,
+    one per sample of the batch this hook serves, in order; the render is at their resolution."""
+
+    def __init__(self, norm, targets: torch.Tensor, step: float, activation: str = "relu"):
+        from neumat.render import sphere
+
+        if step < 0:
+            raise ValueError(f"conditions.image.render_step must be >= 0, got {step}")
+        t = torch.as_tensor(targets, dtype=torch.float32)
+        if t.dim() != 4 or t.shape[1] != t.shape[2] or t.shape[3] != 3:
+            raise ValueError(f"render targets must be (B, H, H, 3) images, got {tuple(t.shape)}")
+        self.norm, self.step, self.activation = norm, float(step), activation
+        self.view = sphere.sphere_view(t.shape[1])
+        self.srgb = sphere.to_srgb
+        self.y = self.srgb(t).reshape(len(t), -1, 3)[:, self.view.mask.reshape(-1)]
+
+    def __call__(self, x0: torch.Tensor) -> torch.Tensor:
+        if self.step == 0:
+            return x0
+        if len(x0) != len(self.y):
+            raise ValueError(f"{len(self.y)} render targets for a batch of {len(x0)}")
+        z = x0.detach().float()
+        block = CPU_BLOCK if z.device.type == "cpu" else len(z)
+        g = torch.cat([self._grad_block(z[s:s + block], self.y[s:s + block])
+                       for s in range(0, len(z), block)])
+        return x0 - self.step * g.to(x0.dtype)
+
+    def _grad_block(self, z, y):
+        with torch.enable_grad():
+            z = z.requires_grad_(True)
+            return torch.autograd.grad(self.penalty(self.norm.decode(z), y.to(z.device)).sum(), z)[0]
+
+    def penalty(self, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        v = self.view
+        img = v.composite(nbrdf.forward(w, v.x6.to(w.device), self.activation))
+        r = self.srgb(img).reshape(len(w), -1, 3)[:, v.mask.reshape(-1).to(w.device)]
+        return ((r - y) ** 2).flatten(1).mean(1).add(1e-12).sqrt()

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from neumat import nbrdf
-from neumat.diffusion.constraints import constraint_for
+from neumat.diffusion.constraints import RenderConstraint, chain, constraint_for
 from neumat.diffusion.train import Sampler
 
 def guided_multi(model, cond: dict, scales: dict) -> Callable:
@@ -115,7 +115,8 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
            batch_size: int = 256, clip: float | None = None, image_encoder=None,
            negative_step: float = 30.0, activation: str = "relu", start: np.ndarray | None = None,
            strength: float = 1.0, category: str | None = None,
-           category_step: float = 0.0) -> np.ndarray:
+           category_step: float = 0.0, render_targets: torch.Tensor | None = None,
+           render_step: float = 0.0) -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies
@@ -123,7 +124,8 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     `category` with `category_step` > 0 category guidance after it (`CategoryConstraint`). `start`
     (n, 675) weight vectors and `strength` < 1: each sample starts from its start vector
     noised to strength (T - 1) (`Diffusion.ddim_sample`'s x0_start), e.g. the retrieved
-    training material of an image condition."""
+    training material of an image condition. `render_targets` (n, H, H, 3) metric-view images
+    and `render_step` > 0: render guidance toward each sample's image (`RenderConstraint`)."""
     if not isinstance(sampler, Sampler):
         sampler = Sampler(sampler)
     cond = encode_conditions(sampler, n, conditions or {}, image_encoder)
@@ -132,7 +134,15 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     if not isinstance(guidance, dict):
         guidance = {k: 1.0 if guidance is None else float(guidance) for k in cond}
     gen = torch.Generator().manual_seed(seed)
+
+    def render_hook(s, b):  # per batch: its samples' target images
+        if render_targets is None or not render_step:
+            return None
+        return RenderConstraint(sampler.norm, render_targets[s:s + b], render_step, activation)
+
     constrain = constraint_for(sampler, negative_step, seed, activation, category, category_step)
+    if render_targets is not None and len(render_targets) != n:
+        raise ValueError(f"{len(render_targets)} render targets for {n} samples")
     out = []
     for s in range(0, n, batch_size):
         b = min(batch_size, n - s)
@@ -141,7 +151,8 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
             torch.as_tensor(np.asarray(start[s:s + b], np.float32)).to(sampler.device))
         z = sampler.diffusion.ddim_sample(guided_multi(sampler.model, c, guidance),
                                           (b, nbrdf.N_PARAMS), steps, eta, gen, sampler.device,
-                                          clip=clip, constrain=constrain, x0_start=x0,
+                                          clip=clip, x0_start=x0, constrain=chain(
+                                              constrain, render_hook(s, b)),
                                           strength=strength)
         out.append(sampler.norm.decode(z).float().cpu().numpy())
     return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
