@@ -12,6 +12,10 @@ and to the start, and the share of samples clamping negative values.
 
     python benchmarks/conditions_strength.py --results results/<run> --strengths 1 0.5 0.3
     python benchmarks/conditions_strength.py --results results/<run> --mode type --strengths 1 0.3
+    python benchmarks/conditions_strength.py --results results/<run> --strengths 1 0.3 --render-steps 0 1
+
+--render-steps (image mode): also pull each sample toward its conditioning image's metric-view
+render (`conditions.image.render_step`, RenderConstraint); every strength with every step.
 """
 
 import argparse
@@ -63,6 +67,8 @@ def main():
     ap.add_argument("--mode", default="image", choices=["image", "text", "type"])
     ap.add_argument("--strengths", type=float, nargs="+", default=[1.0, 0.5, 0.3])
     ap.add_argument("--per-image", type=int, default=8, help="samples per condition")
+    ap.add_argument("--render-steps", type=float, nargs="+", default=[0.0],
+                    help="image mode: render guidance steps (conditions.image.render_step)")
     ap.add_argument("--guidance", type=float, default=2.0)
     ap.add_argument("--steps", type=int, default=100)
     ap.add_argument("--negative-step", type=float, default=30.0)
@@ -90,14 +96,18 @@ def main():
     sampler = Sampler(f"{R}/diffusion/multimodal/model.pt", "cpu")
     c = {mode: list(np.repeat(emb, k)) if mode == "type" else np.repeat(emb, k, 0)}
     f_start = np.repeat(ts.fv(ret), k, 0)
-    for st in a.strengths:
+    if mode != "image" and a.render_steps != [0.0]:
+        raise SystemExit("--render-steps needs --mode image (render guidance follows an image)")
+    tgt = None if cond is None else cond.repeat_interleave(k, 0)
+    for st, rs in [(st, rs) for st in a.strengths for rs in a.render_steps]:
         t0 = time.perf_counter()
         w = sample(sampler, len(emb) * k, a.seed, c, {mode: a.guidance}, a.steps, 0.0, 256, None,
-                   negative_step=a.negative_step, start=weights[np.repeat(got, k)], strength=st)
+                   negative_step=a.negative_step, start=weights[np.repeat(got, k)], strength=st,
+                   render_targets=tgt if rs else None, render_step=rs)
         dt = time.perf_counter() - t0
         near = ts.nearest(w)
         hits = (near.nearest_type.to_numpy() == asked)[scorable].mean()
-        line = f"strength {st:g}: type hits {hits:.3f} ({scorable.sum()} samples)"
+        line = f"strength {st:g}{f', render step {rs:g}' if rs else ''}: type hits {hits:.3f} ({scorable.sum()} samples)"
         if cond is not None:
             sc = ev.image_scores(w, cond.repeat_interleave(k, 0), a.resolution, "relu")
             per = sc.groupby(np.repeat(np.arange(len(emb)), k)).mean()

@@ -75,6 +75,8 @@ def main():
           f"{len(train)} training rows; oracle retrieval (best training PSNR): PSNR "
           f"{rsc.psnr.mean():.2f} dB, SSIM {rsc.ssim.mean():.4f} ({time.perf_counter() - t0:.0f} s)",
           flush=True)
+    ref_neg = ev.negative_share(weights[test], a.bins, seed_for(a.seed, "negative_share"), "relu")
+    print(f"the held-out materials themselves: clamping {ref_neg.mean():.3f}", flush=True)
     sampler = Sampler(f"{R}/diffusion/ours/model.pt", "cpu")
     tgt = targets.repeat_interleave(k, 0)
     f_tgt = np.repeat(np.asarray(ts.fv(weights[test])), k, 0)

@@ -12,7 +12,9 @@ import torch
 
 from neumat import cli, constrained, nbrdf
 from neumat.diffusion import DenoiserConfig, ScheduleConfig, TrainConfig, train
+from neumat.conditions import image
 from neumat.io import merl
+from neumat.render import sphere
 
 TYPES = ["fabric", "steel"]
 
@@ -254,6 +256,13 @@ def test_image_sampling_png_and_exr(mm_run, sphere_png, tmp_path):
     assert table["image_encoder"][0].endswith(cli.IMAGE_ENCODER)
     e, _ = _sample(mm_run, tmp_path / "e", "--image", sphere_png.with_suffix(".exr"))
     assert not np.allclose(a, e)  # another image (brighter), other samples
+    assert list(table["render_step"]) == [0.0] * 3  # the schema default: off
+    # render guidance: the samples' metric-view renders come closer to the image
+    g, tg = _sample(mm_run, tmp_path / "g", "--image", sphere_png, "--render-step", 20)
+    assert list(tg["render_step"]) == [20.0] * 3
+    target = sphere.to_srgb(torch.as_tensor(image.load_image(sphere_png, 32)))
+    err = lambda w: ((sphere.to_srgb(sphere.render_fields(w, 32)) - target) ** 2).mean()  # noqa: E731
+    assert err(g) < err(a)
 
 
 def test_conditions_compose_with_per_modality_guidance(mm_run, sphere_png, tmp_path):
@@ -312,6 +321,8 @@ def test_info_lists_conditions_and_encoders(mm_run, run, capsys):
     (["--run", "{mm}", "--text", "x", "--guidance", "image=2"], ["no image condition asked"]),
     (["--run", "{mm}", "--text", "x", "--guidance", "loud"], ["MOD=S with MOD one of type, text, image"]),
     (["--run", "{mm}", "--text", "x", "--guidance", "text=-1"], ["give a scale >= 0"]),
+    (["--run", "{mm}", "--text", "x", "--render-step", "1"], ["--render-step 1: give it with --image"]),
+    (["--run", "{mm}", "--image", "{img}", "--render-step", "-1"], ["as a number >= 0"]),
 ])
 def test_condition_errors_say_what_to_do(run, mm_run, tmp_path, sphere_png, capsys, args, messages):
     import shutil

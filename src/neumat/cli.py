@@ -280,8 +280,10 @@ class Composed:
     each), with per-modality guidance; its `sample` has `Sampler.sample`'s signature so that
     constrained.sample_category can draw from it unconditionally or type-guided."""
 
-    def __init__(self, sampler, fixed: dict[str, np.ndarray], scales: dict[str, float]):
+    def __init__(self, sampler, fixed: dict[str, np.ndarray], scales: dict[str, float],
+                 render: tuple[np.ndarray, float] | None = None):
         self.sampler, self.fixed, self.scales = sampler, fixed, scales
+        self.render = render  # (metric-view image (H, H, 3), step): render guidance
         self.class_names = sampler.class_names
 
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
@@ -294,9 +296,13 @@ class Composed:
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
             cond["type"], scales["type"] = list(types), guidance
+        targets, step = None, 0.0
+        if self.render is not None and self.render[1]:
+            import torch
+            targets, step = torch.as_tensor(self.render[0])[None].expand(n, -1, -1, -1), self.render[1]
         return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
                       negative_step=negative_step, activation=activation, category=category,
-                      category_step=category_step)
+                      category_step=category_step, render_targets=targets, render_step=step)
 
 
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
@@ -318,12 +324,21 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.image:
         dim = bundle["model_cfg"]["vector_conditions"]["image"]
         fixed["image"], enc_path = _image_embedding(run, args.image, dim)
+    render = None
+    if args.image:
+        step = (float(run.setting("conditions", "image", "render_step"))
+                if args.render_step is None else args.render_step)
+        if step:  # the image as the metric view sees it, at the run's report resolution
+            from neumat.conditions import image
+            render = (image.load_image(args.image, int(run.setting("report", "sphere_resolution"))),
+                      step)
     if fixed:
-        sampler = Composed(sampler, fixed, scales)
+        sampler = Composed(sampler, fixed, scales, render)
     info = {"model": model_path.parent.name, "text": args.text or "", "image": args.image or ""}
     info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
     if args.image:
         info["image_encoder"] = str(enc_path)
+        info["render_step"] = render[1] if render else 0.0
     # the run's clamp constraint (diffusion.sample.negative_step), as its workflow sampled
     neg = float(run.setting("diffusion", "sample", "negative_step"))
     T = int(bundle["sched_cfg"]["timesteps"])
@@ -422,6 +437,9 @@ def cmd_sample(args) -> int:
     if args.category_step is not None and (not args.category or args.category_step < 0):
         raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
                        f"number >= 0 (0 = rejection only)")
+    if args.render_step is not None and (not args.image or args.render_step < 0):
+        raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
+                       f">= 0 (0 = off)")
     args.activation = args.activation or run.activation()
     w, table = _draw(args, run, bundle, model_path, chosen)
     out = Path(args.out)
@@ -672,6 +690,11 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--category-step", type=float, metavar="S",
                    help="--category diffuse/metallic: category guidance step, 0 = off (default: the "
                         "run's constrained.guidance_step)")
+    s.add_argument("--render-step", type=float, metavar="S",
+                   help="--image: render guidance, pulling each sample's metric-view render toward "
+                        "the image, 0 = off; the image must show the metric view (a sphere under "
+                        "neumat's light, as `neumat render` draws it). Default: the run's "
+                        "conditions.image.render_step")
     s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")
     s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
     s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")
