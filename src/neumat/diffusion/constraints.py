@@ -181,10 +181,11 @@ class RenderConstraint(_PenaltyStep):
         t = torch.as_tensor(targets, dtype=torch.float32)
         if t.dim() != 4 or t.shape[1] != t.shape[2] or t.shape[3] != 3:
             raise ValueError(f"render targets must be (B, H, H, 3) images, got {tuple(t.shape)}")
+        # not _PenaltyStep.__init__: no direction set; the penalty is over the image's pixels
         self.norm, self.step, self.activation = norm, float(step), activation
-        self.view = sphere.sphere_view(t.shape[1])
-        self.srgb = sphere.to_srgb
-        self.y = self.srgb(t).reshape(len(t), -1, 3)[:, self.view.mask.reshape(-1)]
+        self.sphere, self.resolution = sphere, t.shape[1]
+        mask = sphere.sphere_view(self.resolution).mask.reshape(-1)
+        self.y = sphere.to_srgb(t).reshape(len(t), -1, 3)[:, mask]
 
     def __call__(self, x0: torch.Tensor) -> torch.Tensor:
         if self.step == 0:
@@ -203,7 +204,7 @@ class RenderConstraint(_PenaltyStep):
             return torch.autograd.grad(self.penalty(self.norm.decode(z), y.to(z.device)).sum(), z)[0]
 
     def penalty(self, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        v = self.view
-        img = v.composite(nbrdf.forward(w, v.x6.to(w.device), self.activation))
-        r = self.srgb(img).reshape(len(w), -1, 3)[:, v.mask.reshape(-1).to(w.device)]
+        v = self.sphere.sphere_view(self.resolution, str(w.device))  # cached per device
+        img = v.composite(nbrdf.forward(w, v.x6, self.activation))
+        r = self.sphere.to_srgb(img).reshape(len(w), -1, 3)[:, v.mask.reshape(-1)]
         return ((r - y) ** 2).flatten(1).mean(1).add(1e-12).sqrt()
