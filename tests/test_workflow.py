@@ -356,6 +356,19 @@ def test_bf16_training_is_a_param_and_fp32_reruns_nothing(tiny_run):
             assert jobs == [], jobs
 
 
+@pytest.mark.slow
+def test_render_step_reruns_only_image_sampling(tiny_run):
+    """conditions.image.render_step (neutral 0; the tiny config sets 1) is a param of
+    sample_image alone: turning it off reruns image sampling and what reads it, no training."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "conditions.image.render_step", 0.0)
+    (tiny_run / "config/render_off.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/render_off.yaml")
+    assert "sample_image" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
+
+
 def test_every_model_file_loads_with_weights_only(tiny_run):
     """Users share model files: all the tiny run writes are tensors and plain values."""
     import torch
