@@ -80,16 +80,7 @@ def matmul_rate(device, dtype=torch.float32) -> float:
     depend on what else runs on a shared machine)."""
     if device.type != "cuda":
         return machine.sgemm_peak(dtype=dtype)[1]
-    n = 8192
-    a = torch.randn(n, n, device=device, dtype=dtype)
-    b = torch.randn(n, n, device=device, dtype=dtype)
-    torch.mm(a, b)
-    torch.cuda.synchronize()
-    t = time.perf_counter()
-    for _ in range(5):
-        torch.mm(a, b)
-    torch.cuda.synchronize()
-    return 5 * 2 * n ** 3 / (time.perf_counter() - t)
+    return machine.gpu_matmul_rate(device, dtype)
 
 
 def main():

@@ -87,20 +87,6 @@ def loop_fit(values, bins, ids, init, s: fit.FitSettings, seed, device="cpu"):
     return torch.stack(weights).numpy(), np.array(val)
 
 
-def gpu_sgemm_peak(device, n=8192, repeat=5):
-    """fp32 matmul FLOP/s of the GPU (TF32 off, as torch's default), best of `repeat`."""
-    a = torch.randn(n, n, device=device)
-    c = a @ a
-    best = float("inf")
-    for _ in range(repeat):
-        torch.cuda.synchronize()
-        t = time.perf_counter()
-        torch.mm(a, a, out=c)
-        torch.cuda.synchronize()
-        best = min(best, time.perf_counter() - t)
-    return 2 * n ** 3 / best
-
-
 # matmul FLOPs per material-sample of one training step: forward 6-21-21-3 (630 multiply-adds),
 # weight gradients (630) and input gradients of layers 2 and 3 (504); 2 FLOPs per multiply-add
 STEP_FLOPS = 2 * (630 + 630 + 504)
@@ -152,7 +138,7 @@ def main():
     t_batch, c_batch = time.perf_counter() - t0, time.process_time() - c0
 
     if dev.type == "cuda":  # the host's CPU time means nothing for a GPU fit: wall only
-        peak = peak_cpu = gpu_sgemm_peak(dev)
+        peak = peak_cpu = machine.gpu_matmul_rate(dev)
     else:
         peak, peak_cpu = machine.sgemm_peak(args.threads)
     vl, vb = val_loop.mean(), val_batch[:n_loop].mean()

@@ -31,8 +31,7 @@ from neumat.seeds import seed_for
 
 def psnr_matrix(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(A, H, W, 3) x (B, H, W, 3) linear HDR -> (A, B) PSNR in sRGB, as image_scores."""
-    x, y = (sphere.to_srgb(t).flatten(1).double() for t in (a, b))
-    mse = ((x ** 2).sum(1)[:, None] - 2 * x @ y.T + (y ** 2).sum(1)[None]) / x.shape[1]
+    mse = distances.pairwise_mse(sphere.to_srgb(a), sphere.to_srgb(b))
     return -10 * torch.log10(mse.clamp_min(distances.PSNR_FLOOR_MSE))
 
 

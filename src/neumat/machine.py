@@ -76,6 +76,22 @@ def describe(march: str | None = None) -> str:
     return s
 
 
+def gpu_matmul_rate(device, dtype=None, n: int = 8192, repeat: int = 5) -> float:
+    """FLOP per wall second of an n^3 torch.mm on a CUDA `device` in fp32 (TF32 off, torch's
+    default) or `dtype`, the best of `repeat` after a warm-up."""
+    import torch
+    a = torch.randn(n, n, device=device, dtype=dtype or torch.float32)
+    c = a @ a  # warm-up
+    best = float("inf")
+    for _ in range(repeat):
+        torch.cuda.synchronize()
+        t = time.perf_counter()
+        torch.mm(a, a, out=c)
+        torch.cuda.synchronize()
+        best = min(best, time.perf_counter() - t)
+    return 2 * n ** 3 / best
+
+
 def sgemm_peak(threads: int | None = None, n: int = 2048, repeat: int = 5,
                dtype=None) -> tuple[float, float]:
     """fp32 (or `dtype`, e.g. torch.bfloat16) matmul rate of this machine from n^3 torch.mm

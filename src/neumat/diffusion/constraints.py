@@ -92,13 +92,18 @@ class _PenaltyStep:
         # each sample's gradient is its own penalty's, so the batch splits freely; on the CPU in
         # blocks of CPU_BLOCK, whose activations (8 x 4096 x 21 floats a layer) stay in cache
         block = CPU_BLOCK if z.device.type == "cpu" else len(z)
-        g = torch.cat([self._grad(z[s:s + block]) for s in range(0, len(z), block)])
+        g = torch.cat([self._grad(z[s:s + block], slice(s, s + block))
+                       for s in range(0, len(z), block)])
         return x0 - self.step * g.to(x0.dtype)
 
-    def _grad(self, z: torch.Tensor) -> torch.Tensor:
+    def _grad(self, z: torch.Tensor, rows: slice) -> torch.Tensor:
         with torch.enable_grad():
             z = z.requires_grad_(True)
-            return torch.autograd.grad(self.penalty(self.norm.decode(z)).sum(), z)[0]
+            return torch.autograd.grad(self.block_penalty(self.norm.decode(z), rows).sum(), z)[0]
+
+    def block_penalty(self, w: torch.Tensor, rows: slice) -> torch.Tensor:
+        """The penalty of the batch's samples `rows` (weights w); per-sample targets use rows."""
+        return self.penalty(w)
 
 
 class NegativeConstraint(_PenaltyStep):
@@ -188,20 +193,12 @@ class RenderConstraint(_PenaltyStep):
         self.y = sphere.to_srgb(t).reshape(len(t), -1, 3)[:, mask]
 
     def __call__(self, x0: torch.Tensor) -> torch.Tensor:
-        if self.step == 0:
-            return x0
-        if len(x0) != len(self.y):
+        if self.step and len(x0) != len(self.y):
             raise ValueError(f"{len(self.y)} render targets for a batch of {len(x0)}")
-        z = x0.detach().float()
-        block = CPU_BLOCK if z.device.type == "cpu" else len(z)
-        g = torch.cat([self._grad_block(z[s:s + block], self.y[s:s + block])
-                       for s in range(0, len(z), block)])
-        return x0 - self.step * g.to(x0.dtype)
+        return super().__call__(x0)
 
-    def _grad_block(self, z, y):
-        with torch.enable_grad():
-            z = z.requires_grad_(True)
-            return torch.autograd.grad(self.penalty(self.norm.decode(z), y.to(z.device)).sum(), z)[0]
+    def block_penalty(self, w: torch.Tensor, rows: slice) -> torch.Tensor:
+        return self.penalty(w, self.y[rows].to(w.device))
 
     def penalty(self, w: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         v = self.sphere.sphere_view(self.resolution, str(w.device))  # cached per device
