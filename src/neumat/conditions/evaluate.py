@@ -43,6 +43,21 @@ def mean_colour(renders: torch.Tensor) -> np.ndarray:
     return renders[:, mask].mean(1).numpy()
 
 
+# the hue words a measured colour is named by (colour_word): one per hue region, no material
+# words (gold) and no near-duplicates (violet ~ purple)
+NAMING = ("red", "orange", "yellow", "green", "blue", "purple", "pink")
+
+
+def colour_word(rgb: np.ndarray) -> str:
+    """The hue word of a mean linear RGB: the `NAMING` hue nearest its HSV hue, or '' when its
+    saturation is below `MIN_SATURATION` (then `colour_matches` scores it as achromatic)."""
+    r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
+    h, s, _ = colorsys.rgb_to_hsv(r, g, b)
+    if s < MIN_SATURATION:
+        return ""
+    return min(NAMING, key=lambda w: abs((h * 360.0 - HUES[w] + 180.0) % 360.0 - 180.0))
+
+
 def colour_matches(rgb: np.ndarray, colour: str) -> bool:
     r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
     h, s, _ = colorsys.rgb_to_hsv(r, g, b)
