@@ -66,13 +66,14 @@ HUE_WORDS = frozenset({"red", "orange", "yellow", "green", "blue", "violet", "pu
 
 def recoloured(description: str, word: str) -> str:
     """`description` with its hue words replaced by `word` (a measured colour, '' for none):
-    'paint' + 'blue' -> 'blue paint'; 'a mixture of red paint and white fabric' + 'pink' ->
-    'a pink mixture of paint and white fabric'."""
+    'paint' + 'blue' -> 'blue paint'; 'a mixture of red paint and white fabric' + 'orange' ->
+    'an orange mixture of paint and white fabric'."""
     kept = " ".join(w for w in description.split() if w not in HUE_WORDS)
     if not word:
         return kept
     if kept.startswith("a mixture of "):
-        return f"a {word} mixture of " + kept[len("a mixture of "):]
+        article = "an" if word[0] in "aeiou" else "a"
+        return f"{article} {word} mixture of " + kept[len("a mixture of "):]
     return f"{word} {kept}"
 
 
