@@ -49,13 +49,16 @@ NAMING = ("red", "orange", "yellow", "green", "blue", "purple", "pink")
 
 
 def colour_word(rgb: np.ndarray) -> str:
-    """The hue word of a mean linear RGB: the `NAMING` hue nearest its HSV hue, or '' when its
-    saturation is below `MIN_SATURATION` (then `colour_matches` scores it as achromatic)."""
+    """The hue word of a mean linear RGB: the `NAMING` hue nearest its HSV hue, the word that
+    `colour_matches` accepts for it; '' when none does (saturation below `MIN_SATURATION`, or a
+    hue more than `HUE_TOLERANCE` from every word, e.g. cyan)."""
     r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
     h, s, _ = colorsys.rgb_to_hsv(r, g, b)
     if s < MIN_SATURATION:
         return ""
-    return min(NAMING, key=lambda w: abs((h * 360.0 - HUES[w] + 180.0) % 360.0 - 180.0))
+    gap = {w: abs((h * 360.0 - HUES[w] + 180.0) % 360.0 - 180.0) for w in NAMING}
+    word = min(gap, key=gap.get)
+    return word if gap[word] <= HUE_TOLERANCE else ""
 
 
 def colour_matches(rgb: np.ndarray, colour: str) -> bool:
