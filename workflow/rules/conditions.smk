@@ -336,6 +336,9 @@ rule conditions_section:
                     bench("image_embeddings"), bench("train_multimodal")],
         figures=[out("report/figures/conditions_text.png"),
                  out("report/figures/conditions_image.png")],
+        # measured colour words: the embedded descriptions are shown (and so required: a run
+        # switched to `measured` re-embeds them)
+        **({"descriptions": out("conditions/descriptions.tsv")} if COND_MEASURED else {}),
     output:
         section=out("report/sections/42_conditions.md"),
         sweep=report(out("report/figures/conditions_guidance.png"), category="Conditioning",
