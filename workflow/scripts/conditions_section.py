@@ -17,6 +17,19 @@ from neumat.logs import script_logging  # noqa: E402
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
+
+    def descriptions_note(path):
+        """With conditions.text.colour_words: measured, what was embedded in place of the
+        paper's descriptions (text_embeddings' descriptions.tsv)."""
+        if not path:
+            return []
+        d = pd.read_csv(path, sep="\t", keep_default_na=False)
+        changed = d[d["description"] != d["embedded"]]
+        return [f"Text descriptions (`conditions.text.colour_words: measured`): {len(changed)} of "
+                f"{len(d)} AugMERL descriptions (RGB-permuted copies and mixtures) name the hue "
+                "of their own metric-view render in place of their sources' colour words, e.g.:",
+                report.md_table(changed.drop_duplicates("embedded").head(6)[
+                    ["name", "operation", "description", "embedded"]])]
     summary = pd.read_csv(inp.summary, sep="\t")
     img = pd.read_csv(inp.image, sep="\t")
     sweep = pd.read_csv(inp.sweep, sep="\t")
@@ -68,6 +81,7 @@ with script_logging(snakemake) as log:
         "under another light; type hit = the nearest training material (metric view) has its type.",
         report.md_table(enc_eval),
         report.md_table(cost),
+        *descriptions_note(getattr(inp, "descriptions", None)),
         "### Type hits, colour, distance, negative clamping",
         "Type hit: the nearest typed training material (BRDF-L1) has the prompt's (or "
         "conditioning material's) type, counted over samples whose asked type some training "

@@ -10,6 +10,7 @@ from neumat.conditions import evaluate, text
 from neumat.diffusion import dataset
 from neumat.fit import save_npy
 from neumat.logs import script_logging
+from neumat.render import sphere
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
@@ -18,10 +19,22 @@ with script_logging(snakemake) as log:
     text.load_encoder()
     log.info("text encoder %s loaded from %s in %.1f s", text.PACKAGE, text.model_dir(),
              time.perf_counter() - t0)
+    descriptions = list(man["description"])
+    if getattr(p, "colour_words", "source") == "measured":  # named by their own mean colour
+        t0 = time.perf_counter()
+        rgb = evaluate.mean_colour(sphere.render_fields(np.load(snakemake.input.weights),
+                                                        text.COLOUR_RESOLUTION, p.activation))
+        descriptions = text.measured_descriptions(man, rgb)
+        pd.DataFrame({"id": man["id"], "name": man["name"], "operation": man["operation"],
+                      "description": man["description"], "embedded": descriptions}
+                     ).to_csv(out.descriptions, sep="\t", index=False)
+        changed = sum(a != b for a, b in zip(descriptions, man["description"]))
+        log.info("colour_words measured: %d of %d descriptions renamed by their metric-view "
+                 "colour (%.1f s)", changed, len(man), time.perf_counter() - t0)
     t0 = time.perf_counter()
-    save_npy(out.text, text.embed(list(man["description"])))
+    save_npy(out.text, text.embed(descriptions))
     log.info("%d descriptions (%d distinct) embedded in %.1f s", len(man),
-             man["description"].nunique(), time.perf_counter() - t0)
+             len(set(descriptions)), time.perf_counter() - t0)
 
     test = man[(man["split"] == "test") & (man["type"] != "")].drop_duplicates("description")
     k = p.test_prompts or len(test)

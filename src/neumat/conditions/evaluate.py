@@ -43,6 +43,24 @@ def mean_colour(renders: torch.Tensor) -> np.ndarray:
     return renders[:, mask].mean(1).numpy()
 
 
+# the hue words a measured colour is named by (colour_word): one per hue region, no material
+# words (gold) and no near-duplicates (violet ~ purple)
+NAMING = ("red", "orange", "yellow", "green", "blue", "purple", "pink")
+
+
+def colour_word(rgb: np.ndarray) -> str:
+    """The hue word of a mean linear RGB: the `NAMING` hue nearest its HSV hue, the word that
+    `colour_matches` accepts for it; '' when none does (saturation below `MIN_SATURATION`, or a
+    hue more than `HUE_TOLERANCE` from every word, e.g. cyan)."""
+    r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
+    h, s, _ = colorsys.rgb_to_hsv(r, g, b)
+    if s < MIN_SATURATION:
+        return ""
+    gap = {w: abs((h * 360.0 - HUES[w] + 180.0) % 360.0 - 180.0) for w in NAMING}
+    word = min(gap, key=gap.get)
+    return word if gap[word] <= HUE_TOLERANCE else ""
+
+
 def colour_matches(rgb: np.ndarray, colour: str) -> bool:
     r, g, b = np.clip(rgb, 0, None) / max(float(np.max(rgb)), 1e-12)
     h, s, _ = colorsys.rgb_to_hsv(r, g, b)

@@ -54,3 +54,34 @@ def embed(texts: list[str], batch_size: int = 64) -> np.ndarray:
                               convert_to_numpy=True, show_progress_bar=False)
     index = {t: i for i, t in enumerate(unique)}
     return np.ascontiguousarray(e[[index[t] for t in texts]], dtype=np.float32)
+
+
+COLOUR_RESOLUTION = 64  # metric-view pixels a side when a material's colour is measured
+
+# colour words that name a hue; lightness and grey words (dark, light, white, black, gray,
+# silver) survive an RGB permutation and are kept
+HUE_WORDS = frozenset({"red", "orange", "yellow", "green", "blue", "violet", "purple", "pink",
+                       "gold", "beige", "brown", "maroon"})
+
+
+def recoloured(description: str, word: str) -> str:
+    """`description` with its hue words replaced by `word` (a measured colour, '' for none):
+    'paint' + 'blue' -> 'blue paint'; 'a mixture of red paint and white fabric' + 'orange' ->
+    'an orange mixture of paint and white fabric'."""
+    kept = " ".join(w for w in description.split() if w not in HUE_WORDS)
+    if not word:
+        return kept
+    if kept.startswith("a mixture of "):
+        article = "an" if word[0] in "aeiou" else "a"
+        return f"{article} {word} mixture of " + kept[len("a mixture of "):]
+    return f"{word} {kept}"
+
+
+def measured_descriptions(man, rgb: np.ndarray) -> list[str]:
+    """AugMERL descriptions for the text condition with `colour_words: measured`: originals keep
+    their names' words (the paper's); RGB-permuted copies and mixtures, whose names' colour
+    words are dropped or mixed (paper §4.4), are named by the hue of their own mean colour
+    `rgb` (N, 3), as `neumat.conditions.evaluate.colour_word` reads it."""
+    from neumat.conditions.evaluate import colour_word
+    return [d if op == "original" else recoloured(d, colour_word(c))
+            for d, op, c in zip(man["description"], man["operation"], rgb)]
