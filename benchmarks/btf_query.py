@@ -188,7 +188,7 @@ def sweep(m, u, wi, wo, sync, rounds=10):
             p = query_triton.packed(m, hpb)
             def f(uu=uu, p=p, hpb=hpb, shape=dict(BLOCK=block, num_warps=warps)):
                 query_triton.LAUNCH.update(shape)
-                return query_triton.query(m, uu, wi, wo, packed=p, hpb=hpb)
+                return query_triton.query(m, uu, wi, wo, packed=p, synth=hpb)
             f()  # compile
             runs[block, warps, hpb is not None] = f
     best = {k: float("inf") for k in runs}

@@ -4,6 +4,7 @@ CUDA device is visible, compiled for it against the torch path on the CPU."""
 
 import importlib
 import sys
+import types
 
 import pytest
 import torch
@@ -99,12 +100,66 @@ def test_hpb_kernel_equals_the_torch_synthesis(kernel_device, kw):
     m, wi, wo = m.to(d), wi.to(d), wo.to(d)  # the HPB tables follow the model in the kernel
     for u, (out, raw) in zip(us, want):
         u = u.to(d)
-        torch.testing.assert_close(query_triton.query(m, u, wi, wo, hpb=h).cpu(), out,
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, synth=h).cpu(), out,
                                    rtol=2e-5, atol=3e-5)
-        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, hpb=h).cpu(), raw,
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, synth=h).cpu(), raw,
                                    rtol=2e-5, atol=3e-5)
-    assert not torch.allclose(query_triton.query(m, u, wi, wo, hpb=other),
-                              query_triton.query(m, u, wi, wo, hpb=h))
+    assert not torch.allclose(query_triton.query(m, u, wi, wo, synth=other),
+                              query_triton.query(m, u, wi, wo, synth=h))
+
+
+@pytest.mark.parametrize("kw, settings", [
+    ({}, {}),
+    (dict(u_channels=6, hidden=24, layers=3), {"rotation": 0.3, "gain": 0.5}),
+    (dict(u_channels=16), {"exponent": 2.5, "contrast": 0.0, "gain": 0.9})])
+@torch.no_grad()
+def test_hextile_kernel_equals_the_torch_synthesis(kernel_device, kw, settings):
+    """Hex-tiling inside the kernel (float64 grid, hash, rotation by a polynomial sin/cos, the
+    plane's luminance channel fetched with the features, the weights, Gain3 or not, an integer
+    or real exponent; 6, 8 and 16 channels, so 8, 16 and 32 padded) = Synthesized.torch_forward
+    near u = 0 and at |u| ~ 1e5; another seed, another result."""
+    torch.manual_seed(0)
+    m = models.TriplePlane(23, 17, **kw).eval()
+    for p in m.parameters():
+        p.normal_(0, 0.3)
+    m.requires_grad_(False)
+    h = syn.build(m, "hextile", 5, settings)
+    _, wi, wo = queries(300, 8)
+    g = torch.Generator().manual_seed(9)
+    us = [(torch.rand(300, 2, generator=g, dtype=torch.float64) - 0.5) * 2 * s
+          for s in (10.0, 1e5)]
+    want = [(syn.Synthesized(m, h).torch_forward(u, wi, wo), m.decode(h(u), wi, wo))
+            for u in us]
+    d = kernel_device
+    h = syn.build(m.to(d), "hextile", 5, settings)  # its plane on the kernel's device
+    other = syn.build(m, "hextile", 6, settings)
+    wi, wo = wi.to(d), wo.to(d)
+    for u, (out, raw) in zip(us, want):
+        u = u.to(d)
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, synth=h).cpu(), out,
+                                   rtol=1e-4, atol=3e-5 * out.abs().max().item())
+        torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, synth=h).cpu(),
+                                   raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
+    assert not torch.allclose(query_triton.query(m, u, wi, wo, synth=other),
+                              query_triton.query(m, u, wi, wo, synth=h))
+
+
+@torch.no_grad()
+def test_query_routes_hextile_on_cuda_tensors_to_its_kernel(interpreter, monkeypatch):
+    """query.query sends a hex-tiling (and an HPB) synthesis on CUDA tensors to the Triton
+    kernel with the synthesis, and anything else it cannot run to the torch path."""
+    seen = []
+    monkeypatch.setattr(query_triton, "supported", lambda *a: True)
+    monkeypatch.setattr(query_triton, "try_query",
+                        lambda m, u, wi, wo, raw=False, synth=None: seen.append(synth) or "gpu")
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    wi = types.SimpleNamespace(device=torch.device("cuda"))  # query reads only its device
+    for method in ("hextile", "hpb"):
+        s = syn.build(m, method, 1, {})
+        assert query.query(m, torch.zeros(4, 2), wi, wi, features_u=s) == "gpu"
+        assert seen.pop() is s
+    assert query.query(m, torch.zeros(4, 2), wi, wi) == "gpu" and seen.pop() is None
 
 
 def test_packing_is_kept_until_a_parameter_changes(interpreter):

@@ -16,9 +16,9 @@ is folded into the first layer (`neumat.btf.fold.fold_pca`). A `HexTile` (neumat
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
 plane with the luminance channel, and hex-tiling's blend).
 
-On a CUDA GPU the plain query of a Triple Plane, and its query with an HPB synthesis as
-`features_u`, run as one Triton kernel each (`neumat.btf.query_triton`) where Triton is
-installed (CUDA builds of torch bring it).
+On a CUDA GPU the plain query of a Triple Plane, and its query with an HPB or hex-tiling
+synthesis as `features_u`, run as one Triton kernel each (`neumat.btf.query_triton`) where
+Triton is installed (CUDA builds of torch bring it).
 
 Falls back to the model's torch path (same results) for other models (NeuMIP, the classical
 ones), other devices, autograd, or where the kernel cannot be built (no compiler; see
@@ -136,10 +136,10 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     raw=True: the MLP output log(1 + RGB) instead. `features_u`: see the module docstring.
     Queries are split over `threads` (default: torch's) threads; `march`: the kernel build
     (e.g. x86-64-v3 for the AVX2 one, in tests)."""
-    synth_hpb = features_u if getattr(features_u, "method", None) == "hpb" else None
-    if ((features_u is None or synth_hpb is not None) and wi.device.type == "cuda"
+    synth = features_u if getattr(features_u, "method", None) in query_triton.METHODS else None
+    if ((features_u is None or synth is not None) and wi.device.type == "cuda"
             and query_triton.supported(model, u, wi, wo)):
-        out = query_triton.try_query(model, u, wi, wo, raw=raw, hpb=synth_hpb)
+        out = query_triton.try_query(model, u, wi, wo, raw=raw, synth=synth)
         if out is not None:
             return out
     hpb = _hpb(features_u) if supported(model, u, wi, wo, march=march) else None

@@ -2,28 +2,31 @@
 half/difference frame, the three bilinear plane fetches and the whole MLP (`tl.dot` at IEEE fp32,
 no TF32), with the activations in registers. The torch path runs these as separate kernels, its
 fetches as gathers and its layers as batched gemv; it stays the path everywhere else (CPU: the
-fused C query, `neumat.btf.query`). A second kernel synthesises f_U by histogram-preserving
-blending in place of the f_U fetch (neumat.btf.synthesis.hpb: the triangle grid and fetch
-coordinates in float64, the integer hash, blend and LUT; the inverse PCA folded into layer 1).
+fused C query, `neumat.btf.query`). Two more kernels synthesise f_U in place of its fetch:
+histogram-preserving blending (neumat.btf.synthesis.hpb: the triangle grid and fetch
+coordinates in float64, the integer hash, blend and LUT; the inverse PCA folded into layer 1)
+and hex-tiling (neumat.btf.synthesis.hextile: the same grid and hash, the rotated patches and
+the luminance-weighted blend).
 
-    rgb = query(model, u, wi, wo)            # = model(u, wi, wo), all on the GPU
-    rgb = query(model, u, wi, wo, hpb=h)     # = Synthesized(model, h).torch_forward(u, wi, wo)
+    rgb = query(model, u, wi, wo)              # = model(u, wi, wo), all on the GPU
+    rgb = query(model, u, wi, wo, synth=s)     # = Synthesized(model, s).torch_forward(u, wi, wo)
 
 `neumat.btf.query.query` calls it (`try_query`) for CUDA tensors when `supported` says so.
 Without Triton (CPU-only torch wheels do not ship it), or with NEUMAT_TRITON=0, `available()` is
-False and the torch path runs. The kernel has not yet run on a GPU (see below): if it fails
-there, `try_query` logs the error once, names NEUMAT_TRITON=0, and the process keeps to the
-torch path, so a render does not die on it.
+False and the torch path runs. If a kernel fails on a GPU, `try_query` logs the error once,
+names NEUMAT_TRITON=0, and the process keeps to the torch path, so a render does not die on it.
 
 Tested on the CPU through Triton's interpreter (TRITON_INTERPRET=1; tests/test_btf_query_triton.py)
-against the torch path to float tolerance. The interpreter checks the arithmetic, not the GPU
-compile or its speed: the ms per frame comes from `benchmarks/btf_query.py --device cuda` on a
-GPU, and is not measured here without one.
+against the torch path to float tolerance, and compiled where a GPU is visible (the plain and
+HPB kernels passed on an H200; the hex-tiling kernel has not yet run on a GPU). The
+interpreter checks the arithmetic, not the GPU compile or its speed: the ms per frame comes
+from `benchmarks/btf_query.py` and `btf_synthesis.py --device cuda` on a GPU.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import os
 from functools import cache
 
@@ -118,26 +121,47 @@ def pack(model, first: tuple | None = None) -> dict:
                 n_hidden=len(hid))
 
 
-def _kernel(hpb: bool = False):
+METHODS = ("hpb", "hextile")  # the syntheses with a kernel of their own
+
+
+def _kernel(method: str | None = None):
     from neumat.btf import triton_kernels  # imports triton: only where it is installed
-    return triton_kernels.triple_plane_hpb if hpb else triton_kernels.triple_plane
+    return {None: triton_kernels.triple_plane, "hpb": triton_kernels.triple_plane_hpb,
+            "hextile": triton_kernels.triple_plane_hex}[method]
 
 
-def packed(model, hpb=None) -> dict:
-    """`pack(model)` (with HPB: its folded layer 1, Gaussianised plane and LUT on the model's
-    device), kept on the model until a parameter or the synthesis changes (a frame's queries
-    come in chunks: repacking would launch a dozen small kernels per chunk)."""
-    key = (tuple((p.data_ptr(), p._version) for p in model.parameters()), id(hpb),
-           None if hpb is None else tuple((t.data_ptr(), t._version) for t in _hpb_tensors(hpb)))
+def packed(model, synth=None) -> dict:
+    """`pack(model)` (with a synthesis: its tables on the model's device, and for HPB its
+    folded layer 1), kept on the model until a parameter or the synthesis changes (a frame's
+    queries come in chunks: repacking would launch a dozen small kernels per chunk)."""
+    key = (tuple((p.data_ptr(), p._version) for p in model.parameters()), id(synth),
+           None if synth is None else tuple((t.data_ptr(), t._version)
+                                            for t in _synth_tensors(synth)))
     cached = getattr(model, "_triton_pack", None)
     if cached is None or cached[0] != key:
-        cached = (key, pack(model) if hpb is None else _pack_hpb(model, hpb))
+        cached = (key, _pack(model, synth))
         model._triton_pack = cached
     return cached[1]
 
 
-def _hpb_tensors(hpb):
-    return hpb.mean, hpb.basis, hpb.gauss, hpb.lut
+def _synth_tensors(synth):
+    if synth.method == "hextile":
+        return (synth.plane_lum,)
+    return synth.mean, synth.basis, synth.gauss, synth.lut
+
+
+def _pack(model, synth) -> dict:
+    if synth is None:
+        return pack(model)
+    return _pack_hpb(model, synth) if synth.method == "hpb" else _pack_hex(model, synth)
+
+
+def _seed_hash(seed: int) -> int:
+    """The seed's hash (grid.vertex_hash's first step), as a signed 32-bit kernel argument
+    the kernel bitcasts back to uint32."""
+    from neumat.btf.synthesis.grid import _mix  # lazily: the synthesis package imports `query`
+    hs = int(_mix(torch.tensor(int(seed) & 0xFFFFFFFF)))
+    return hs - (1 << 32) if hs >= 1 << 31 else hs
 
 
 def _pack_hpb(model, hpb) -> dict:
@@ -147,21 +171,35 @@ def _pack_hpb(model, hpb) -> dict:
     p = pack(model, (w1, b1))
     p["gauss"] = hpb.gauss.detach().float().to(dev).contiguous()
     p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
-    # the seed's hash (grid.vertex_hash's first step), as a signed 32-bit kernel argument the
-    # kernel bitcasts back to uint32
-    from neumat.btf.synthesis.grid import _mix  # lazily: the synthesis package imports `query`
-    hs = int(_mix(torch.tensor(int(hpb.seed) & 0xFFFFFFFF)))
-    p["hs"] = hs - (1 << 32) if hs >= 1 << 31 else hs
+    p["hs"] = _seed_hash(hpb.seed)
+    return p
+
+
+def _pack_hex(model, hexs) -> dict:
+    """pack(model) with the plane (H, W, C + 1) (the luminance channel last) and hex-tiling's
+    settings as the kernel takes them."""
+    dev = model.f_u.device
+    p, s = pack(model), hexs.s
+    p.update(plane=hexs.plane_lum.detach().float().to(dev).contiguous(),
+             hs=_seed_hash(hexs.seed),
+             # float64 as in HexTile.__call__: a Python float argument would reach the kernel
+             # as float32
+             rotation=torch.tensor([float(s["rotation"])], dtype=torch.float64, device=dev),
+             contrast=float(s["contrast"]), exponent=float(s["exponent"]),
+             gain_k=math.log(1 - s["gain"]) / math.log(0.5), gain=s["gain"] != 0.5)
+    e = float(s["exponent"])
+    p["ie"] = int(e) if e.is_integer() and 0 <= e <= 16 else -1  # hextile._power
     return p
 
 
 def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
-          hpb=None) -> torch.Tensor:
+          synth=None) -> torch.Tensor:
     """RGB (N, 3) of a Triple Plane `model` at u (N, 2), wi, wo (N, 3), all on the GPU (or on
-    the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `hpb`: an HPB synthesis
-    (neumat.btf.synthesis.hpb) in place of the f_U fetch, u then float64 and unbounded.
-    `packed`: `packed(model, hpb)`, to reuse across calls. Callers check `supported` first."""
-    p = packed or (pack(model) if hpb is None else _pack_hpb(model, hpb))
+    the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `synth`: an HPB or hex-tiling
+    synthesis (neumat.btf.synthesis.hpb, .hextile; `method` in METHODS) in place of the f_U
+    fetch, u then float64 and unbounded. `packed`: `packed(model, synth)`, to reuse across
+    calls. Callers check `supported` first."""
+    p = packed or _pack(model, synth)
     f32 = lambda t: t.detach().to(torch.float32).contiguous()
     wi, wo = f32(wi), f32(wo)
     fh, fd = f32(model.f_h), f32(model.f_d)
@@ -174,23 +212,30 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
     mlp = (p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"], p["wl"], p["bl"], out, n)
     shapes = dict(CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
                   RAW=bool(raw), **LAUNCH)
-    if hpb is None:
+    method = None if synth is None else synth.method
+    if method is None:
         fu = f32(model.f_u)
         _kernel()[grid](f32(u), wi, wo, fu, fh, fd, *mlp, fu.shape[0], fu.shape[1],
                         fh.shape[0], **shapes)
-    else:
+    elif method == "hpb":
         g = p["gauss"]
-        _kernel(hpb=True)[grid](u.detach().double().contiguous(), wi, wo, g, p["lut"], fh, fd,
-                                *mlp, g.shape[0], g.shape[1], p["lut"].shape[1], fh.shape[0],
-                                p["hs"], **shapes)
+        _kernel("hpb")[grid](u.detach().double().contiguous(), wi, wo, g, p["lut"], fh, fd,
+                             *mlp, g.shape[0], g.shape[1], p["lut"].shape[1], fh.shape[0],
+                             p["hs"], **shapes)
+    else:
+        pl = p["plane"]
+        _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, fh, fd, *mlp,
+                                 pl.shape[0], pl.shape[1], fh.shape[0], p["hs"], p["rotation"],
+                                 p["contrast"], p["exponent"], p["gain_k"], IE=p["ie"],
+                                 GAIN=p["gain"], **shapes)
     return out
 
 
-def try_query(model, u, wi, wo, raw: bool = False, hpb=None) -> torch.Tensor | None:
+def try_query(model, u, wi, wo, raw: bool = False, synth=None) -> torch.Tensor | None:
     """`query` with the model's cached packing, or None after logging why if the kernel fails
     (then `available()` is False for the rest of the process: the caller's torch path runs)."""
     try:
-        return query(model, u, wi, wo, raw=raw, packed=packed(model, hpb), hpb=hpb)
+        return query(model, u, wi, wo, raw=raw, packed=packed(model, synth), synth=synth)
     except Exception as e:  # compile or launch errors of an untested GPU (Triton raises its own types)
         _failed.append(f"{type(e).__name__}: {e}")
         log.warning("Triton Triple Plane query failed on %s, using the torch path from now on "

@@ -7,9 +7,10 @@ import triton.language as tl
 
 
 @triton.jit
-def bilinear(ptr, px, py, H, W, C: tl.constexpr, P: tl.constexpr, WRAP: tl.constexpr, m):
-    """(BLOCK, P) bilinear fetch of plane (H, W, C) at (px, py) in [0, 1]^2, channels
-    >= C zero; as neumat.btf.neural.fetch (texel centres at (i + .5) / W, wrap or clamp)."""
+def texels(px, py, H, W, WRAP: tl.constexpr):
+    """The 4 bilinear taps of a plane (H, W, .) at (px, py) in [0, 1]^2: texel indices y * W + x
+    of (x0, y0), (x1, y0), (x0, y1), (x1, y1) and the fractions fx, fy; as
+    neumat.btf.neural.fetch (texel centres at (i + .5) / W, wrap or clamp)."""
     x = px * W - 0.5
     y = py * H - 0.5
     if not WRAP:
@@ -31,14 +32,29 @@ def bilinear(ptr, px, py, H, W, C: tl.constexpr, P: tl.constexpr, WRAP: tl.const
     else:
         x1 = tl.minimum(x0 + 1, W - 1)
         y1 = tl.minimum(y0 + 1, H - 1)
+    return y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1, fx, fy
+
+
+@triton.jit
+def interp(ptr, i00, i01, i10, i11, fx, fy, S, C: tl.constexpr, P: tl.constexpr, m):
+    """(BLOCK, P): channels 0 ... C - 1 of texels of S floats, bilinearly weighted; the rest
+    zero."""
     c = tl.arange(0, P)
     mc = m[:, None] & (c < C)[None, :]
-    a = tl.load(ptr + (y0 * W + x0)[:, None] * C + c[None, :], mask=mc, other=0.0)
-    b = tl.load(ptr + (y0 * W + x1)[:, None] * C + c[None, :], mask=mc, other=0.0)
-    d = tl.load(ptr + (y1 * W + x0)[:, None] * C + c[None, :], mask=mc, other=0.0)
-    e = tl.load(ptr + (y1 * W + x1)[:, None] * C + c[None, :], mask=mc, other=0.0)
+    a = tl.load(ptr + i00[:, None] * S + c[None, :], mask=mc, other=0.0)
+    b = tl.load(ptr + i01[:, None] * S + c[None, :], mask=mc, other=0.0)
+    d = tl.load(ptr + i10[:, None] * S + c[None, :], mask=mc, other=0.0)
+    e = tl.load(ptr + i11[:, None] * S + c[None, :], mask=mc, other=0.0)
     return (((1 - fx) * (1 - fy))[:, None] * a + (fx * (1 - fy))[:, None] * b
             + ((1 - fx) * fy)[:, None] * d + (fx * fy)[:, None] * e)
+
+
+@triton.jit
+def bilinear(ptr, px, py, H, W, C: tl.constexpr, P: tl.constexpr, WRAP: tl.constexpr, m):
+    """(BLOCK, P) bilinear fetch of plane (H, W, C) at (px, py) in [0, 1]^2, channels
+    >= C zero; as neumat.btf.neural.fetch."""
+    i00, i01, i10, i11, fx, fy = texels(px, py, H, W, WRAP)
+    return interp(ptr, i00, i01, i10, i11, fx, fy, C, C, P, m)
 
 @triton.jit
 def rows(ptr, R: tl.constexpr, K: tl.constexpr):
@@ -199,4 +215,146 @@ def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, 
     fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
     fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
     mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, RAW)
+
+
+@triton.jit
+def sincos(a):
+    """sin and cos of float64 a (|a| < 2^20) as plain float64 arithmetic, as sincos_poly in
+    neumat/btf/query_kernel.c (a = n pi/2 + r, Taylor to r^17 / r^18, then the quadrant): no
+    float64 transcendental is asked of the GPU's libdevice."""
+    n = tl.floor(a * 0.6366197723675814 + 0.5)
+    r = (a - n * 1.5707963267948966) - n * 6.123233995736766e-17
+    r2 = r * r
+    sp = r * (1 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (
+        1.0 / 362880 + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800 + r2 * (
+            -1.0 / 1307674368000 + r2 * (1.0 / 355687428096000)))))))))
+    cp = 1 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (
+        -1.0 / 3628800 + r2 * (1.0 / 479001600 + r2 * (-1.0 / 87178291200 + r2 * (
+            1.0 / 20922789888000 + r2 * (-1.0 / 6402373705728000)))))))))
+    k = (n - 4 * tl.floor(n / 4)).to(tl.int32)  # quadrant, 0 ... 3
+    odd = (k & 1) != 0
+    s0 = tl.where(odd, cp, sp)
+    c0 = tl.where(odd, sp, cp)
+    return tl.where((k & 2) != 0, -s0, s0), tl.where(((k + 1) & 2) != 0, -c0, c0)
+
+
+@triton.jit
+def hex_tap(plane_ptr, ux, uy, bx, by, hs, rotation, H, W, C: tl.constexpr, P: tl.constexpr,
+            m):
+    """One triangle vertex (bx, by) (int64) of hex-tiling: its hashed offset and angle
+    (grid.vertex_hash, k = 3), the patch rotated about the vertex centre (grid.vertex_uv) in
+    float64, then float32 fetch coordinates and the bilinear fetch of the plane (H, W, C + 1):
+    the features (BLOCK, P), channels >= C zero, and the luminance (channel C, BLOCK)."""
+    h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
+    ox = h.to(tl.float64) * (1.0 / 4294967296.0)
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
+    oy = h.to(tl.float64) * (1.0 / 4294967296.0)
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B3, tl.uint32))
+    PI = tl.full(ux.shape, 3.141592653589793, tl.float64)
+    a = (2 * PI * (h.to(tl.float64) * (1.0 / 4294967296.0)) - PI) * rotation
+    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
+    gx = bx.to(tl.float64)
+    gy = by.to(tl.float64)
+    cx = (gx + gy / 2) / (2 * S3)
+    cy = gy * (S3 / 2) / (2 * S3)
+    dx = ux - cx
+    dy = uy - cy
+    sn, cs = sincos(a)
+    px = (cs * dx - sn * dy) + (cx - tl.floor(cx)) + ox
+    py = (sn * dx + cs * dy) + (cy - tl.floor(cy)) + oy
+    px = px - tl.floor(px)
+    py = py - tl.floor(py)
+    top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
+    x = tl.minimum(px.to(tl.float32), top)
+    y = tl.minimum(py.to(tl.float32), top)
+    i00, i01, i10, i11, fx, fy = texels(x, y, H, W, True)
+    feat = interp(plane_ptr, i00, i01, i10, i11, fx, fy, C + 1, C, P, m)
+    a = tl.load(plane_ptr + i00 * (C + 1) + C, mask=m, other=0.0)
+    b = tl.load(plane_ptr + i01 * (C + 1) + C, mask=m, other=0.0)
+    d = tl.load(plane_ptr + i10 * (C + 1) + C, mask=m, other=0.0)
+    e = tl.load(plane_ptr + i11 * (C + 1) + C, mask=m, other=0.0)
+    lum = ((1 - fx) * (1 - fy)) * a + (fx * (1 - fy)) * b + ((1 - fx) * fy) * d + (fx * fy) * e
+    return feat, lum
+
+
+@triton.jit
+def power(x, e, IE: tl.constexpr):
+    """hextile._power: x^IE by repeated multiplication for a whole IE >= 0, else exp(e log x)."""
+    if IE >= 0:
+        out = tl.full(x.shape, 1.0, tl.float32)
+        for _ in tl.static_range(IE):
+            out = out * x
+    else:
+        out = tl.exp(e * tl.log(x))
+    return out
+
+
+@triton.jit
+def gain3(x, k):
+    """hextile.gain3's per-weight gain (before its renormalisation)."""
+    s = tl.where(x >= 0.5, 2.0, 0.0)
+    m = 2.0 * (1 - s)
+    return 0.5 * s + 0.25 * m * tl.exp(k * tl.log(tl.maximum(s + x * m, 1e-30)))
+
+
+@triton.jit
+def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
+                     w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
+                     hs_bits, rot_ptr, contrast, exponent, gain_k,
+                     CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
+                     HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
+                     RAW: tl.constexpr, BLOCK: tl.constexpr):
+    """The query with f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile, its torch
+    path `HexTile.__call__`): u float64, the triangle grid in float64, per vertex the integer
+    hash, rotation and bilinear fetch of the (H, W, CU + 1) plane (luminance last), then the
+    luminance-weighted, contrast-sharpened blend."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
+    stx = ux * (2 * S3)
+    sty = uy * (2 * S3)
+    s0 = stx - sty / S3
+    s1 = 2 * sty / S3
+    b0 = tl.floor(s0)
+    b1 = tl.floor(s1)
+    f0 = s0 - b0
+    f1 = s1 - b1
+    z = 1 - f0 - f1
+    up = z > 0
+    i0 = b0.to(tl.int64)
+    i1 = b1.to(tl.int64)
+    w0 = tl.where(up, z, -z).to(tl.float32)
+    w1 = tl.where(up, f1, 1 - f1).to(tl.float32)
+    w2 = tl.where(up, f0, 1 - f0).to(tl.float32)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    rotation = tl.load(rot_ptr)  # float64 (a Python float argument would be float32)
+    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    c0, l0 = hex_tap(plane_ptr, ux, uy, i0 + dn, i1 + dn, hs, rotation, HP_, WP_, CU, PU, m)
+    c1, l1 = hex_tap(plane_ptr, ux, uy, i0 + dn, i1 + 1 - dn, hs, rotation, HP_, WP_, CU, PU, m)
+    c2, l2 = hex_tap(plane_ptr, ux, uy, i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, CU, PU, m)
+    # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
+    v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
+    v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
+    v2 = (1 + contrast * (l2 - 1)) * power(w2, exponent, IE)
+    tot = tl.maximum(v0 + v1 + v2, 1e-30)
+    v0 = v0 / tot
+    v1 = v1 / tot
+    v2 = v2 / tot
+    if GAIN:
+        v0 = gain3(v0, gain_k)
+        v1 = gain3(v1, gain_k)
+        v2 = gain3(v2, gain_k)
+        tot = v0 + v1 + v2
+        v0 = v0 / tot
+        v1 = v1 / tot
+        v2 = v2 / tot
+    fu = v0[:, None] * c0 + v1[:, None] * c1 + v2[:, None] * c2
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
         q, m, PU, PD, HP, NH, RAW)
