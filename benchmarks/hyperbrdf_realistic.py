@@ -35,6 +35,7 @@ import torch
 from neumat import augment, fit, nbrdf
 from neumat.baselines import hyperbrdf as hb
 from neumat.io import merl
+from neumat.io.atomic import save_npy
 from neumat.metrics import reconstruction as rec
 
 from diffusion_realistic import load_fits  # noqa: E402  (the published NBRDF fits; NBRDF_DIR)
@@ -95,7 +96,7 @@ def cmd_train(args):
     names, w, train, bins, values = data(args)
     med_path = OUT / "median.npy"
     if not med_path.exists():
-        fit.save_npy(med_path, median_full(values, w[train]))
+        save_npy(med_path, median_full(values, w[train]))
     med = np.load(med_path)
     tv = values[train]
     if args.model == "augmerl":

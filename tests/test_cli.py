@@ -248,6 +248,17 @@ def test_text_sampling_is_deterministic_and_recorded(mm_run, tmp_path):
     assert len(list((tmp_path / "a").glob("sample_*.png"))) == 3 and (tmp_path / "a/scene.xml").exists()
 
 
+def test_seeds_do_not_shift_into_each_other(run, tmp_path):
+    """Each batch has its own named stream: --seed 2 does not redraw the second batch of
+    --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""
+    def draw(out, seed):
+        assert main("sample", "--run", run, "-n", 4, "--batch", 2, "--steps", 3, "--seed", seed,
+                    "--no-binary", "--out", tmp_path / out) == 0
+        return np.load(tmp_path / out / "weights.npy")
+    a, b = draw("a", 0), draw("b", 2)
+    assert not np.isclose(a[2:, None], b[None]).all(-1).any()
+
+
 def test_image_sampling_png_and_exr(mm_run, sphere_png, tmp_path):
     a, table = _sample(mm_run, tmp_path / "a", "--image", sphere_png)
     b, _ = _sample(mm_run, tmp_path / "b", "--image", sphere_png)

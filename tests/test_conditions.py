@@ -86,7 +86,7 @@ def test_load_image_png_and_exr(tmp_path):
     b = image.load_image(tmp_path / "a.png", 8)
     assert a.shape == b.shape == (8, 8, 3)
     assert np.allclose(a, 0.5, atol=1e-6) and np.allclose(b, 0.5, atol=0.02)
-    with pytest.raises(FileNotFoundError, match="conditions.images"):
+    with pytest.raises(FileNotFoundError, match=r"conditions\.image\.images"):
         image.load_image(tmp_path / "missing.png", 8)
 
 

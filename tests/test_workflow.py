@@ -369,6 +369,19 @@ def test_render_step_reruns_only_image_sampling(tiny_run):
     assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
 
 
+def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
+    """diffusion.sample.guidance is the type model's guidance: the conditioning rules take
+    theirs from conditions.guidance, so changing it reruns type sampling, not theirs."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "diffusion.sample.guidance", 3.5)
+    (tiny_run / "config/type_guidance.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/type_guidance.yaml")
+    assert "sample_type" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not {"sample_text", "sample_image", "sample_multimodal", "guidance_sweep",
+                "sample_uncond"} & set(jobs), jobs
+
+
 @pytest.mark.slow
 def test_measured_colour_words_retrain_only_the_conditioning(tiny_run):
     """conditions.text.colour_words (neutral `source`) is a param of text_embeddings alone:

@@ -310,6 +310,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     import pandas as pd
 
     from neumat.diffusion import Sampler
+    from neumat.seeds import seed_for
 
     sampler = Sampler(bundle, args.device)
     if args.type and args.type not in sampler.class_names:
@@ -358,7 +359,9 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     with _progress(args.n, "sampling") as bar:
         for s in range(0, args.n, args.batch):
             b = min(args.batch, args.n - s)
-            ws.append(sampler.sample(b, args.seed + s, types[s:s + b] if types else None, args.steps,
+            # a named stream per batch: --seed 8 does not redraw --seed 0's second batch of 8
+            ws.append(sampler.sample(b, seed_for(args.seed, "cli_sample", s),
+                                     types[s:s + b] if types else None, args.steps,
                                      0.0, scales.get("type", 1.0), args.batch, None, neg,
                                      args.activation))
             bar.update(b)

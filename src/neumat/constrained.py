@@ -42,6 +42,7 @@ import torch
 
 from neumat import nbrdf
 from neumat.io import merl
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 
@@ -354,8 +355,8 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
     samples were drawn. The first batch is drawn in each of `sampling_modes` (unconditional;
     category guidance when `guidance_step` > 0; guided by `guide_types`, cycling), and the rest
     in whichever accepted more (ties: unconditional, the paper's setting). Every draw is judged
-    by the exact rule (`classify`). Seeds: seed + batch index (+ 1e6 x the mode's index for its
-    pilot), so a category's draws do not depend on the others."""
+    by the exact rule (`classify`). Seeds: the named stream (seed, mode, batch index), the
+    pilot batch 0, so a category's draws do not depend on the others."""
     modes = sampling_modes(category, guide_types, guidance_step)
     acc_w, acc_s, drawn, pilot = [], [], 0, {}
     chosen = "unconditional"
@@ -363,7 +364,7 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
         b = min(batch, budget - drawn)
         if b <= 0:
             break
-        w = _draw(sampler, b, seed + k * 1_000_000, mode, sample_cfg, activation)
+        w = _draw(sampler, b, seed_for(seed, name, 0), mode, sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         pilot[name] = float(ok.mean())
@@ -375,8 +376,7 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
     i = 1
     while sum(map(len, acc_w)) < n and drawn < budget:
         b = min(batch, budget - drawn)
-        k = list(modes).index(chosen)
-        w = _draw(sampler, b, seed + k * 1_000_000 + i, modes[chosen], sample_cfg, activation)
+        w = _draw(sampler, b, seed_for(seed, chosen, i), modes[chosen], sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         acc_w.append(w[ok]), acc_s.append(s[ok])

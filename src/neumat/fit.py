@@ -466,10 +466,9 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
 
 # Evaluation, results on disk, merging and plots live in their own modules; their names stay
 # importable from here (`from neumat import fit; fit.load_fits(...)`).
-from neumat.fit_eval import display, export_merl, psnr, render_psnr  # noqa: E402,F401
+from neumat.fit_eval import export_merl, psnr, render_psnr  # noqa: E402,F401
 from neumat.fit_merge import load_fits, merge_fits, save_fits  # noqa: E402,F401
 from neumat.fit_plots import plot_fit_quality  # noqa: E402,F401
-from neumat.io.atomic import save_npy  # noqa: E402,F401
 
 
 def calibration_fitter(kernel: str, batch: int, activation: str, materials: int,

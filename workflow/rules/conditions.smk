@@ -131,7 +131,7 @@ rule sample_text:
         table=out("samples/text/samples.tsv"),
         timing=out("samples/text/timing.tsv"),
     params:
-        sample=settings("diffusion.sample"),
+        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
         per_prompt=COND["per_condition"],
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode="text",
@@ -166,7 +166,7 @@ rule sample_image:
         conditioning=out("samples/image/conditioning.npy"),
         embeddings=out("samples/image/conditioning_embeddings.npy"),
     params:
-        sample=settings("diffusion.sample"),
+        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
         per_prompt=COND["per_condition"],
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         test_images=COND["image"]["test_images"],
@@ -201,7 +201,7 @@ rule sample_multimodal:
         table=out("samples/{set}/samples.tsv"),
         timing=out("samples/{set}/timing.tsv"),
     params:
-        sample=settings("diffusion.sample"),
+        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
         per_prompt=COND["per_condition"],
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         mode=lambda w: w.set,
@@ -267,7 +267,7 @@ rule guidance_sweep:
     output:
         out("conditions/guidance_sweep.tsv"),
     params:
-        sample=settings("diffusion.sample"),
+        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
         scales=COND["sweep"]["scales"],
         per_prompt=COND["sweep"]["per_condition"],
         bins=DIFF["nn_bins"],

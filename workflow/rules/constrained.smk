@@ -43,7 +43,7 @@ rule constrained_classify:
         classes=out("constrained/classes.tsv"),
         purity=out("constrained/purity.tsv"),
     params:
-        thresholds=CONS["thresholds"],
+        thresholds=canon(CONS["thresholds"]),
         bins=CONS["bins"],
         seed=seed_for("constrained_classify"),
         activation=config["fit"]["activation"],

@@ -53,7 +53,6 @@ rule render_section:
         figure_resolution=config["report"]["sphere_resolution"],
         n_gallery=RENDER["gallery_count"],
         activation=config["fit"]["activation"],
-        scenes=MITSUBA_SCENES,
     log:
         log("render_section"),
     benchmark:

@@ -1,7 +1,6 @@
 """Report section: the seven category rules with their thresholds, the classification of the
 source and NeuMERL materials (counts, MERL names, type purity), the acceptance rate per
 category, and the Fig. 6 gallery of accepted samples rendered with Mitsuba 3."""
-import json
 
 import numpy as np
 import pandas as pd

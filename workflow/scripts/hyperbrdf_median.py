@@ -5,7 +5,7 @@ import pandas as pd
 
 from neumat import augment
 from neumat.baselines import hyperbrdf as hb
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.io import merl
 from neumat.logs import script_logging
 

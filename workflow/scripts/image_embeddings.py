@@ -2,7 +2,7 @@
 import numpy as np
 
 from neumat.conditions import image
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:

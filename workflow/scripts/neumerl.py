@@ -4,6 +4,7 @@ import shutil
 import pandas as pd
 
 from neumat import fit
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
@@ -12,7 +13,7 @@ with script_logging(snakemake) as log:
                       keep_default_na=False)
     weights, res = fit.merge_fits([fit.load_fits(f) for f in snakemake.input.fits],
                                   [pd.read_csv(e, sep="\t") for e in snakemake.input.evals], man)
-    fit.save_npy(out.weights, weights)
+    save_npy(out.weights, weights)
     shutil.copyfile(snakemake.input.manifest, out.manifest)
     res.to_csv(out.fits, sep="\t", index=False, float_format="%.6g")
     log.info("NeuMERL: %d fields; render PSNR median %.2f dB, 10th percentile %.2f dB; "

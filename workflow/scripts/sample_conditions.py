@@ -14,7 +14,7 @@ import torch
 from neumat.conditions import image
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.render import sphere
 

@@ -8,7 +8,7 @@ import pandas as pd
 
 from neumat import constrained
 from neumat.diffusion import Sampler
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.seeds import seed_for
 

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 
 from neumat.diffusion import Sampler, dataset
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:

@@ -2,7 +2,6 @@
 import time
 
 import numpy as np
-import pandas as pd
 
 from neumat.baselines import vae
 from neumat.diffusion import dataset

@@ -8,7 +8,7 @@ import pandas as pd
 
 from neumat.conditions import evaluate, text
 from neumat.diffusion import dataset
-from neumat.fit import save_npy
+from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.render import sphere
 

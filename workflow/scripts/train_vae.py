@@ -4,7 +4,6 @@ import time
 
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat import augment
 from neumat.baselines import vae

@@ -4,7 +4,7 @@ of a target NBRDF turns z into that field's weights. M3ashy Table 3 trains it on
 AugMERL and scores sparse reconstruction (N = 4000 samples) and compression (all samples
 through z).
 
-Architecture and loss (DESIGN.md §5, from the reference code):
+Architecture and loss (from the reference code, github faziletgokbudak/Hyper-neural-materials):
   * encoder over samples [h_xyz (phi_h = 0), d_xyz, RGB] (9-D): 9 -> 128 -> 128 -> 128 -> 40,
     ReLU, mean over the samples (so the latent does not depend on sample order or count);
   * one head per target tensor: 40 -> 128 -> 128 -> numel, ReLU;

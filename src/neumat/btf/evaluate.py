@@ -43,13 +43,6 @@ def image_metrics(ref_ldr: np.ndarray, img_ldr: np.ndarray) -> dict:
             "dssim": float((1 - ssim) / 2), "flip": float(flip_mean)}
 
 
-def flip_map(ref_ldr, img_ldr) -> np.ndarray:
-    import flip_evaluator as flip
-
-    err, _, _ = flip.evaluate(np.ascontiguousarray(ref_ldr), np.ascontiguousarray(img_ldr), "LDR")
-    return err
-
-
 @torch.no_grad()
 def texture(model, width: int, height: int, wi, wo) -> np.ndarray:
     """(height, width, 3) RGB of a model at every texel centre for one light/view pair."""

