@@ -5,10 +5,10 @@ import time
 
 import numpy as np
 import pandas as pd
-import torch
 
 from neumat.conditions import image
 from neumat.diffusion import dataset
+from neumat.io.atomic import save_torch
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
@@ -24,7 +24,7 @@ with script_logging(snakemake) as log:
     text = np.load(inp.text)[train] if cfg.objective == "text" else None
     bundle = image.train(views, weights[train], cfg, p.seed, text)
     bundle["render_seconds"] = time.perf_counter() - t0 - bundle["train_seconds"]
-    torch.save(bundle, out.model)
+    save_torch(out.model, bundle)
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(out.history, sep="\t", index=False)
 
     enc = image.load(out.model)

@@ -35,7 +35,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -45,6 +44,7 @@ import torch
 from torch import nn
 
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 log = logging.getLogger(__name__)
 
@@ -217,12 +217,6 @@ def fingerprint(y: np.ndarray, bins: np.ndarray, seed: int, *cfgs) -> str:
     return h.hexdigest()
 
 
-def atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".part")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: HyperConfig,
           cfg: HyperTrainConfig, out_path, checkpoint_path, seed: int, device: str = "cpu",
           on_step=None) -> dict:
@@ -267,9 +261,9 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
             log.warning("ignoring %s: written for other data or settings", ckpt_path)
 
     def checkpoint():
-        atomic_save({"fingerprint": fp, "model": model.state_dict(), "opt": opt.state_dict(),
-                     "generator": gen.get_state(), "step": step, "history": history,
-                     "elapsed": elapsed}, ckpt_path)
+        save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
+                               "opt": opt.state_dict(), "generator": gen.get_state(),
+                               "step": step, "history": history, "elapsed": elapsed})
 
     M, B = y_all.shape[:2]
     b = min(cfg.materials_per_step, M)
@@ -308,7 +302,7 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
               "state": {k: v.cpu() for k, v in model.state_dict().items()},
               "history": [list(h) for h in history], "train_seconds": elapsed,
               "n_train": M, "seed": seed, "fingerprint": fp}
-    atomic_save(bundle, out_path)
+    save_torch(out_path, bundle)
     return bundle
 
 

@@ -22,6 +22,7 @@ from torch import nn
 
 from neumat import nbrdf
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 
 def mlp(sizes, last_act=False) -> nn.Sequential:
@@ -150,7 +151,7 @@ def prior_samples(model, n: int, seed) -> np.ndarray:
 
 
 def save(path, model, kind: str, config: dict) -> None:
-    torch.save({"kind": kind, "config": config, "state": model.state_dict()}, path)
+    save_torch(path, {"kind": kind, "config": config, "state": model.state_dict()})
 
 
 def load(path) -> nn.Module:

@@ -6,14 +6,10 @@ unit vectors, z = surface normal)."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
-import torch
-
 from neumat.btf.classical import PCA, SH, Tucker
 from neumat.btf.neural import NeuMIP, TriplePlane
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 NEURAL = {"triple_plane": TriplePlane, "neumip": NeuMIP}
 GRID = {"pca": PCA, "sh": SH, "td": Tucker}
@@ -29,9 +25,7 @@ def save(model, path) -> None:
     else:
         args = dict(width=model.width, height=model.height, light_dirs=model.light_dirs,
                     view_dirs=model.view_dirs, **model.kwargs)
-    tmp = Path(f"{path}.tmp")
-    torch.save({"method": model.method, "args": args, "state": model.state_dict()}, tmp)
-    os.replace(tmp, path)
+    save_torch(path, {"method": model.method, "args": args, "state": model.state_dict()})
 
 
 def load(path):

@@ -17,6 +17,7 @@ from torch import nn
 
 from neumat.btf.directions import half_diff
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 log = logging.getLogger(__name__)
 
@@ -128,12 +129,6 @@ def _reset(model: nn.Module, seed: int, init_std: float):
             m.reset_parameters()
 
 
-def _save_atomic(obj, path):
-    tmp = Path(f"{path}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
           checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 500,
           init_std: float = 0.1) -> list[float]:
@@ -168,7 +163,7 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
             log.info("%s step %d/%d loss %.5f (%.1fs)", model.method, step + 1, steps,
                      sum(losses[-50:]) / len(losses[-50:]), time.time() - t0)
         if checkpoint and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
-            _save_atomic({"model": model.state_dict(), "opt": opt.state_dict(),
-                          "sched": sched.state_dict(), "gen": gen.get_state(), "step": step + 1},
-                         checkpoint)
+            save_torch(checkpoint, {"model": model.state_dict(), "opt": opt.state_dict(),
+                                    "sched": sched.state_dict(), "gen": gen.get_state(),
+                                    "step": step + 1})
     return losses

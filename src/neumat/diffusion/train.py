@@ -29,6 +29,7 @@ from neumat.diffusion.constraints import constraint_for
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 log = logging.getLogger(__name__)
 
@@ -119,12 +120,6 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | 
     return h.hexdigest()
 
 
-def atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".part")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
-
-
 def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
           model_cfg: DenoiserConfig, sched_cfg: ScheduleConfig, cfg: TrainConfig,
           out_path: str | os.PathLike, checkpoint_path: str | os.PathLike, seed: int,
@@ -185,10 +180,10 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     v_all = {k: torch.from_numpy(v).to(dev) for k, v in vectors.items()}
 
     def checkpoint():
-        atomic_save({"fingerprint": fp, "model": model.state_dict(), "ema": ema.state_dict(),
-                     "opt": opt.state_dict(), "generator": gen.get_state(),
-                     "torch_rng": torch.get_rng_state(), "step": step, "history": history,
-                     "elapsed": elapsed}, ckpt_path)
+        save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
+                               "ema": ema.state_dict(), "opt": opt.state_dict(),
+                               "generator": gen.get_state(), "torch_rng": torch.get_rng_state(),
+                               "step": step, "history": history, "elapsed": elapsed})
 
     model.train()
     # the running loss stays on the device and is read once per `log_every` steps: a .item()
@@ -238,7 +233,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
               "normalizer": {k: v.cpu() for k, v in norm.state_dict().items()},
               "history": history, "train_seconds": elapsed, "n_train": len(weights),
               "seed": seed, "fingerprint": fp}
-    atomic_save(result, out_path)
+    save_torch(out_path, result)
     return result
 
 

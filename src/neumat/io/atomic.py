@@ -15,6 +15,17 @@ def save_npz(path: str | Path, **arrays) -> None:
     os.replace(tmp, path)
 
 
+def save_torch(path: str | Path, obj) -> None:
+    """Atomic torch.save (model files, checkpoints: tensors and plain values, so that they load
+    with weights_only=True)."""
+    import torch  # here: the numpy writers above serve scripts that never import torch
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
 def save_npy(path: str | Path, array: np.ndarray) -> None:
     """Atomic np.save."""
     path = Path(path)

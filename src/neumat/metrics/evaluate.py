@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from neumat.io.atomic import save_torch
 from neumat.metrics import distances as D
 from neumat.metrics import sets
 
@@ -107,7 +108,7 @@ def prepare_reference(ref, *, resolution: int, bins, activation="relu", fid_mode
 
 
 def save_reference(prepared: dict, path) -> None:
-    torch.save(prepared, path)  # tensors and plain containers: loads with weights_only
+    save_torch(path, prepared)  # tensors and plain containers: loads with weights_only
 
 
 def load_reference(path) -> dict:

@@ -9,9 +9,6 @@ Dynamic methods are pure functions of (u, seed): their state depends on the exem
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import torch
 
 from neumat.btf import query
@@ -20,6 +17,7 @@ from neumat.btf.synthesis.hpb import HPB
 from neumat.btf.synthesis.quilting import Quilting
 from neumat.btf.synthesis.tiling import LinearBlend, Tiling
 from neumat.io import modelfile
+from neumat.io.atomic import save_torch
 
 SYNTHS = {"tiling": Tiling, "linear": LinearBlend, "hpb": HPB, "hextile": HexTile,
           "quilting": Quilting}
@@ -68,9 +66,7 @@ def save(path, method: str, seed: int, settings: dict, synths: dict) -> None:
     and plain values only), written atomically."""
     obj = {"method": method, "seed": int(seed), "settings": dict(settings),
            "planes": {name: s.state() for name, s in synths.items()}}
-    tmp = Path(f"{path}.tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    save_torch(path, obj)
 
 
 def load(path, plane_models: dict) -> dict:
