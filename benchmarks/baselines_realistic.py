@@ -23,7 +23,6 @@ sets' floors says how much of a loss gap is the data, not the model.
 
 import argparse
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -38,13 +37,13 @@ from diffusion_realistic import build  # noqa: E402
 from neumat.baselines import pca, vae  # noqa: E402
 from neumat.diffusion import dataset, plausibility  # noqa: E402
 from neumat.io import merl  # noqa: E402
+from neumat.machine import describe as host_line  # noqa: E402
 from neumat.metrics import distances, evaluate  # noqa: E402
 
 
 def machine():
-    cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
-    isa = "AVX-512" if "avx512f" in open("/proc/cpuinfo").read() else "AVX2 or less"
-    return f"{cpu}, {os.cpu_count()} cores visible, {isa}, torch threads {torch.get_num_threads()}, {platform.python_version()}"
+    """The CPU line every benchmark prints (neumat.machine), with the torch threads."""
+    return f"{host_line()}, torch threads {torch.get_num_threads()}"
 
 
 def split_20(seed=0, n_test=20):

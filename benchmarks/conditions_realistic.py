@@ -18,7 +18,6 @@ import argparse
 import importlib.util
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -32,6 +31,7 @@ from neumat.data import catalog
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, TrainConfig, dataset, train
 from neumat.diffusion.sample import sample
 from neumat.io import modelfile
+from neumat.machine import describe as host_line
 from neumat.metrics import distances
 from neumat.render import sphere
 
@@ -57,8 +57,8 @@ def build():
 
 
 def machine():
-    cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if "model name" in l), "?")
-    return f"{cpu}, {os.cpu_count()} cores, torch threads {torch.get_num_threads()}, {platform.machine()}"
+    """The CPU line every benchmark prints (neumat.machine), with the torch threads."""
+    return f"{host_line()}, torch threads {torch.get_num_threads()}"
 
 
 def encoder_cfg(a):

@@ -14,6 +14,7 @@ import pandas as pd  # noqa: E402
 from neumat import report  # noqa: E402
 from neumat.device import resolve_device  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
+from neumat.diffusion.constraints import CONSTRAINT_DIRECTIONS  # noqa: E402
 from neumat.diffusion.model import token_sizes  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
@@ -36,7 +37,8 @@ def clamp_note(s: dict) -> str:
     if not step:
         return "Clamp-aware constraint off (diffusion.sample.negative_step = 0)."
     return (f"Clamp-aware constraint: at every DDIM step the predicted x0 takes one gradient "
-            f"step of size {step:g} down mean(relu(-x)), x the NBRDF's log-space output at 4096 "
+            f"step of size {step:g} down mean(relu(-x)), x the NBRDF's log-space output at "
+            f"{CONSTRAINT_DIRECTIONS} "
             f"seeded valid MERL bins (the values the output max(exp(x) - 1, 0) clamps); "
             f"`ours_plain` is `ours` drawn with the same seeds without it (before/after below).")
 
