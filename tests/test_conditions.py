@@ -174,6 +174,21 @@ def test_colour_words_and_chromaticity():
     assert ev.colour_matches(ev.mean_colour(img)[0], "red")
 
 
+def test_summary_counts_hits_over_scorable_and_colours_over_coloured():
+    """summarise: type hits only over samples whose type training has, colour match only over
+    samples naming a colour (known answer)."""
+    import pandas as pd
+    from neumat.conditions import evaluate as ev
+    df = pd.DataFrame({"scorable": [True, True, False, True], "type_hit": [True, False, False, True],
+                       "colour": ["red", "", "", "blue"], "colour_match": [True, False, False, False],
+                       "brdf_l1": [0.1, 0.2, 0.3, 0.4], "negative": [True, False, False, False]})
+    row = ev.summarise(df, "x")
+    assert row["type hits"] == pytest.approx(2 / 3) and row["samples with a training type"] == 3
+    assert row["colour match"] == 0.5 and row["coloured samples"] == 2
+    assert row["median BRDF-L1 to nearest training"] == pytest.approx(0.25)
+    assert row["share clamping negatives"] == 0.25 and row["samples"] == 4
+
+
 def test_measured_colour_words_name_permuted_and_mixed_materials():
     """conditions.text.colour_words: measured. A permuted or mixed material is named by the hue
     of its mean colour, the word the colour match would accept; originals keep their words."""

@@ -3,7 +3,7 @@ same-run baselines (type-conditioned, unconditional): type hits (nearest typed t
 material, BRDF-L1), colour-word chromaticity, nearest-training distance, negative clamping;
 PSNR / SSIM of image-conditioned samples in the conditioning view against unconditional samples
 and nearest-embedding retrieval. Reference rows: the real test-split materials and the training
-fits."""
+fits. The measures are neumat.conditions.evaluate's."""
 import numpy as np
 import pandas as pd
 import torch
@@ -13,23 +13,11 @@ from neumat.conditions import image
 from neumat.diffusion import dataset
 from neumat.logs import script_logging
 from neumat.metrics import distances
-from neumat.render import sphere
 from neumat.seeds import seed_for
 
 
 def set_name(path):
     return path.split("/")[-2]
-
-
-def summarise(df, name):
-    typed, coloured = df[df["scorable"]], df[df["colour"] != ""]
-    return {"set": name, "samples": len(df),
-            "type hits": typed["type_hit"].mean() if len(typed) else np.nan,
-            "samples with a training type": len(typed),
-            "colour match": coloured["colour_match"].mean() if len(coloured) else np.nan,
-            "coloured samples": len(coloured),
-            "median BRDF-L1 to nearest training": df["brdf_l1"].median(),
-            "share clamping negatives": df["negative"].mean()}
 
 
 with script_logging(snakemake) as log:
@@ -39,68 +27,33 @@ with script_logging(snakemake) as log:
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
     neg_seed = seed_for(p.seed, "negative_share")
     neg = lambda w: ev.negative_share(w, p.angles, neg_seed, p.activation)  # noqa: E731
-    per, rows = [], []
+    per, rows, sets = [], [], {}
     for wpath, tpath in zip(inp.samples, inp.tables):
-        name, w = set_name(wpath), np.load(wpath)
+        name = set_name(wpath)
+        sets[name] = np.load(wpath)
         t = pd.read_csv(tpath, sep="\t", keep_default_na=False, dtype={"type": str})
-        for col in ("type", "colour", "kind", "prompt", "source"):
-            if col not in t:
-                t[col] = ""
-        df = pd.concat([t[["sample", "condition", "kind", "prompt", "source", "type", "colour"]],
-                        ts.nearest(w)], axis=1)
+        df = ev.score_set(ts, sets[name], t, neg, p.resolution, p.activation)
         df.insert(0, "set", name)
-        df["scorable"] = ts.scorable(df["type"])
-        df["type_hit"] = (df["type"] == df["nearest_type"]) & df["scorable"]
-        rgb = ev.mean_colour(sphere.render_fields(np.nan_to_num(w), p.resolution, p.activation))
-        df["colour_match"] = [bool(c) and ev.colour_matches(x, c) for x, c in zip(rgb, df["colour"])]
-        df["negative"] = neg(w)
         per.append(df)
-        rows.append(summarise(df, name))
+        rows.append(ev.summarise(df, name))
         if name in ("text", "mm_type", "mm_uncond"):  # the test-split descriptions alone
-            rows.append(summarise(df[df["kind"] == "test"], f"{name} (test descriptions)"))
+            rows.append(ev.summarise(df[df["kind"] == "test"], f"{name} (test descriptions)"))
             if name == "text":
-                rows.append(summarise(df[df["kind"] == "unseen"], "text (unseen prompts)"))
+                rows.append(ev.summarise(df[df["kind"] == "unseen"], "text (unseen prompts)"))
     per = pd.concat(per, ignore_index=True)
     per.to_csv(out.per_sample, sep="\t", index=False, float_format="%.6g")
-
-    # reference rows: the real test-split materials and the training fits
-    test = dataset.reference_rows(man)
-    near = ts.nearest(weights[test])
-    own = man["type"].iloc[test].to_numpy()
-    ok = ts.scorable(own)
-    rows.append({"set": "reference: real test-split materials", "samples": len(test),
-                 "type hits": (near["nearest_type"].to_numpy() == own)[ok].mean() if ok.any() else np.nan,
-                 "samples with a training type": int(ok.sum()),
-                 "median BRDF-L1 to nearest training": near["brdf_l1"].median(),
-                 "share clamping negatives": neg(weights[test]).mean()})
-    rows.append({"set": "reference: training fits", "samples": len(ts.rows),
-                 "share clamping negatives": neg(weights[ts.rows]).mean()})
-    summary = pd.DataFrame(rows)
+    summary = pd.DataFrame(rows + ev.reference_summaries(ts, weights, man, neg))
     summary.to_csv(out.summary, sep="\t", index=False, float_format="%.4g")
     log.info("\n%s", summary.to_string())
 
     # image agreement in the conditioning view
-    cond = torch.as_tensor(np.load(inp.conditioning))
-    emb = np.load(inp.conditioning_embeddings)
     img = per[per["set"] == "image"]
-    w_img = np.load([f for f in inp.samples if set_name(f) == "image"][0])
-    w_unc = np.load([f for f in inp.samples if set_name(f) == "mm_uncond"][0])
-    retrieved = image.retrieve(emb, np.load(inp.image_embeddings)[ts.rows, 0], ts.rows)  # metric view
-    res = []
-    for c in range(len(cond)):
-        target = cond[c:c + 1]
-        mine = img["condition"].to_numpy() == c
-        s_cond = ev.image_scores(w_img[mine], target.expand(int(mine.sum()), -1, -1, -1),
-                                 p.resolution, p.activation)
-        s_unc = ev.image_scores(w_unc, target.expand(len(w_unc), -1, -1, -1), p.resolution,
-                                p.activation)
-        s_ret = ev.image_scores(weights[retrieved[c:c + 1]], target, p.resolution, p.activation)
-        src = img.loc[mine, "source"].iloc[0]
-        res.append({"condition": c, "source": src, "psnr_conditioned": s_cond["psnr"].mean(),
-                    "ssim_conditioned": s_cond["ssim"].mean(),
-                    "psnr_unconditional": s_unc["psnr"].mean(), "ssim_unconditional": s_unc["ssim"].mean(),
-                    "psnr_retrieval": s_ret["psnr"].iloc[0], "ssim_retrieval": s_ret["ssim"].iloc[0],
-                    "retrieved": man["name"].iloc[retrieved[c]]})
-    res = pd.DataFrame(res)
+    conditions = img["condition"].to_numpy()
+    sources = [img.loc[conditions == c, "source"].iloc[0] for c in range(len(np.load(inp.conditioning)))]
+    retrieved = image.retrieve(np.load(inp.conditioning_embeddings),
+                               np.load(inp.image_embeddings)[ts.rows, 0], ts.rows)  # metric view
+    res = ev.image_agreement(torch.as_tensor(np.load(inp.conditioning)), conditions,
+                             sets["image"], sets["mm_uncond"], retrieved, weights, sources,
+                             man["name"].to_numpy(), p.resolution, p.activation)
     res.to_csv(out.image, sep="\t", index=False, float_format="%.5g")
     log.info("image agreement (means):\n%s", res.mean(numeric_only=True).to_string())

@@ -115,3 +115,79 @@ def image_scores(samples: np.ndarray, targets: torch.Tensor, resolution: int,
     ssim = torch.stack([distances.pairwise_ssim(a[i:i + 1], b[i:i + 1])[0, 0] for i in range(len(a))]) \
         if len(a) else torch.zeros(0)
     return pd.DataFrame({"psnr": (-10 * torch.log10(mse)).numpy(), "ssim": ssim.numpy()})
+
+
+# ----------------------------------------------------------------------------- sample sets
+
+SET_COLUMNS = ("sample", "condition", "kind", "prompt", "source", "type", "colour")
+
+
+def score_set(ts: TrainingSet, w: np.ndarray, table: pd.DataFrame, negative, resolution: int,
+              activation: str) -> pd.DataFrame:
+    """Per sample of one set (its weights and samples.tsv): the conditions asked, the nearest
+    training material (BRDF-L1, its type), type hit, colour match of the metric-view render,
+    and whether it clamps negatives (`negative(w)` -> bool per sample)."""
+    t = table.copy()
+    for col in SET_COLUMNS:
+        if col not in t:
+            t[col] = ""
+    df = pd.concat([t[list(SET_COLUMNS)].reset_index(drop=True), ts.nearest(w)], axis=1)
+    df["scorable"] = ts.scorable(df["type"])
+    df["type_hit"] = (df["type"] == df["nearest_type"]) & df["scorable"]
+    rgb = mean_colour(sphere.render_fields(np.nan_to_num(w), resolution, activation))
+    df["colour_match"] = [bool(c) and colour_matches(x, c) for x, c in zip(rgb, df["colour"])]
+    df["negative"] = negative(w)
+    return df
+
+
+def summarise(df: pd.DataFrame, name: str) -> dict:
+    """One summary row of `score_set`'s table: type hits over the samples whose type training
+    has, colour match over those naming a colour, median distance, share clamping."""
+    typed, coloured = df[df["scorable"]], df[df["colour"] != ""]
+    return {"set": name, "samples": len(df),
+            "type hits": typed["type_hit"].mean() if len(typed) else np.nan,
+            "samples with a training type": len(typed),
+            "colour match": coloured["colour_match"].mean() if len(coloured) else np.nan,
+            "coloured samples": len(coloured),
+            "median BRDF-L1 to nearest training": df["brdf_l1"].median(),
+            "share clamping negatives": df["negative"].mean()}
+
+
+def reference_summaries(ts: TrainingSet, weights: np.ndarray, man: pd.DataFrame,
+                        negative) -> list[dict]:
+    """The yardsticks: the real test-split materials scored as a sample set would be (type hits
+    of their own types, distance, clamping), and the training fits' clamping."""
+    test = dataset.reference_rows(man)
+    near = ts.nearest(weights[test])
+    own = man["type"].iloc[test].to_numpy()
+    ok = ts.scorable(own)
+    return [{"set": "reference: real test-split materials", "samples": len(test),
+             "type hits": (near["nearest_type"].to_numpy() == own)[ok].mean() if ok.any() else np.nan,
+             "samples with a training type": int(ok.sum()),
+             "median BRDF-L1 to nearest training": near["brdf_l1"].median(),
+             "share clamping negatives": negative(weights[test]).mean()},
+            {"set": "reference: training fits", "samples": len(ts.rows),
+             "share clamping negatives": negative(weights[ts.rows]).mean()}]
+
+
+def image_agreement(targets: torch.Tensor, conditions: np.ndarray, w_cond: np.ndarray,
+                    w_uncond: np.ndarray, retrieved: np.ndarray, weights: np.ndarray,
+                    sources, names, resolution: int, activation: str) -> pd.DataFrame:
+    """Per conditioning image c (targets (C, H, W, 3), the metric view): mean PSNR / SSIM of its
+    conditioned samples (rows of w_cond whose `conditions` == c), of every unconditional sample,
+    and of the retrieved training material (weights[retrieved[c]], named names[retrieved[c]])."""
+    res = []
+    for c in range(len(targets)):
+        target = targets[c:c + 1]
+        mine = conditions == c
+        s_cond = image_scores(w_cond[mine], target.expand(int(mine.sum()), -1, -1, -1),
+                              resolution, activation)
+        s_unc = image_scores(w_uncond, target.expand(len(w_uncond), -1, -1, -1), resolution,
+                             activation)
+        s_ret = image_scores(weights[retrieved[c:c + 1]], target, resolution, activation)
+        res.append({"condition": c, "source": sources[c], "psnr_conditioned": s_cond["psnr"].mean(),
+                    "ssim_conditioned": s_cond["ssim"].mean(),
+                    "psnr_unconditional": s_unc["psnr"].mean(), "ssim_unconditional": s_unc["ssim"].mean(),
+                    "psnr_retrieval": s_ret["psnr"].iloc[0], "ssim_retrieval": s_ret["ssim"].iloc[0],
+                    "retrieved": names[retrieved[c]]})
+    return pd.DataFrame(res)
