@@ -248,17 +248,10 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     gen = torch.Generator().manual_seed(seed)
     step, history, elapsed = 0, [], 0.0
-    if ckpt_path.exists():
-        ck = modelfile.load(ckpt_path, map_location=dev)
-        if ck.get("fingerprint") == fp:
-            model.load_state_dict(ck["model"])
-            opt.load_state_dict(ck["opt"])
-            gen.set_state(ck["generator"])
-            step, elapsed = int(ck["step"]), float(ck["elapsed"])
-            history = [tuple(r) for r in ck["history"]]
-            log.info("resumed from %s at step %d", ckpt_path, step)
-        else:
-            log.warning("ignoring %s: written for other data or settings", ckpt_path)
+    ck = modelfile.resume(ckpt_path, fp, dev, model=model, opt=opt, generator=gen)
+    if ck is not None:
+        step, elapsed = int(ck["step"]), float(ck["elapsed"])
+        history = [tuple(r) for r in ck["history"]]
 
     def checkpoint():
         save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),

@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import os
 import time
-from pathlib import Path
 
 import torch
 from torch import nn
@@ -139,14 +138,10 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=lr * 0.05)
     gen = torch.Generator().manual_seed(seed)
     start = 0
-    if checkpoint and Path(checkpoint).exists():
-        ck = modelfile.load(checkpoint)
-        model.load_state_dict(ck["model"])
-        opt.load_state_dict(ck["opt"])
-        sched.load_state_dict(ck["sched"])
-        gen.set_state(ck["gen"])
+    ck = modelfile.resume(checkpoint, model=model, opt=opt, sched=sched, gen=gen) \
+        if checkpoint else None
+    if ck is not None:
         start = ck["step"]
-        log.info("resumed %s from %s at step %d", model.method, checkpoint, start)
     else:
         _reset(model, seed, init_std)
     losses, t0 = [], time.time()

@@ -162,18 +162,10 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     diffusion = Diffusion(sched_cfg)
     step, history, elapsed = 0, [], 0.0
 
-    if ckpt_path.exists():
-        ck = modelfile.load(ckpt_path, map_location=dev)
-        if ck.get("fingerprint") == fp:
-            model.load_state_dict(ck["model"])
-            ema.load_state_dict(ck["ema"])
-            opt.load_state_dict(ck["opt"])
-            gen.set_state(ck["generator"])
-            torch.set_rng_state(ck["torch_rng"])
-            step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
-            log.info("resumed from %s at step %d", ckpt_path, step)
-        else:
-            log.warning("ignoring %s: written for other data or settings", ckpt_path)
+    ck = modelfile.resume(ckpt_path, fp, dev, model=model, ema=ema, opt=opt, generator=gen)
+    if ck is not None:
+        torch.set_rng_state(ck["torch_rng"])
+        step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
 
     x_all = norm.encode(torch.from_numpy(weights).to(dev))
     y_all = torch.from_numpy(labels).to(dev)

@@ -22,3 +22,28 @@ def load(path: str | Path, map_location="cpu"):
             "and plain values only (torch.load weights_only=True), never pickled objects. If the "
             "file is truncated or from elsewhere, delete it and rebuild it with the snakemake "
             "rule that writes it.") from e
+
+
+def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
+           **state) -> dict | None:
+    """A training checkpoint at `path`, loaded into `state` (name -> object with
+    `load_state_dict`, or a torch.Generator, restored from the checkpoint's entry of that name),
+    or None: no file, or one written for another fingerprint (other data or settings; logged
+    and ignored, so training starts over). `fingerprint` None accepts any checkpoint."""
+    import logging
+
+    log = logging.getLogger(__name__)
+    path = Path(path)
+    if not path.exists():
+        return None
+    ck = load(path, map_location=map_location)
+    if fingerprint is not None and ck.get("fingerprint") != fingerprint:
+        log.warning("ignoring %s: written for other data or settings", path)
+        return None
+    for name, obj in state.items():
+        if isinstance(obj, torch.Generator):
+            obj.set_state(ck[name])
+        else:
+            obj.load_state_dict(ck[name])
+    log.info("resumed from %s at step %s", path, ck.get("step"))
+    return ck
