@@ -197,6 +197,7 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["sample", "--run", "{run}", "--type", "wood", "--out", "{tmp}/o"], "known: fabric, steel"),
     (["sample", "--run", "{run}", "--category", "shiny", "--out", "{tmp}/o"], "choose one of diffuse"),
     (["sample", "--run", "{run}", "--steps", "50", "--out", "{tmp}/o"], "give 1 ... 20 DDIM steps"),
+    (["sample", "--run", "{run}", "--seed", "-1", "--out", "{tmp}/o"], "--seed must be >= 0"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),

@@ -123,6 +123,9 @@ def main(argv=None) -> int:
         if args.n < 1:
             print("neumat: error: -n must be >= 1", file=sys.stderr)
             return EXIT_USAGE
+        if args.seed < 0:  # the root of named streams (neumat.seeds), one per batch
+            print("neumat sample: error: --seed must be >= 0", file=sys.stderr)
+            return EXIT_USAGE
     try:
         return args.func(args)
     except CLIError as e:
