@@ -16,6 +16,8 @@ and to the start, and the share of samples clamping negative values.
 
 --render-steps (image mode): also pull each sample toward its conditioning image's metric-view
 render (`conditions.image.render_step`, RenderConstraint); every strength with every step.
+--model: another model file trained on the same NeuMERL rows (e.g. a `prediction: v` one, which
+keeps a start it is given); one without the mode's condition refines the start unconditionally.
 """
 
 import argparse
@@ -75,6 +77,7 @@ def main():
     ap.add_argument("--resolution", type=int, default=128, help="report.sphere_resolution of the run")
     ap.add_argument("--bins", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--model", help="model file (default: <results>/diffusion/multimodal/model.pt)")
     a = ap.parse_args()
     R, k, mode = a.results, a.per_image, a.mode
     print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}; mode {mode}",
@@ -93,15 +96,19 @@ def main():
         rsc = ev.image_scores(ret, cond, a.resolution, "relu")
         line += f", PSNR {rsc.psnr.mean():.2f} dB, SSIM {rsc.ssim.mean():.4f}"
     print(line, flush=True)
-    sampler = Sampler(f"{R}/diffusion/multimodal/model.pt", "cpu")
+    sampler = Sampler(a.model or f"{R}/diffusion/multimodal/model.pt", "cpu")
     c = {mode: list(np.repeat(emb, k)) if mode == "type" else np.repeat(emb, k, 0)}
+    if mode not in sampler.model.cond_names:  # refine the start without the condition
+        print(f"{a.model}: no {mode} condition; the start is refined unconditionally", flush=True)
+        c = {}
     f_start = np.repeat(ts.fv(ret), k, 0)
     if mode != "image" and a.render_steps != [0.0]:
         raise SystemExit("--render-steps needs --mode image (render guidance follows an image)")
     tgt = None if cond is None else cond.repeat_interleave(k, 0)
     for st, rs in [(st, rs) for st in a.strengths for rs in a.render_steps]:
         t0 = time.perf_counter()
-        w = sample(sampler, len(emb) * k, a.seed, c, {mode: a.guidance}, a.steps, 0.0, 256, None,
+        w = sample(sampler, len(emb) * k, a.seed, c, {mode: a.guidance} if c else None, a.steps,
+                   0.0, 256, None,
                    negative_step=a.negative_step, start=weights[np.repeat(got, k)], strength=st,
                    render_targets=tgt if rs else None, render_step=rs)
         dt = time.perf_counter() - t0
