@@ -36,6 +36,15 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+def test_refiner_without_a_retrieved_start_fails_when_the_dag_is_built(tmp_path):
+    """conditions.image.refiner refines the retrieved material: at strength 1 there is none."""
+    rc, text = _dry_run(tmp_path, {"conditions": {"image": {"refiner": True, "strength": 1.0}}},
+                        "config/tiny.yaml")
+    assert rc != 0
+    assert "conditions.image.refiner" in text and "conditions.image.strength < 1" in text
+    assert not (tmp_path / "results").exists()
+
+
 def test_check_split():
     augment.check_split(["a", "b"], 0.05)
     with pytest.raises(ValueError, match=r"merl.subset.*\['a'\].*test_fraction = 0.5.*at least 2"):

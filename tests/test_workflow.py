@@ -369,6 +369,24 @@ def test_render_step_reruns_only_image_sampling(tiny_run):
     assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
 
 
+def test_refiner_off_reruns_only_image_sampling(tiny_run):
+    """conditions.image.refiner (neutral false; the tiny config sets true): off, the image
+    samples come from the multimodal model again: sample_image and what reads it rerun, no
+    training; on, the tiny run trained the refiner on ours's rows with prediction v."""
+    import yaml
+    from neumat.io import modelfile
+    res = tiny_run / "results/tiny"
+    bundle = modelfile.load(res / "diffusion/refiner/model.pt")
+    assert bundle["sched_cfg"]["prediction"] == "v" and bundle["sched_cfg"]["loss"] == "x0"
+    assert "refining the retrieved materials" in (res / "logs/sample_image.log").read_text()
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "conditions.image.refiner", False)
+    (tiny_run / "config/refiner_off.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/refiner_off.yaml")
+    assert "sample_image" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
+
+
 def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
     """diffusion.sample.guidance is the type model's guidance: the conditioning rules take
     theirs from conditions.guidance, so changing it reruns type sampling, not theirs."""

@@ -324,6 +324,19 @@ def cond_seed(stage):
     return seed_for("conditions", stage)
 
 
+def image_sampling():
+    """How sample_image drew, for the report: model, start, render guidance."""
+    img = COND["image"]
+    how = ("the refiner (rule train_refiner; prediction v, loss x0) refining each image's "
+           "retrieved training material, without the image condition" if REFINER else
+           "the multimodal model under the image condition")
+    if img["strength"] < 1 and not REFINER:
+        how += ", from each image's retrieved training material"
+    start = f"strength {img['strength']:g}" if img["strength"] < 1 else "from noise"
+    render = f"render step {img['render_step']:g}" if img["render_step"] else "no render guidance"
+    return f"Image samples: {how} ({start}, {render})."
+
+
 # ----------------------------------------------------------------------------- Table 3 (hyperbrdf.smk)
 
 

@@ -8,6 +8,13 @@
 
 COND = config["conditions"]
 COND_MODEL = "multimodal"
+# conditions.image.refiner: image samples refine their retrieved training material with a model
+# that keeps a start (prediction v, loss x0: no low-noise floor), trained on ours's rows
+REFINER = COND["image"]["refiner"]
+if REFINER and COND["image"]["strength"] >= 1:
+    raise ValueError("config conditions.image.refiner: true refines each image's retrieved "
+                     "training material and needs conditions.image.strength < 1 (e.g. 0.1); "
+                     "at 1 the samples would start from noise")
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
@@ -121,6 +128,37 @@ rule train_multimodal:
         "../scripts/train_multimodal.py"
 
 
+rule train_refiner:
+    input:
+        weights=out("neumerl/weights.npy"),
+        manifest=out("neumerl/manifest.tsv"),
+    output:
+        model=out("diffusion/{model}/model.pt"),
+        history=out("diffusion/{model}/history.tsv"),
+    params:
+        # ours's model and training; the schedule's prediction and loss set to v / x0
+        cfg=canon({**settings("diffusion", ["model", "train"]),
+                   "schedule": {**settings("diffusion.schedule"), "prediction": "v", "loss": "x0"}}),
+        class_names=DIFF_CLASSES,
+        seed=cond_seed("train_refiner"),
+        checkpoint=out("diffusion/{model}/checkpoint.pt"),
+    wildcard_constraints:
+        model="refiner",
+    log:
+        log("train_refiner/{model}"),
+    benchmark:
+        bench("train_refiner/{model}")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=diffusion_runtime(),
+        gpu=1 if config["device"] == "cuda" else 0,
+    script:
+        "../scripts/train_diffusion.py"
+
+
 rule sample_text:
     input:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
@@ -159,6 +197,7 @@ rule sample_image:
         manifest=out("neumerl/manifest.tsv"),
         image_embeddings=out("conditions/image.npy"),
         images=COND["image"]["images"],
+        refiner=[out("diffusion/refiner/model.pt")] if REFINER else [],
     output:
         weights=out("samples/image/weights.npy"),
         table=out("samples/image/samples.tsv"),
@@ -171,7 +210,7 @@ rule sample_image:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
-        **neutral_params("conditions.image", ["render_step"]),
+        **neutral_params("conditions.image", ["render_step", "refiner"]),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
         mode="image",
@@ -345,6 +384,7 @@ rule conditions_section:
                      caption="../report/conditions_guidance.rst"),
     params:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        image_sampling=image_sampling(),
     log:
         log("conditions_section"),
     benchmark:

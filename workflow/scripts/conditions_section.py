@@ -95,7 +95,7 @@ with script_logging(snakemake) as log:
         "### Image agreement (metric view)",
         "PSNR / SSIM (sRGB, data range 1) of each sample's metric-view render against its "
         "conditioning image, mean per image; unconditional = all `mm_uncond` samples; retrieval "
-        "= the training material whose image embedding is nearest.",
+        "= the training material whose image embedding is nearest. " + p.image_sampling,
         report.md_table(img_means),
         report.md_table(img),
         "### Guidance sweep",

@@ -4,7 +4,8 @@ test prompts: their types ('mm_type') and no condition ('mm_uncond'). Images wit
 `conditions.image.strength` < 1 start from their retrieved training material (nearest
 metric-view embedding) noised to that fraction of the schedule; with
 `conditions.image.render_step` > 0 each image's samples are also pulled toward its metric-view
-render (render guidance)."""
+render (render guidance); with `conditions.image.refiner` the retrieved material is refined by
+the refiner model (rule train_refiner), without the image condition."""
 import time
 
 import numpy as np
@@ -58,6 +59,9 @@ with script_logging(snakemake) as log:
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
             start = weights[np.repeat(got, k)]
+        if getattr(p, "refiner", False):  # refined by the floor-free model, unconditionally
+            sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
+            log.info("refining the retrieved materials with %s", inp.refiner[0])
         if render_step:  # render guidance toward each sample's own conditioning image
             targets = np.repeat(imgs, k, 0)
             log.info("render guidance, step %g, toward %d conditioning images", render_step,
@@ -77,7 +81,7 @@ with script_logging(snakemake) as log:
     table.insert(0, "condition", np.repeat(np.arange(len(conds)), k))
     table.insert(0, "sample", np.arange(len(table)))
     name = "type" if p.mode == "mm_type" else p.mode
-    guidance = {name: p.guidance[name]} if name in p.guidance else {}
+    guidance = {name: p.guidance[name]} if name in p.guidance and conditions else {}
     t0 = time.perf_counter()
     w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
                s["batch_size"], s["clip"], negative_step=s["negative_step"],

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-MODELS = ("ours", "merl100")
+MODELS = ("ours", "merl100", "refiner")
 MANIFEST_COLUMNS = ("id", "name", "operation", "type", "split")
 
 
@@ -34,7 +34,7 @@ def class_names(types) -> list[str]:
 
 def training_rows(man: pd.DataFrame, model: str) -> np.ndarray:
     train = man["split"] == "train"
-    if model == "ours":
+    if model in ("ours", "refiner"):  # the refiner (conditions.image.refiner): ours's rows
         rows = np.flatnonzero(train)
     elif model == "merl100":
         rows = np.flatnonzero(train & (man["operation"] == "original"))
