@@ -341,7 +341,8 @@ def test_negative_step_reruns_only_sampling(tiny_run):
 @pytest.mark.slow
 def test_bf16_training_is_a_param_and_fp32_reruns_nothing(tiny_run):
     """diffusion.train.precision (config/speed_keys.yaml `neutral`): bf16 retrains the diffusion
-    models; fp32, set explicitly, is the arithmetic the run was made with and reruns nothing."""
+    models (the tiny config's refiner too); fp32, set explicitly, is the arithmetic the run was
+    made with and reruns nothing."""
     import yaml
     for value, expect in (("bf16", True), ("fp32", False)):
         cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
@@ -349,8 +350,8 @@ def test_bf16_training_is_a_param_and_fp32_reruns_nothing(tiny_run):
         (tiny_run / f"config/precision_{value}.yaml").write_text(yaml.safe_dump(cfg))
         jobs = _planned_jobs(tiny_run, f"config/precision_{value}.yaml")
         if expect:
-            assert {j for j in jobs if j.startswith("train_")} == {"train_diffusion",
-                                                                    "train_multimodal"}, jobs
+            assert {j for j in jobs if j.startswith("train_")} == {
+                "train_diffusion", "train_multimodal", "train_refiner"}, jobs
             assert not [j for j in jobs if j.startswith(HEAVY) and not j.startswith("train_")], jobs
         else:
             assert jobs == [], jobs
