@@ -140,6 +140,29 @@ def mix(x):
 
 
 @triton.jit
+def triangle_grid(ux, uy):
+    """grid.triangle_grid of float64 u: the cell's lower vertex (i0, i1) (int64), whether the
+    point is in its upper triangle, and the three barycentric weights (float32)."""
+    # float64 constants: a Python float in a kernel is an fp32 constant, whose rounding
+    # (~1e-8) would move the grid by ~1e-3 at u = 1e5
+    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
+    stx = ux * (2 * S3)
+    sty = uy * (2 * S3)
+    s0 = stx - sty / S3
+    s1 = 2 * sty / S3
+    b0 = tl.floor(s0)
+    b1 = tl.floor(s1)
+    f0 = s0 - b0
+    f1 = s1 - b1
+    z = 1 - f0 - f1
+    up = z > 0
+    w0 = tl.where(up, z, -z).to(tl.float32)
+    w1 = tl.where(up, f1, 1 - f1).to(tl.float32)
+    w2 = tl.where(up, f0, 1 - f0).to(tl.float32)
+    return b0.to(tl.int64), b1.to(tl.int64), up, w0, w1, w2
+
+
+@triton.jit
 def hpb_tap(gauss_ptr, fx, fy, bx, by, hs, H, W, C: tl.constexpr, P: tl.constexpr, m):
     """One triangle vertex (bx, by) (int64) of HPB: its hashed offset (grid.vertex_hash),
     the fetch position frac(frac(u) + offset) in float64 then float32 (grid.wrap_fetch_coords),
@@ -173,24 +196,7 @@ def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, 
     m = q < N
     ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
     uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    # float64 constants: a Python float in a kernel is an fp32 constant, whose rounding
-    # (~1e-8) would move the grid by ~1e-3 at u = 1e5
-    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
-    stx = ux * (2 * S3)
-    sty = uy * (2 * S3)
-    s0 = stx - sty / S3
-    s1 = 2 * sty / S3
-    b0 = tl.floor(s0)
-    b1 = tl.floor(s1)
-    f0 = s0 - b0
-    f1 = s1 - b1
-    z = 1 - f0 - f1
-    up = z > 0
-    i0 = b0.to(tl.int64)
-    i1 = b1.to(tl.int64)
-    w0 = tl.where(up, z, -z).to(tl.float32)
-    w1 = tl.where(up, f1, 1 - f1).to(tl.float32)
-    w2 = tl.where(up, f0, 1 - f0).to(tl.float32)
+    i0, i1, up, w0, w1, w2 = triangle_grid(ux, uy)
     fx = ux - tl.floor(ux)  # torch.remainder(u, 1); may round to 1, which the next frac folds
     fy = uy - tl.floor(uy)
     hs = hs_bits.to(tl.uint32, bitcast=True)
@@ -315,22 +321,7 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, fh_ptr, fd_ptr, w1u_ptr, 
     m = q < N
     ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
     uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
-    stx = ux * (2 * S3)
-    sty = uy * (2 * S3)
-    s0 = stx - sty / S3
-    s1 = 2 * sty / S3
-    b0 = tl.floor(s0)
-    b1 = tl.floor(s1)
-    f0 = s0 - b0
-    f1 = s1 - b1
-    z = 1 - f0 - f1
-    up = z > 0
-    i0 = b0.to(tl.int64)
-    i1 = b1.to(tl.int64)
-    w0 = tl.where(up, z, -z).to(tl.float32)
-    w1 = tl.where(up, f1, 1 - f1).to(tl.float32)
-    w2 = tl.where(up, f0, 1 - f0).to(tl.float32)
+    i0, i1, up, w0, w1, w2 = triangle_grid(ux, uy)
     hs = hs_bits.to(tl.uint32, bitcast=True)
     rotation = tl.load(rot_ptr)  # float64 (a Python float argument would be float32)
     dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
