@@ -193,6 +193,19 @@ def test_valid_mask_counts():
     assert m.sum() == 1_096_216  # valid bins of the MERL grid at bin centres
 
 
+def test_cached_grid_arrays_are_shared_and_read_only():
+    """valid_mask, grid_angles and grid_inputs are computed once per process and shared, so no
+    caller may change them for the others; grid_inputs is the neural-field input of each bin."""
+    assert merl.valid_mask() is merl.valid_mask()
+    for a in (merl.valid_mask(), *merl.grid_angles(), merl.grid_inputs()):
+        with pytest.raises(ValueError, match="read-only"):
+            a[0] = 0
+    bins = np.array([0, 123_456, merl.N_BINS - 1])
+    np.testing.assert_array_equal(
+        merl.grid_inputs()[bins],
+        merl.half_diff_cartesian(*(a[bins] for a in merl.grid_angles())).astype(np.float32))
+
+
 # ----------------------------------------------------------------------------- NBRDF decode
 
 

@@ -57,12 +57,6 @@ STAT_COLUMNS = ["mean_r", "mean_g", "mean_b", "max_r", "max_g", "max_b", "n_abov
 # ----------------------------------------------------------------------------- statistics
 
 
-@functools.lru_cache(maxsize=1)
-def _valid() -> np.ndarray:
-    """merl.valid_mask(), computed once (every batch of samples needs it)."""
-    return merl.valid_mask()
-
-
 @functools.lru_cache(maxsize=4)
 def _inputs(key: bytes) -> torch.Tensor:
     bins = np.frombuffer(key, dtype=np.int64)
@@ -74,7 +68,7 @@ def grid_bins(bins: int | None = None, seed: int = 0) -> np.ndarray:
     """Flat indices of the above-horizon MERL bins used for the statistics: all of them, or
     `bins` drawn without replacement (sorted) with `seed`. The highlight bins (theta_h bin 0,
     where mirrors put their peak) are always kept, so a subsample still sees the peak."""
-    valid = np.flatnonzero(_valid())
+    valid = np.flatnonzero(merl.valid_mask())
     if bins is None or bins >= len(valid):
         return valid
     peak = valid[valid < merl.N_TD * merl.N_PD]  # theta_h bin 0
@@ -114,7 +108,7 @@ class _Accumulator:
 def _stratified_weights(bins: np.ndarray) -> np.ndarray:
     """Weights that make a subsample with all theta_h-bin-0 bins kept unbiased for the full
     grid: the kept peak bins count once, the random rest counts for the bins it stands for."""
-    valid = _valid()
+    valid = merl.valid_mask()
     n_peak = int(valid[: merl.N_TD * merl.N_PD].sum())
     n_rest_full = int(valid.sum()) - n_peak
     is_peak = bins < merl.N_TD * merl.N_PD
@@ -139,7 +133,7 @@ def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins:
     names = names if names is not None else [str(i) for i in range(len(weights))]
     bins = grid_bins() if bins is None else bins
     x = _inputs(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
-    acc = _Accumulator(len(weights), int(_valid().sum()), len(bins), _stratified_weights(bins))
+    acc = _Accumulator(len(weights), int(merl.valid_mask().sum()), len(bins), _stratified_weights(bins))
     w = torch.as_tensor(np.nan_to_num(weights, nan=0.0, posinf=0.0, neginf=0.0), device=device)
     with torch.no_grad():
         for s in range(0, len(bins), chunk):
@@ -158,7 +152,7 @@ def table_stats(tables, names=None, bins: np.ndarray | None = None) -> pd.DataFr
     tables = list(tables)
     names = names if names is not None else [str(i) for i in range(len(tables))]
     bins = grid_bins() if bins is None else bins
-    n_valid, sw = int(_valid().sum()), _stratified_weights(bins)
+    n_valid, sw = int(merl.valid_mask().sum()), _stratified_weights(bins)
     frames = []
     for name, t in zip(names, tables):  # one at a time: a table is 35 MB
         t = merl.read_merl(t) if not isinstance(t, np.ndarray) else t

@@ -84,7 +84,7 @@ def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int = 1 << 1
     Below-horizon bins are set to -1/scale like measured MERL files (negative = invalid)."""
     from neumat.io import merl
 
-    x_all = torch.as_tensor(merl.half_diff_cartesian(*merl.grid_angles()), dtype=torch.float32)
+    x_all = torch.from_numpy(merl.grid_inputs().copy())  # a writable copy for torch: 35 MB, ~10 ms
     w = w.to(device=device, dtype=torch.float32)
     out = np.empty((w.shape[0], merl.N_BINS, 3), dtype=np.float64)
     with torch.no_grad():

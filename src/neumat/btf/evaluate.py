@@ -12,7 +12,6 @@ import math
 
 import numpy as np
 import torch
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from neumat.btf import query
 
@@ -34,6 +33,8 @@ def display(img: np.ndarray, exposure: float) -> np.ndarray:
 def image_metrics(ref_ldr: np.ndarray, img_ldr: np.ndarray) -> dict:
     """PSNR (dB), DSSIM and mean FLIP of two display-referred (sRGB, [0, 1]) images."""
     import flip_evaluator as flip
+    from skimage.metrics import (  # lazily, like flip: the BTF jobs that score no image skip them
+        peak_signal_noise_ratio, structural_similarity)
 
     ssim = structural_similarity(ref_ldr, img_ldr, channel_axis=-1, data_range=1.0,
                                  win_size=min(7, *[s - (s + 1) % 2 for s in ref_ldr.shape[:2]]))

@@ -2,15 +2,15 @@
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
 
 
 def texture_grid(path, rows: list[str], cols: list[str], images, notes=None, title=""):
     """images[r][c] display images; notes[r][c] a caption under each panel (metrics)."""
+    import matplotlib  # lazily: most BTF jobs draw no figure, and pyplot costs ~0.4 s to import
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
     fig, axes = plt.subplots(len(rows), len(cols), figsize=(1.8 * len(cols), 1.9 * len(rows)),
                              squeeze=False)
     for r in range(len(rows)):

@@ -86,17 +86,33 @@ def bin_centers() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return th, td, pd
 
 
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.flags.writeable = False  # a cached array is shared: writing to it raises
+    return a
+
+
+@functools.cache
 def grid_angles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(theta_h, theta_d, phi_d) of every bin centre, each flat of length N_BINS in file order."""
+    """(theta_h, theta_d, phi_d) of every bin centre, each flat of length N_BINS in file order
+    (computed once per process, read-only)."""
     th, td, pd = bin_centers()
     TH, TD, PD = np.meshgrid(th, td, pd, indexing="ij")
-    return TH.ravel(), TD.ravel(), PD.ravel()
+    return tuple(_frozen(a.ravel()) for a in (TH, TD, PD))
 
 
+@functools.cache
 def valid_mask() -> np.ndarray:
-    """Bins whose centre has both directions above the horizon, flat bool (N_BINS,)."""
+    """Bins whose centre has both directions above the horizon, flat bool (N_BINS,), read-only.
+    Cached: it takes ~0.6 s, and writing or evaluating a table needs it every time."""
     wi, wo = half_diff_to_dirs(*grid_angles())
-    return (wi[:, 2] > 0) & (wo[:, 2] > 0)
+    return _frozen((wi[:, 2] > 0) & (wo[:, 2] > 0))
+
+
+@functools.cache
+def grid_inputs() -> np.ndarray:
+    """half_diff_cartesian of every bin centre, (N_BINS, 6) float32, read-only: the neural-field
+    input of a whole table, computed once per process."""
+    return _frozen(half_diff_cartesian(*grid_angles()).astype(np.float32))
 
 
 # Negative above-horizon bins: AugMERL drops such a bin from every material. Real MERL tables
@@ -117,7 +133,7 @@ def negative_bins(table: np.ndarray) -> tuple[int, int]:
 
 @functools.cache
 def _valid_flat() -> np.ndarray:
-    return np.flatnonzero(valid_mask())
+    return _frozen(np.flatnonzero(valid_mask()))
 
 
 def check_negative(path, table: np.ndarray, max_share: float = MAX_NEGATIVE_SHARE) -> int:

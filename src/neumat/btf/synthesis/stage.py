@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from scipy.stats import wasserstein_distance
 
 import neumat.btf.synthesis as syn
 from neumat.btf import evaluate as ev
@@ -113,6 +112,8 @@ def autocorrelation_at(img: np.ndarray, period: int) -> float:
 
 
 def histogram_distance(feat: np.ndarray, exemplar: np.ndarray) -> float:
+    from scipy.stats import wasserstein_distance  # lazily: scipy.stats costs ~0.6 s to import
+
     return float(np.mean([wasserstein_distance(feat[:, c], exemplar[:, c]) / exemplar[:, c].std()
                           for c in range(exemplar.shape[1])]))
 
