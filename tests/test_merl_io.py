@@ -191,6 +191,9 @@ def test_valid_mask_counts():
     m = merl.valid_mask()
     assert m.shape == (merl.N_BINS,) and m.dtype == bool
     assert m.sum() == 1_096_216  # valid bins of the MERL grid at bin centres
+    # its closed form equals the definition: both directions of the bin centre above the horizon
+    wi, wo = merl.half_diff_to_dirs(*merl.grid_angles())
+    assert np.array_equal(m, (wi[:, 2] > 0) & (wo[:, 2] > 0))
 
 
 def test_cached_grid_arrays_are_shared_and_read_only():

@@ -253,7 +253,7 @@ def evaluate(spec: Spec, wi: np.ndarray, wo: np.ndarray) -> np.ndarray:
 def _grid_terms():
     """(mu_i, mu_o, cos_h, cos_d) of the valid MERL bin centres and the valid mask (flat, file
     order). In the half-vector frame wo is wi mirrored about h, i.e. phi_d + pi; the mask
-    equals merl.valid_mask() (tested) without its slower direction round trip."""
+    equals merl.valid_mask() (tested)."""
     th, td, pd = merl.grid_angles()
     a, b = np.cos(td) * np.cos(th), np.sin(td) * np.cos(pd) * np.sin(th)
     mu_i, mu_o = a - b, a + b

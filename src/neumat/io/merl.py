@@ -102,10 +102,15 @@ def grid_angles() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @functools.cache
 def valid_mask() -> np.ndarray:
-    """Bins whose centre has both directions above the horizon, flat bool (N_BINS,), read-only.
-    Cached: it takes ~0.6 s, and writing or evaluating a table needs it every time."""
-    wi, wo = half_diff_to_dirs(*grid_angles())
-    return _frozen((wi[:, 2] > 0) & (wo[:, 2] > 0))
+    """Bins whose centre has both directions above the horizon, flat bool (N_BINS,), read-only,
+    computed once per process: writing or evaluating a table needs it every time. cos(theta_i)
+    and cos(theta_o) in closed form (wo is wi mirrored about h: phi_d + pi), equal on every bin
+    to the z of half_diff_to_dirs' directions (tests/test_merl_io.py), from the 1-D bin centres
+    broadcast over the (theta_h, theta_d, phi_d) grid: ~0.02 CPU-s against 0.58 for the directions."""
+    th, td, pd = bin_centers()
+    th, td, pd = th[:, None, None], td[None, :, None], pd[None, None, :]
+    a, b = np.cos(td) * np.cos(th), np.sin(td) * np.cos(pd) * np.sin(th)
+    return _frozen(((a - b > 0) & (a + b > 0)).ravel())
 
 
 @functools.cache
