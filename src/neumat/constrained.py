@@ -71,8 +71,8 @@ def grid_bins(bins: int | None = None, seed: int = 0) -> np.ndarray:
     valid = np.flatnonzero(merl.valid_mask())
     if bins is None or bins >= len(valid):
         return valid
-    peak = valid[valid < merl.N_TD * merl.N_PD]  # theta_h bin 0
-    rest = np.setdiff1d(valid, peak)
+    n_peak = int(np.searchsorted(valid, merl.N_TD * merl.N_PD))  # theta_h bin 0: a prefix
+    peak, rest = valid[:n_peak], valid[n_peak:]  # (valid is sorted: no set difference needed)
     rng = np.random.default_rng(seed)
     pick = rng.choice(rest, size=max(bins - len(peak), 0), replace=False)
     return np.sort(np.concatenate([peak, pick]))
