@@ -78,14 +78,15 @@ def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
 
 
 def hpb_plane(hpb) -> torch.Tensor:
-    """HPB's Gaussianised plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C), wrapped by
-    one row and column, so a bilinear footprint is one offset (struct hpb). Cached on the
-    synthesis object: a frame is queried in chunks, and the copy is a pass over the plane."""
+    """HPB's Gaussianised plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C) float16,
+    wrapped by one row and column, so a bilinear footprint is one offset (struct hpb). float16
+    holds HPB's values exactly (hpb.gaussianise rounds them to it). Cached on the synthesis
+    object: a frame is queried in chunks, and the copy is a pass over the plane."""
     g = hpb.gauss
     cached = getattr(hpb, "_kernel_plane", None)
     if cached is not None and cached[0] is g:
         return cached[1]
-    p = _f32(g)
+    p = g.detach().to(torch.float16)
     p = torch.cat([p, p[:, :1]], 1)
     p = torch.cat([p, p[:1]], 0).contiguous()
     hpb._kernel_plane = (g, p)

@@ -14,7 +14,9 @@
  *   out (N, 3): max(expm1(y), 0), or y itself (log(1 + RGB)) when raw
  *
  * btf_triple_plane_hpb: the same query with f_U synthesised by histogram-preserving blending
- * inside the tile loop (struct hpb below; float64 u, unbounded); hpb_features: those features
+ * inside the tile loop (struct hpb below; float64 u, unbounded; its Gaussianised plane in
+ * float16, which holds HPB's values exactly: neumat.btf.synthesis.hpb.gaussianise rounds them);
+ * hpb_features: those features
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
  * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
  * same grid, hash and taps (struct hpb with `hex` set), blended in hex_fill_c.
@@ -203,9 +205,7 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* (H + 1, W + 1, C) Gaussianised decorrelated plane, wrapped by one
-                               row and column (neumat.btf.query.hpb_plane); hex: (H, W, C + 1)
-                               f_U with the luminance channel last */
+    const float *gauss;     /* hex-tiling: (H, W, C + 1) f_U with the luminance channel last */
     int H, W;
     const float *lut;       /* (C, L, 2) inverse LUT (HPB only) as (value, slope) pairs: entry
                                k = (lut[k], lut[k + 1] - lut[k]), built by neumat.btf.query.
@@ -217,10 +217,24 @@ struct hpb {
     float contrast, exponent, gain;
     const float *planar;    /* HPB, L = LUT_REG: (C, 2, L) values then slopes, for the register
                                lookup (hpb_fill_c); else NULL */
+    const uint16_t *gauss16;  /* HPB: (H + 1, W + 1, C) Gaussianised decorrelated plane in
+                               float16, wrapped by one row and column (neumat.btf.query.
+                               hpb_plane). Half the bytes of float32: the 2 x 2 footprints of
+                               the three vertices are read from L2/L3 at random, and with float32
+                               HPB's overhead was 3-5 points higher (issue #18's note) */
 };
 
+/* A float16 value (IEEE binary16 bits) as float: exact. _Float16 (GCC >= 12, Clang) converts
+ * with F16C where the target has it, else in software. */
+static inline float h2f(uint16_t h)
+{
+    _Float16 f;
+    memcpy(&f, &h, 2);
+    return (float)f;
+}
+
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
-    int32_t off[12][T];     /* texel offsets (in floats) into gauss; HPB: off[v], the first
+    int32_t off[12][T];     /* texel offsets (in elements) into the plane; HPB: off[v], the first
                                texel of vertex v's 2 x 2 (its plane is wrapped by one row and
                                column: the others are C, pitch and pitch + C floats on) */
     float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
@@ -365,7 +379,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         const long pitch = (long)C * (s->W + 1);
         for (int v = 0; v < 3; v++)
             for (int q = 0; q < T; q++) {
-                const float *a = s->gauss + p->off[v][q];
+                const uint16_t *a = s->gauss16 + p->off[v][q];
                 __builtin_prefetch(a, 0, 1);
                 __builtin_prefetch(a + 2 * C - 1, 0, 1);
                 __builtin_prefetch(a + pitch, 0, 1);
@@ -401,11 +415,12 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
     grid_prepare(s, C, t0, N, p, 1);
 }
 
-#if defined(__AVX2__) && defined(__FMA__)
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
 static inline __attribute__((always_inline)) IEEE __m256
-tap8(__m256 acc, const float *x, float w)  /* acc + w x[0:8] */
+tap8(__m256 acc, const uint16_t *x, float w)  /* acc + w x[0:8], x float16 */
 {
-    return _mm256_fmadd_ps(_mm256_loadu_ps(x), _mm256_set1_ps(w), acc);
+    return _mm256_fmadd_ps(_mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)x)),
+                           _mm256_set1_ps(w), acc);
 }
 #endif
 #if defined(__AVX512F__)
@@ -433,7 +448,7 @@ static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
     const long pitch = (long)C * (s->W + 1);
-#if defined(__AVX2__) && defined(__FMA__)
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
     if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
                       into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
         for (int q0 = 0; q0 < T; q0 += 8) {
@@ -442,7 +457,7 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
                 int q = q0 + k;
                 __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
                 for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
-                    const float *a = s->gauss + p->off[v][q], *d = a + pitch;
+                    const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
                     acc0 = tap8(acc0, a, p->tw[4 * v][q]);
                     acc1 = tap8(acc1, d, p->tw[4 * v + 2][q]);
                     acc0 = tap8(acc0, a + 8, p->tw[4 * v + 1][q]);
@@ -476,11 +491,12 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
         for (int c = 0; c < C; c++)
             acc[c] = 0;
         for (int v = 0; v < 3; v++) {
-            const float *a = s->gauss + p->off[v][q], *d = a + pitch;
+            const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
             float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
                   t3 = p->tw[4 * v + 3][q];
             for (int c = 0; c < C; c++)  /* two short chains: more in flight */
-                acc[c] += (t0 * a[c] + t1 * a[C + c]) + (t2 * d[c] + t3 * d[C + c]);
+                acc[c] += (t0 * h2f(a[c]) + t1 * h2f(a[C + c])) +
+                          (t2 * h2f(d[c]) + t3 * h2f(d[C + c]));
         }
         for (int c = 0; c < C; c++)
             X[c * T + q] = acc[c];
@@ -737,11 +753,12 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
 /* The query with HPB's f_U at float64 u: params' first layer takes q in place of f_U (its
  * f_U columns times the PCA basis, its bias plus those columns times the mean). */
 void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float *wo,
-                          const float *gauss, int H, int W, int Cu, const float *lut, int Lut,
+                          const uint16_t *gauss, int H, int W, int Cu, const float *lut, int Lut,
                           uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    s.gauss16 = gauss;
     float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
     s.planar = lut_planar(&s, Cu, planar);
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
@@ -761,11 +778,12 @@ void btf_triple_plane_hex(long N, const double *u, const float *wi, const float 
 }
 
 /* HPB's features alone, (N, C) = mean + basis q (neumat.btf.synthesis.kernel). */
-void hpb_features(long N, const double *u, const float *gauss, int H, int W, int C,
+void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, int C,
                   const float *lut, int Lut, uint32_t seed, const float *mean,
                   const float *basis, float *out)
 {
-    struct hpb s = {u, gauss, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    s.gauss16 = gauss;
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);
     struct hpb_taps p;
