@@ -226,19 +226,29 @@ struct hpb {
                                -> +20.3 % (AVX2 build) */
 };
 
-/* A float16 value (IEEE binary16 bits) as float: exact. _Float16 (GCC >= 12, Clang) converts
- * with F16C where the target has it, else in software. */
+/* A float16 value (IEEE binary16 bits) as float, exactly: F16C where the target has it, else
+ * from the bits (not _Float16, which x86 GCC before 12, e.g. Ubuntu 22.04's, lacks). */
 static inline float h2f(uint16_t h)
 {
-    _Float16 f;
-    memcpy(&f, &h, 2);
-    return (float)f;
+#if defined(__F16C__)
+    return _cvtsh_ss(h);
+#else
+    uint32_t sign = (uint32_t)(h & 0x8000u) << 16, e = (h >> 10) & 0x1fu, m = h & 0x3ffu, bits;
+    if (e == 0) {  /* zero or subnormal: m 2^-24 */
+        float f = (float)m * 5.9604644775390625e-08f;
+        return sign ? -f : f;
+    }
+    bits = sign | (e == 31 ? 0x7f800000u : (e + 112) << 23) | m << 13;  /* rebias 15 -> 127 */
+    float f;
+    memcpy(&f, &bits, 4);
+    return f;
+#endif
 }
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
     int32_t off[12][T];     /* texel offsets (in elements) into the plane; HPB: off[v], the first
                                texel of vertex v's 2 x 2 (its plane is wrapped by one row and
-                               column: the others are C, pitch and pitch + C floats on) */
+                               column: the others are C, pitch and pitch + C elements on) */
     float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
     float w[3][T];          /* blend weights */
     float inv[T];           /* 1 / sqrt(sum of their squares) */
