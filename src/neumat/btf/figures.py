@@ -7,7 +7,8 @@ import numpy as np
 
 def texture_grid(path, rows: list[str], cols: list[str], images, notes=None, title=""):
     """images[r][c] display images; notes[r][c] a caption under each panel (metrics)."""
-    import matplotlib  # lazily: most BTF jobs draw no figure, and pyplot costs ~0.4 s to import
+    # lazily: most BTF jobs draw no figure, and pyplot costs ~0.4 s to import (AMD EPYC)
+    import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
