@@ -70,6 +70,24 @@ def test_missing_local_btf_is_named_when_the_dag_is_built(tmp_path):
     assert "leather08_resampled_W400xH400_L151xV151.btf" in text
 
 
+def test_missing_conditioning_image_is_named_when_the_dag_is_built(tmp_path):
+    """Without the check, a run that had sampled before skipped the missing image silently."""
+    rc, text = _dry_run(tmp_path, {"conditions": {"image": {"images": ["photos/sphere.png"]}}},
+                        "config/tiny.yaml")
+    assert rc != 0
+    assert "config conditions.image.images: photos/sphere.png is not a file" in text
+    assert not (tmp_path / "results").exists()
+
+
+def test_missing_inception_weights_fail_when_the_dag_is_built(tmp_path):
+    """A file the user named is an error, not an 'unavailable' FID (that is for the package)."""
+    rc, text = _dry_run(tmp_path, {"metrics": {"inception_weights": "weights/pt_inception.pth"}},
+                        "config/tiny.yaml")
+    assert rc != 0
+    assert "config metrics.inception_weights: weights/pt_inception.pth is not a file" in text
+    assert not (tmp_path / "results").exists()
+
+
 def _table(n_negative: int, seed=0) -> np.ndarray:
     """A physical-looking table with -1 below the horizon and `n_negative` negative valid bins."""
     rng = np.random.default_rng(seed)

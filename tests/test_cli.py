@@ -64,10 +64,10 @@ def sphere_png(tmp_path_factory):
     import shutil
 
     from neumat.conditions import image
-    from neumat.render import scenes
+    from neumat.io import images
     d = tmp_path_factory.mktemp("img")
     shutil.copy(Path(__file__).resolve().parents[1] / "config/tiny_reference.png", d / "ref.png")
-    scenes.write_exr(d / "ref.exr", 4 * image.load_image(d / "ref.png", 32))
+    images.write_exr(d / "ref.exr", 4 * image.load_image(d / "ref.png", 32))
     return d / "ref.png"
 
 

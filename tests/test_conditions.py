@@ -76,7 +76,7 @@ def test_image_encoder_deterministic_and_round_trips(tmp_path):
 def test_load_image_png_and_exr(tmp_path):
     from PIL import Image
 
-    from neumat.render.scenes import write_exr
+    from neumat.io.images import write_exr
     img = np.zeros((40, 60, 3), np.float32)
     img[:, 10:50] = 0.5
     write_exr(tmp_path / "a.exr", img)

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from neumat import nbrdf
-from neumat.io import merl
+from neumat.io import images, merl
 from neumat.render import gallery, scenes
 from neumat.render import mitsuba_bsdf as mb
 
@@ -97,8 +97,8 @@ def test_white_furnace():
 
 def test_exr_png_round_trip(tmp_path):
     img = np.random.default_rng(0).uniform(0, 5, (5, 7, 3)).astype(np.float32)
-    scenes.write_exr(tmp_path / "a.exr", img)
-    np.testing.assert_array_equal(scenes.read_exr(tmp_path / "a.exr"), img)
+    images.write_exr(tmp_path / "a.exr", img)
+    np.testing.assert_array_equal(images.read_exr(tmp_path / "a.exr"), img)
     scenes.write_png(tmp_path / "a.png", img)
     from PIL import Image
     assert np.asarray(Image.open(tmp_path / "a.png")).shape == (5, 7, 3)

@@ -15,6 +15,11 @@ if REFINER and COND["image"]["strength"] >= 1:
     raise ValueError("config conditions.image.refiner: true refines each image's retrieved "
                      "training material and needs conditions.image.strength < 1 (e.g. 0.1); "
                      "at 1 the samples would start from noise")
+if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
+    # that has sampled before, be skipped without a word (Snakemake does not look upstream)
+    from neumat.io import images as _images  # noqa: E402
+
+    _images.check_images(COND["image"]["images"], "conditions.image.images")
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words

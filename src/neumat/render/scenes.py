@@ -11,7 +11,6 @@ Call `mitsuba_bsdf.select_variant()` first.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 
@@ -111,24 +110,6 @@ def render(scene: dict, seed: int = 0) -> np.ndarray:
     """Render a scene dictionary -> (H, W, 3) float32 linear RGB (deterministic per seed)."""
     import mitsuba as mi
     return np.asarray(mi.render(mi.load_dict(scene), seed=seed), dtype=np.float32)[..., :3]
-
-
-def write_exr(path: str | os.PathLike, img: np.ndarray) -> None:
-    """Linear float32 RGB -> OpenEXR (ZIP), written to a temporary name and renamed."""
-    import OpenEXR
-
-    path = Path(path)
-    tmp = path.with_name(path.stem + ".part.exr")
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    OpenEXR.File(header, {"RGB": np.ascontiguousarray(img[..., :3], dtype=np.float32)}).write(str(tmp))
-    os.replace(tmp, path)
-
-
-def read_exr(path: str | os.PathLike) -> np.ndarray:
-    import OpenEXR
-
-    with OpenEXR.File(str(path)) as f:
-        return np.asarray(f.channels()["RGB"].pixels, dtype=np.float32)
 
 
 def write_png(path: str | os.PathLike, img: np.ndarray, exposure: float = 0.0) -> None:

@@ -1,0 +1,62 @@
+"""Image files (neumat.io.images): the layers an OpenEXR may hold, sRGB decoding, and the
+DAG-time check of the user's conditioning images."""
+
+import numpy as np
+import OpenEXR
+import pytest
+from PIL import Image
+
+from neumat.io import images
+
+HEADER = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+KEY = "conditions.image.images"
+
+
+def _exr(path, layers: dict):
+    OpenEXR.File(dict(HEADER), {k: np.ascontiguousarray(v) for k, v in layers.items()}).write(str(path))
+    return path
+
+
+def test_exr_layers_rgb_rgba_and_grey(tmp_path):
+    rgba = np.random.default_rng(0).uniform(0, 4, (5, 7, 4)).astype(np.float32)
+    np.testing.assert_array_equal(images.read_exr(_exr(tmp_path / "a.exr", {"RGBA": rgba})),
+                                  rgba[..., :3])  # alpha dropped
+    half = rgba[..., :3].astype(np.float16)
+    got = images.read_exr(_exr(tmp_path / "h.exr", {"RGB": half}))
+    assert got.dtype == np.float32
+    np.testing.assert_array_equal(got, half.astype(np.float32))
+    y = images.read_exr(_exr(tmp_path / "y.exr", {"Y": rgba[..., 0]}))
+    np.testing.assert_array_equal(y, np.repeat(rgba[..., :1], 3, -1))
+    with pytest.raises(ValueError, match=r"z\.exr: no RGB, RGBA or Y channels .*it has Z"):
+        images.read_exr(_exr(tmp_path / "z.exr", {"Z": rgba[..., 0]}))
+
+
+def test_png_is_decoded_from_srgb(tmp_path):
+    Image.fromarray(np.array([[[0, 10, 255], [188, 128, 255]]], np.uint8)).save(tmp_path / "a.png")
+    got = images.read_linear(tmp_path / "a.png")
+    # IEC 61966-2-1: 10/255 is on the linear segment; 188/255 -> 0.5029; 128/255 -> 0.2158
+    np.testing.assert_allclose(got[0, :, :2], [[0, 10 / 255 / 12.92], [0.50289, 0.21586]],
+                               atol=2e-5)
+    assert got[0, 0, 2] == 1
+
+
+def test_check_images_names_the_key_the_file_and_the_fault(tmp_path):
+    good = tmp_path / "good.png"
+    Image.fromarray(np.full((4, 4, 3), 90, np.uint8)).save(good)
+    images.check_images([good, _exr(tmp_path / "g.exr", {"RGB": np.ones((3, 3, 3), np.float32)})], KEY)
+    with pytest.raises(FileNotFoundError, match=rf"config {KEY}: .*nope\.png is not a file.*OpenEXR"):
+        images.check_images([good, tmp_path / "nope.png"], KEY)
+    with pytest.raises(FileNotFoundError, match="is not a file"):
+        images.check_images([tmp_path], KEY)  # a directory
+    (tmp_path / "junk.png").write_bytes(b"\x89PNG not really")
+    with pytest.raises(ValueError, match=rf"config {KEY}: .*junk\.png cannot be read as an image"):
+        images.check_images([tmp_path / "junk.png"], KEY)
+    noisy = tmp_path / "noisy.png"
+    Image.fromarray(np.random.default_rng(0).integers(0, 256, (32, 32, 3), np.uint8)).save(noisy)
+    (tmp_path / "cut.png").write_bytes(noisy.read_bytes()[:1500])  # header intact, data cut
+    with pytest.raises(ValueError, match=r"cut\.png cannot be read as an image"):
+        images.check_images([tmp_path / "cut.png"], KEY)
+    nan = np.ones((4, 4, 3), np.float32)
+    nan[1, 2, 0], nan[3, 3] = np.nan, np.inf
+    with pytest.raises(ValueError, match=rf"config {KEY}: .*n\.exr has 2 of 16 pixels NaN or infinite"):
+        images.check_images([_exr(tmp_path / "n.exr", {"RGB": nan})], KEY)
