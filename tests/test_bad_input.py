@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from neumat import augment
-from neumat.data import catalog, merl_files
+from neumat.data import catalog, merl_files, ubo2014
 from neumat.io import merl
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -51,6 +51,25 @@ def test_check_split():
         augment.check_split(["a"], 0.5)
     with pytest.raises(ValueError, match="test_fraction = 0"):
         augment.check_split(["a", "b"], 0)
+
+
+def test_catalogues_that_are_missing_or_not_text_name_key_and_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"config merl.materials: .*nope\.tsv is not a file"):
+        catalog.load_catalog(tmp_path / "nope.tsv")
+    (tmp_path / "img.tsv").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(ValueError, match=r"config merl.materials: .*img\.tsv is not a tab-separated"):
+        catalog.load_catalog(tmp_path / "img.tsv")
+    (tmp_path / "cols.tsv").write_text("name\tcategory\ncarpet01\tcarpet\n")
+    with pytest.raises(ValueError, match=r"config ubo2014.catalog: .*cols\.tsv lacks the column\(s\) "
+                                         r"file \(it has name, category\)"):
+        ubo2014.load_catalog(tmp_path / "cols.tsv")
+
+
+def test_missing_catalogue_fails_when_the_dag_is_built(tmp_path):
+    rc, text = _dry_run(tmp_path, {"merl": {"materials": "my_materials.tsv"}})
+    assert rc != 0
+    assert "config merl.materials: my_materials.tsv is not a file" in text
+    assert not (tmp_path / "results").exists()
 
 
 def test_empty_subset_means_every_material():

@@ -28,12 +28,29 @@ def build_catalog(checksums_tsv: str | Path) -> pd.DataFrame:
     })
 
 
+def read_tsv(path: str | Path, key: str, columns) -> pd.DataFrame:
+    """A catalogue (config `key`: MERL's or UBO2014's) read as text, with `columns` at least;
+    an error naming the key and the file otherwise (the workflow reads it when it builds the
+    DAG)."""
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"config {key}: {path} is not a file; give a tab-separated "
+                                f"catalogue with columns {', '.join(columns)} (the default is "
+                                f"the committed one)")
+    try:
+        cat = pd.read_csv(path, sep="\t", keep_default_na=False, dtype=str)
+    except (UnicodeDecodeError, pd.errors.ParserError, pd.errors.EmptyDataError) as e:
+        raise ValueError(f"config {key}: {path} is not a tab-separated text catalogue "
+                         f"({type(e).__name__}: {e})") from e
+    missing = [c for c in columns if c not in cat.columns]
+    if missing:
+        raise ValueError(f"config {key}: {path} lacks the column(s) {', '.join(missing)} "
+                         f"(it has {', '.join(map(str, cat.columns))})")
+    return cat
+
+
 def load_catalog(path: str | Path, subset=(), sha256_override=None) -> pd.DataFrame:
     """Read the committed catalogue, optionally restricted to `subset`, with checksum overrides."""
-    cat = pd.read_csv(path, sep="\t", keep_default_na=False)
-    missing = [c for c in COLUMNS if c not in cat.columns]
-    if missing:
-        raise ValueError(f"{path}: missing columns {missing}")
+    cat = read_tsv(path, "merl.materials", COLUMNS)
     sha256_override = sha256_override or {}
     unknown = sorted(set(subset) - set(cat["name"])) + sorted(set(sha256_override) - set(cat["name"]))
     if unknown:

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from neumat.data.catalog import read_tsv
 from neumat.io import dfmf
 from neumat.logs import InputError
 
@@ -24,10 +25,7 @@ CATEGORIES = ("carpet", "fabric", "felt", "leather", "stone", "wallpaper", "wood
 
 
 def load_catalog(path, names=()) -> pd.DataFrame:
-    cat = pd.read_csv(path, sep="\t", keep_default_na=False)
-    missing = {"name", "category", "file"} - set(cat.columns)
-    if missing:
-        raise ValueError(f"{path}: missing columns {sorted(missing)}")
+    cat = read_tsv(path, "ubo2014.catalog", ["name", "category", "file"])
     unknown = sorted(set(names) - set(cat["name"]))
     if unknown:
         raise ValueError(f"config ubo2014.materials: unknown material(s) {unknown} (not in {path})")
