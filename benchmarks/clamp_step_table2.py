@@ -59,16 +59,8 @@ def main():
                                      "(default: that, or the schema's defaults)")
     a = ap.parse_args()
     run = Path(a.results)
-    recorded = cli.Run(run)
-    cfg = yaml.safe_load(Path(a.config).read_text()) if a.config else {}
-
-    def setting(*keys):
-        node = cfg
-        for k in keys:
-            if not isinstance(node, dict) or k not in node:
-                return recorded.setting(*keys)
-            node = node[k]
-        return node
+    # the run's config as `report` recorded it, else the schema defaults; --config's keys first
+    setting = cli.Run(run, yaml.safe_load(Path(a.config).read_text()) if a.config else None).setting
 
     seed, draws = setting("seed"), setting("metrics", "draws")
     s = {k: setting("diffusion", "sample", k)

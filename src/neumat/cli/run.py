@@ -7,13 +7,14 @@ import re
 import sys
 from pathlib import Path
 
+from neumat.io.images import FORMATS
+
 EXIT_USAGE, EXIT_BUDGET = 2, 3
 MODALITIES = ("type", "text", "image")
 VECTOR_MODALITIES = ("text", "image")
 MULTIMODAL = "multimodal"  # the model rule train_multimodal writes (workflow/rules/conditions.smk)
 IMAGE_ENCODER = "conditions/image_encoder.pt"  # rule train_image_encoder
-IMAGE_FORMATS = ("PNG (or another format Pillow reads; sRGB) or OpenEXR (.exr; linear radiance) "
-                 "showing one sphere filling the frame, like the metric view")
+IMAGE_FORMATS = f"{FORMATS} showing one sphere filling the frame, like the metric view"
 SCHEMA = Path(__file__).resolve().parents[3] / "config" / "schema.yaml"  # a source checkout's
 
 
@@ -37,8 +38,11 @@ def _progress(total: int, desc: str):
 class Run:
     """What a results/<run> directory holds (paths only; nothing is loaded until asked)."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, overrides: dict | None = None):
+        """`overrides`: config keys that win over the run's recorded ones (a benchmark's
+        --config)."""
         self.path = Path(path)
+        self.overrides = overrides or {}
         if not self.path.is_dir():
             raise CLIError(f"no run directory {self.path}: a run lives in results/<run>/ (the "
                            f"config's `run:` name); make one with `snakemake --cores 2 report "
@@ -73,7 +77,15 @@ class Run:
 
     def setting(self, *keys: str):
         """A config value of this run (report/index.md), or the schema's default when the run
-        has not recorded its config yet (config/schema.yaml of a source checkout)."""
+        has not recorded its config yet (config/schema.yaml of a source checkout); a key in
+        `overrides` first."""
+        node = self.overrides
+        for k in keys:
+            if not isinstance(node, dict) or k not in node:
+                break
+            node = node[k]
+        else:
+            return node
         value = self.config()
         for k in keys:
             value = value.get(k) if isinstance(value, dict) else None

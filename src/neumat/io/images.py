@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-FORMATS = "PNG (or another format Pillow reads; sRGB) or OpenEXR (.exr; linear radiance) image"
+FORMATS = "PNG (or another format Pillow reads; sRGB) or OpenEXR (.exr; linear radiance)"
 
 
 def write_exr(path: str | os.PathLike, img: np.ndarray) -> None:
@@ -67,12 +67,12 @@ def check_images(paths, key: str) -> None:
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"config {key}: {p} is not a file (relative paths start at "
-                                    f"{Path.cwd()}); give a {FORMATS}")
+                                    f"{Path.cwd()}); give a {FORMATS} image")
         try:
             img = read_linear(p)
         except Exception as e:  # Pillow and OpenEXR raise several kinds for a damaged file
             raise ValueError(f"config {key}: {p} cannot be read as an image "
-                             f"({type(e).__name__}: {e}); give a {FORMATS}") from e
+                             f"({type(e).__name__}: {e}); give a {FORMATS} image") from e
         bad = int((~np.isfinite(img)).any(-1).sum())
         if bad:
             raise ValueError(f"config {key}: {p} has {bad} of {img.shape[0] * img.shape[1]} pixels "
