@@ -348,11 +348,10 @@ def test_ci_runs_the_readme_test_command():
     assert tail in (ROOT / ".ci/run").read_text(), tail
 
 
-def test_unit_tests_alone_run_on_several_workers(monkeypatch):
-    """`pytest -m "not slow"` (README) spreads over pytest-xdist workers on a multi-core machine;
-    the full `pytest` stays in one process (its background tiny run needs the cores), as do a
-    test path or -k (a few tests), and an explicit `-n`, a missing xdist or a single CPU keep
-    the user's choice."""
+def test_suite_runs_on_several_workers(monkeypatch):
+    """`pytest` and `pytest -m "not slow"` (README) spread over pytest-xdist workers on a
+    multi-core machine, the tiny run shared between them; a test path or -k (a few tests), an
+    explicit `-n`, a missing xdist or a single CPU keep one process (or the user's choice)."""
     from types import SimpleNamespace
 
     import conftest
@@ -366,13 +365,16 @@ def test_unit_tests_alone_run_on_several_workers(monkeypatch):
     monkeypatch.delenv("PYTEST_XDIST_WORKER", raising=False)
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 2)
     assert conftest._parallel_workers(config("not slow")) == 2
-    assert conftest._parallel_workers(config("")) == 0
-    assert conftest._parallel_workers(config("slow")) == 0
-    assert conftest._parallel_workers(config("not slow", n=0)) == 0
-    assert conftest._parallel_workers(config("not slow", xdist=False)) == 0
+    assert conftest._parallel_workers(config("")) == 2
+    assert conftest._parallel_workers(config("slow")) == 2
+    assert conftest._parallel_workers(config("", n=0)) == 0
+    assert conftest._parallel_workers(config("", xdist=False)) == 0
     assert conftest._parallel_workers(config("not slow", paths=["tests/test_fit.py"])) == 0
-    assert conftest._parallel_workers(config("not slow", keyword="psnr")) == 0
+    assert conftest._parallel_workers(config("", keyword="psnr")) == 0
+    monkeypatch.setenv("PYTEST_XDIST_WORKER", "gw0")
+    assert conftest._parallel_workers(config("")) == 0
+    monkeypatch.delenv("PYTEST_XDIST_WORKER")
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 1)
-    assert conftest._parallel_workers(config("not slow")) == 0
+    assert conftest._parallel_workers(config("")) == 0
     monkeypatch.setattr(conftest.os, "cpu_count", lambda: 16)
-    assert conftest._parallel_workers(config("not slow")) == 4
+    assert conftest._parallel_workers(config("")) == 4
