@@ -77,13 +77,13 @@ def _missing_plugin(args: list[str]) -> str | None:
     return None
 
 
-def _threaded_run(cmd: list[str], cwd: Path) -> subprocess.CompletedProcess:
+def _threaded_run(cmd: list[str], cwd: Path, **env: str) -> subprocess.CompletedProcess:
     """subprocess.run from a pool thread, with an explicit copy of the environment. Without
     one, the vfork'ed child reads libc's `environ`, which the main thread may reallocate at that
     moment (pytest sets and deletes PYTEST_CURRENT_TEST on every test phase): execve then failed
     with "[Errno 14] Bad address" (CI of 35b1bc2; test_threaded_runs_survive_environment_changes
     reproduces it without the copy)."""
-    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=dict(os.environ))
+    return subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env={**os.environ, **env})
 
 
 def test_threaded_runs_survive_environment_changes(tmp_path):
@@ -231,7 +231,11 @@ def cli_runs(cli_dir, request):
         for j in deps[i]:  # submitted earlier, so started earlier: no deadlock
             futures[j].result()
         args = shlex.split(NEUMAT[i])
-        return _threaded_run([sys.executable, "-m", "neumat.cli", *args[1:]], cli_dir)
+        # one torch thread each, as many commands as CPUs: a thread per core in each would
+        # spin-wait on shared cores (conftest.py, the workers' OMP_NUM_THREADS)
+        threads = os.environ.get("OMP_NUM_THREADS", "1")
+        return _threaded_run([sys.executable, "-m", "neumat.cli", *args[1:]], cli_dir,
+                             OMP_NUM_THREADS=threads)
 
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         for i in sorted(needed):
