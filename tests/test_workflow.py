@@ -30,6 +30,71 @@ def _snakemake(cwd, *args, check=True):
     return res
 
 
+# ----------------------------------------------------------------------------- interrupted runs
+# first of this module's tests on the tiny run: the longest, so xdist's last worker is not
+# left alone with it at the end
+
+NEUMERL = "results/tiny/neumerl/weights.npy"
+SAME_BYTES = ["neumerl/weights.npy", "neumerl/fits.tsv", "neumerl/manifest.tsv",
+              "augmerl/manifest.tsv"]
+
+
+def _job_processes(wd: Path, names=("",)) -> list[int]:
+    """Live (not zombie) processes running a job script of the workflow in `wd`."""
+    pids = []
+    for proc in Path("/proc").iterdir():
+        try:
+            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
+        except (OSError, IndexError):
+            continue
+        if f"{wd}/.snakemake/scripts/" in cmd and state != "Z" and any(n in cmd for n in names):
+            pids.append(int(proc.name))
+    return pids
+
+
+def _interrupt_during_fit(wd: Path, sig: int, *args):
+    """Start snakemake towards NeuMERL, send `sig` once a fit job runs; return after it exits."""
+    import time
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", NEUMERL, *args,
+           "--configfile", "config/tiny.yaml"]
+    smk = subprocess.Popen(cmd, cwd=wd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 600
+        while not _job_processes(wd, ("fit_template.py", "fit_shard.py")):
+            assert smk.poll() is None and time.time() < deadline, "no fit job started"
+            time.sleep(0.2)
+        time.sleep(1.0)  # inside the fit
+        smk.send_signal(sig)
+        smk.wait(timeout=120)
+    finally:
+        if smk.poll() is None:
+            smk.kill()
+    for _ in range(100):  # the kernel signals the jobs at once; give them 10 s to exit
+        if not _job_processes(wd):
+            break
+        time.sleep(0.1)
+    return _job_processes(wd)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="jobs die with snakemake via "
+                    "prctl(PR_SET_PDEATHSIG), Linux only")
+def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run, tmp_path):
+    """SIGINT, then SIGKILL, of snakemake while a fit runs: no job survives, and the README's
+    resume commands ("When a run is interrupted") give the uninterrupted run's bytes."""
+    import signal
+    wd = _copy_workflow(tmp_path)
+    assert _interrupt_during_fit(wd, signal.SIGINT) == []
+    _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
+    # SIGKILL: snakemake cannot clean up; its jobs still die, the lock stays behind
+    assert _interrupt_during_fit(wd, signal.SIGKILL, "--forcerun", "fit_template") == []
+    _snakemake(wd, NEUMERL, "--unlock", "--configfile", "config/tiny.yaml")
+    _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
+    for f in SAME_BYTES:
+        assert (wd / "results/tiny" / f).read_bytes() == (tiny_run / "results/tiny" / f).read_bytes(), f
+
+
 # tiny_run (conftest.py): the tiny config run once to its report, shared with other modules
 
 
@@ -190,69 +255,6 @@ def test_wrong_type_names_the_key(tmp_path):
     res = _snakemake(wd, "--configfile", "config/tiny.yaml", "--config", "seed=abc",
                      "--dry-run", check=False)
     assert res.returncode != 0 and "seed" in res.stderr + res.stdout
-
-
-# ----------------------------------------------------------------------------- interrupted runs
-
-NEUMERL = "results/tiny/neumerl/weights.npy"
-SAME_BYTES = ["neumerl/weights.npy", "neumerl/fits.tsv", "neumerl/manifest.tsv",
-              "augmerl/manifest.tsv"]
-
-
-def _job_processes(wd: Path, names=("",)) -> list[int]:
-    """Live (not zombie) processes running a job script of the workflow in `wd`."""
-    pids = []
-    for proc in Path("/proc").iterdir():
-        try:
-            cmd = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode()
-            state = (proc / "stat").read_text().rsplit(")", 1)[1].split()[0]
-        except (OSError, IndexError):
-            continue
-        if f"{wd}/.snakemake/scripts/" in cmd and state != "Z" and any(n in cmd for n in names):
-            pids.append(int(proc.name))
-    return pids
-
-
-def _interrupt_during_fit(wd: Path, sig: int, *args):
-    """Start snakemake towards NeuMERL, send `sig` once a fit job runs; return after it exits."""
-    import time
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", NEUMERL, *args,
-           "--configfile", "config/tiny.yaml"]
-    smk = subprocess.Popen(cmd, cwd=wd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 600
-        while not _job_processes(wd, ("fit_template.py", "fit_shard.py")):
-            assert smk.poll() is None and time.time() < deadline, "no fit job started"
-            time.sleep(0.2)
-        time.sleep(1.0)  # inside the fit
-        smk.send_signal(sig)
-        smk.wait(timeout=120)
-    finally:
-        if smk.poll() is None:
-            smk.kill()
-    for _ in range(100):  # the kernel signals the jobs at once; give them 10 s to exit
-        if not _job_processes(wd):
-            break
-        time.sleep(0.1)
-    return _job_processes(wd)
-
-
-@pytest.mark.slow
-@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="jobs die with snakemake via "
-                    "prctl(PR_SET_PDEATHSIG), Linux only")
-def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run, tmp_path):
-    """SIGINT, then SIGKILL, of snakemake while a fit runs: no job survives, and the README's
-    resume commands ("When a run is interrupted") give the uninterrupted run's bytes."""
-    import signal
-    wd = _copy_workflow(tmp_path)
-    assert _interrupt_during_fit(wd, signal.SIGINT) == []
-    _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
-    # SIGKILL: snakemake cannot clean up; its jobs still die, the lock stays behind
-    assert _interrupt_during_fit(wd, signal.SIGKILL, "--forcerun", "fit_template") == []
-    _snakemake(wd, NEUMERL, "--unlock", "--configfile", "config/tiny.yaml")
-    _snakemake(wd, NEUMERL, "--rerun-incomplete", "--configfile", "config/tiny.yaml")
-    for f in SAME_BYTES:
-        assert (wd / "results/tiny" / f).read_bytes() == (tiny_run / "results/tiny" / f).read_bytes(), f
 
 
 @pytest.mark.slow
