@@ -45,7 +45,8 @@ def pytest_report_header(config):
                 "-n 0 runs them in one process")
 
 
-_USER_ENV = dict(os.environ)  # the tiny run gets it: it runs as a user would run it
+# the tiny run gets this: it runs as a user would run it, without the workers' variables
+_USER_ENV = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker: the cores are shared out between workers
     _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", 1))
@@ -122,18 +123,20 @@ def pytest_configure_node(node):
 def pytest_xdist_make_scheduler(config, log):
     """xdist's scope scheduling over the workers' groups (`pytest_collection_modifyitems`): a
     test with a group goes with the others of its group, every other test on its own. (xdist's
-    own `xdist_group` mark renames node ids, which pytest 9.2 no longer allows.)"""
+    own `xdist_group` mark sets `item._nodeid`, which pytest 9.2 no longer reads.)"""
     if not getattr(config, "_neumat_groups", False):  # the user's own -n / --dist
         return None
     from xdist.scheduler import LoadScopeScheduling
 
-    groups_file, groups = _session_dir(config) / "xdist_groups.json", {}
+    groups_file = _session_dir(config) / "xdist_groups.json"
 
     class GroupScheduling(LoadScopeScheduling):
+        groups = None
+
         def _split_scope(self, nodeid):  # called once every worker has collected
-            if not groups:
-                groups.update(json.loads(groups_file.read_text()))
-            return groups.get(nodeid, nodeid)
+            if self.groups is None:
+                self.groups = json.loads(groups_file.read_text())
+            return self.groups.get(nodeid, nodeid)
 
     return GroupScheduling(config, log)
 
