@@ -1,3 +1,4 @@
+import contextlib
 import json
 import os
 import shutil
@@ -157,8 +158,8 @@ def pytest_collection_finish(session):
                 (shutil.copytree if src.is_dir() else shutil.copy)(src, wd / item)
             _tiny["proc"] = _start_run(wd, TINY_CMD)
     # the run is the suite's critical path: the tests (this process and what it starts) yield
-    # the cores to it, and fill what it leaves idle. Inside pytest it took 181-185 s so, 196-207
-    # s at nice 10, 168 s alone (2-core AMD EPYC, 2026-11-25)
+    # the cores to it, and fill what it leaves idle. Inside pytest the run took 181-185 s with
+    # the tests at nice 19, 196-207 s at nice 10, and 168 s alone (2-core AMD EPYC, 2026-11-25)
     os.nice(19)
 
 
@@ -218,10 +219,12 @@ def pytest_sessionfinish(session):
             os.killpg(pid, signal.SIGTERM)
         except ProcessLookupError:
             return
-        for _ in range(300):  # snakemake stops its jobs on SIGTERM; give it 30 s
+        for _ in range(300):  # snakemake lets running jobs finish on SIGTERM; give it 30 s
             if not _alive(pid):
-                break
+                return
             time.sleep(0.1)
+        with contextlib.suppress(ProcessLookupError):  # its jobs die with it (PR_SET_PDEATHSIG)
+            os.killpg(pid, signal.SIGKILL)
 
 
 @pytest.fixture(scope="session")
