@@ -159,7 +159,7 @@ def pytest_collection_finish(session):
             _tiny["proc"] = _start_run(wd, TINY_CMD)
     # the run is the suite's critical path: the tests (this process and what it starts) yield
     # the cores to it, and fill what it leaves idle. Inside pytest the run took 181-185 s with
-    # the tests at nice 19, 196-207 s at nice 10, and 168 s alone (2-core AMD EPYC, 2026-11-25)
+    # the tests at nice 19, 196-207 s at nice 10, and 171 s alone (2-core AMD EPYC, 2026-11-25)
     os.nice(19)
 
 
