@@ -249,6 +249,40 @@ def test_text_sampling_is_deterministic_and_recorded(mm_run, tmp_path):
     assert len(list((tmp_path / "a").glob("sample_*.png"))) == 3 and (tmp_path / "a/scene.xml").exists()
 
 
+def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
+    """A prompt that rule text_embeddings embedded (conditions/prompts.npy, or a training
+    description in text.npy) is read from the run, not encoded: here its row holds the
+    embedding of "green metal", so "red plastic" draws green metal's samples. A table and array
+    of different lengths (a half-rebuilt run) fall back to the encoder."""
+    import shutil
+
+    from neumat.conditions import text
+    r = tmp_path / "mm"
+    shutil.copytree(mm_run, r)
+    green = text.embed(["green metal"])
+    want, _ = _sample(mm_run, tmp_path / "g", "--text", "green metal", "--seed", 5)
+    red, _ = _sample(mm_run, tmp_path / "r", "--text", "red plastic", "--seed", 5)
+    capsys.readouterr()
+    pd.DataFrame({"prompt": ["gray acrylic", "red plastic"], "kind": ["test", "unseen"],
+                  "type": ["acrylic", ""], "colour": ["gray", "red"]}).to_csv(
+        r / "conditions/prompts.tsv", sep="\t", index=False)
+    np.save(r / "conditions/prompts.npy", np.concatenate([text.embed(["gray acrylic"]), green]))
+    got, _ = _sample(r, tmp_path / "a", "--text", "red plastic", "--seed", 5)
+    np.testing.assert_array_equal(got, want)
+    assert "the run's embedding" in capsys.readouterr().err
+    (r / "neumerl").mkdir()  # a training description, in manifest order
+    pd.DataFrame({"id": ["a", "b"], "description": ["rubber", "blue fabric"]}).to_csv(
+        r / "neumerl/manifest.tsv", sep="\t", index=False)
+    np.save(r / "conditions/text.npy", np.concatenate([text.embed(["rubber"]), green]))
+    got, _ = _sample(r, tmp_path / "b", "--text", "blue fabric", "--seed", 5)
+    np.testing.assert_array_equal(got, want)
+    assert "conditions/text.npy" in capsys.readouterr().err
+    np.save(r / "conditions/prompts.npy", green)  # 1 row for 2 prompts: encoded
+    got, _ = _sample(r, tmp_path / "c", "--text", "red plastic", "--seed", 5)
+    np.testing.assert_array_equal(got, red)
+    assert "the run's embedding" not in capsys.readouterr().err
+
+
 def test_seeds_do_not_shift_into_each_other(run, tmp_path):
     """Each batch has its own named stream: --seed 2 does not redraw the second batch of
     --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""

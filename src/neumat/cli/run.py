@@ -71,6 +71,31 @@ class Run:
                            f"{'' if why else ', or pick one with --model'}")
         return p
 
+    def text_embedding(self, prompt: str):
+        """(1, 384) float32: the run's own embedding of `prompt` when rule text_embeddings made
+        one (a config or test-split prompt, `conditions/prompts.npy`, or a training description,
+        `conditions/text.npy`), with the file it came from; else (None, None). The row is what
+        the run's workflow conditioned on (the encoder, run on a batch, can differ from one
+        prompt alone in the last bits), and the encoder's ~5 s of loading are saved."""
+        import numpy as np
+        import pandas as pd
+        cond = self.path / "conditions"
+        descriptions = cond / "descriptions.tsv"  # colour_words: measured, as embedded
+        for table, column, rows in (
+                (cond / "prompts.tsv", "prompt", cond / "prompts.npy"),
+                (descriptions, "embedded", cond / "text.npy") if descriptions.exists() else
+                (self.path / "neumerl/manifest.tsv", "description", cond / "text.npy")):
+            try:
+                texts = pd.read_csv(table, sep="\t", keep_default_na=False)[column].tolist()
+                if prompt not in texts:
+                    continue
+                emb = np.load(rows, mmap_mode="r")
+            except (OSError, KeyError, ValueError):  # not built, or not this run's layout
+                continue
+            if emb.ndim == 2 and len(emb) == len(texts):  # else a half-rebuilt run: encode
+                return np.array(emb[texts.index(prompt)][None], np.float32), rows
+        return None, None
+
     def image_encoder(self) -> Path | None:
         p = self.path / IMAGE_ENCODER
         return p if p.exists() else None

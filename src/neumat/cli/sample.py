@@ -13,8 +13,13 @@ from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIE
                             VECTOR_MODALITIES, CLIError, Run, _progress, load_model,
                             model_conditions, unsupported)
 
-def _text_embedding(prompt: str) -> np.ndarray:
-    """(1, 384) all-MiniLM-L6-v2 embedding of the prompt (the encoder the run's text.npy used)."""
+def _text_embedding(run: Run, prompt: str) -> np.ndarray:
+    """(1, 384) all-MiniLM-L6-v2 embedding of the prompt: the run's own where it embedded the
+    prompt (`Run.text_embedding`), else by the encoder the run's text.npy used."""
+    emb, source = run.text_embedding(prompt)
+    if emb is not None:
+        print(f"--text {prompt!r}: the run's embedding ({source})", file=sys.stderr)
+        return emb
     from neumat.conditions import text
     try:
         text.model_dir()
@@ -139,7 +144,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
                                                    and "type" in model_conditions(bundle) else []))
     fixed = {}
     if args.text:
-        fixed["text"] = _text_embedding(args.text)
+        fixed["text"] = _text_embedding(run, args.text)
     if args.image:
         dim = bundle["model_cfg"]["vector_conditions"]["image"]
         fixed["image"], enc_path = _image_embedding(run, args.image, dim)
