@@ -42,13 +42,15 @@ def gaussian(features: np.ndarray):
 def features(model, images, batch: int | None = None, device="cpu") -> dict[int, np.ndarray]:
     """sRGB images (N, H, W, 3) in [0, 1] -> {64: (N, 64), 2048: (N, 2048)} features
     (`FIDInception.forward_dims`), `batch` images at a time (default: 4 on the CPU, 16
-    elsewhere). The features do not depend on the batch.
+    elsewhere).
 
     4 on the CPU: a batch's largest activation (32 x 149 x 149 floats an image) then stays
     below glibc's 32 MB mmap ceiling, so freed activations are reused from the heap rather than
     mapped afresh and page-faulted in for every layer. The tiny run's `metrics` jobs for `ours`
-    and `pca_a`: 3.0 -> 1.7 s of system time, 10.4 -> 9.7 s wall, 830 -> 600 MB peak RSS, the
-    same bytes out (AMD EPYC AVX-512, 2 cores; issue #20's note)."""
+    and `pca_a` against batches of 16: 2.9 -> 1.7 s of system time, 10.4 -> 9.7 s wall,
+    830 -> 600 MB peak RSS, the same bytes out on 2 threads (AMD EPYC AVX-512, 2 cores; issue
+    #20's note). On one thread the 2048-d features move by up to 5e-6 (convolutions summed in
+    another order), as they do between thread counts."""
     if batch is None:
         batch = 4 if torch.device(device).type == "cpu" else 16
     x = torch.as_tensor(images, dtype=torch.float32).permute(0, 3, 1, 2)
