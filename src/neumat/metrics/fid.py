@@ -48,8 +48,8 @@ def features(model, images, batch: int | None = None, device="cpu") -> dict[int,
     below glibc's 32 MB mmap ceiling, so freed activations are reused from the heap rather than
     mapped afresh and page-faulted in for every layer. The tiny run's `metrics` jobs for `ours`
     and `pca_a` against batches of 16: 2.9 -> 1.7 s of system time, 10.4 -> 9.7 s wall,
-    830 -> 600 MB peak RSS, the same bytes out on 2 threads (AMD EPYC AVX-512, 2 cores; issue
-    #20's note). On one thread the 2048-d features move by up to 5e-6 (convolutions summed in
+    830 -> 600 MB peak RSS, the same bytes out on 2 threads (AMD EPYC AVX-512, 2 cores; with
+    torch and oneDNN held to AVX2, CPU time level and RSS 830 -> 630 MB; issue #20's note). On one thread the 2048-d features move by up to 5e-6 (convolutions summed in
     another order), as they do between thread counts."""
     if batch is None:
         batch = 4 if torch.device(device).type == "cpu" else 16
