@@ -36,12 +36,13 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-def test_refiner_without_a_retrieved_start_fails_when_the_dag_is_built(tmp_path):
-    """conditions.image.refiner refines the retrieved material: at strength 1 there is none."""
-    rc, text = _dry_run(tmp_path, {"conditions": {"image": {"refiner": True, "strength": 1.0}}},
+@pytest.mark.parametrize("modality", ["image", "type"])
+def test_refiner_without_a_retrieved_start_fails_when_the_dag_is_built(tmp_path, modality):
+    """conditions.{image,type}.refiner refine a start material: at strength 1 there is none."""
+    rc, text = _dry_run(tmp_path, {"conditions": {modality: {"refiner": True, "strength": 1.0}}},
                         "config/tiny.yaml")
     assert rc != 0
-    assert "conditions.image.refiner" in text and "conditions.image.strength < 1" in text
+    assert f"conditions.{modality}.refiner" in text and f"conditions.{modality}.strength < 1" in text
     assert not (tmp_path / "results").exists()
 
 

@@ -369,7 +369,7 @@ def test_render_step_reruns_only_image_sampling(tiny_run):
     (tiny_run / "config/render_off.yaml").write_text(yaml.safe_dump(cfg))
     jobs = _planned_jobs(tiny_run, "config/render_off.yaml")
     assert "sample_image" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
-    assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
+    assert not {"sample_text", "sample_multimodal", "sample_mm_type"} & set(jobs), jobs
 
 
 def test_refiner_off_reruns_only_image_sampling(tiny_run):
@@ -387,7 +387,32 @@ def test_refiner_off_reruns_only_image_sampling(tiny_run):
     (tiny_run / "config/refiner_off.yaml").write_text(yaml.safe_dump(cfg))
     jobs = _planned_jobs(tiny_run, "config/refiner_off.yaml")
     assert "sample_image" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
-    assert not {"sample_text", "sample_multimodal"} & set(jobs), jobs
+    assert not {"sample_text", "sample_multimodal", "sample_mm_type"} & set(jobs), jobs
+
+
+def test_type_start_samples_from_training_materials_of_the_type(tiny_run):
+    """conditions.type.{strength, refiner} (neutral 1 / false; the tiny config sets 0.1 / true):
+    each mm_type sample starts from a training material of its type, refined by the refiner;
+    back at strength 1 only sample_mm_type and what reads it rerun, no training."""
+    import yaml
+    res = tiny_run / "results/tiny"
+    man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
+    train = man[man["split"] == "train"].set_index("name")["type"]
+    table = pd.read_csv(res / "samples/mm_type/samples.tsv", sep="\t", keep_default_na=False)
+    assert len(table) and "start" in table
+    for t, starts in zip(table["type"], table["start"]):
+        if t in set(train):  # a type training has: k starts of that type
+            names = starts.split(",")
+            assert len(names) == 2 and all(train[n] == t for n in names), (t, starts)
+    log = (res / "logs/sample_multimodal/mm_type.log").read_text()
+    assert "refining the starts" in log and "start from a training material of their type" in log
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "conditions.type.strength", 1.0)
+    _set(cfg, "conditions.type.refiner", False)
+    (tiny_run / "config/type_noise.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/type_noise.yaml")
+    assert "sample_mm_type" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not {"sample_text", "sample_image", "sample_multimodal", "sample_type"} & set(jobs), jobs
 
 
 def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
@@ -399,8 +424,8 @@ def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
     (tiny_run / "config/type_guidance.yaml").write_text(yaml.safe_dump(cfg))
     jobs = _planned_jobs(tiny_run, "config/type_guidance.yaml")
     assert "sample_type" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
-    assert not {"sample_text", "sample_image", "sample_multimodal", "guidance_sweep",
-                "sample_uncond"} & set(jobs), jobs
+    assert not {"sample_text", "sample_image", "sample_multimodal", "sample_mm_type",
+                "guidance_sweep", "sample_uncond"} & set(jobs), jobs
 
 
 @pytest.mark.slow

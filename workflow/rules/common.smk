@@ -328,13 +328,20 @@ def image_sampling():
     """How sample_image drew, for the report: model, start, render guidance."""
     img = COND["image"]
     how = ("the refiner (rule train_refiner; prediction v, loss x0) refining each image's "
-           "retrieved training material, without the image condition" if REFINER else
+           "retrieved training material, without the image condition" if IMAGE_REFINER else
            "the multimodal model under the image condition")
-    if img["strength"] < 1 and not REFINER:
+    if img["strength"] < 1 and not IMAGE_REFINER:
         how += ", from each image's retrieved training material"
     start = f"strength {img['strength']:g}" if img["strength"] < 1 else "from noise"
     render = f"render step {img['render_step']:g}" if img["render_step"] else "no render guidance"
-    return f"Image samples: {how} ({start}, {render})."
+    text = f"Image samples: {how} ({start}, {render})."
+    typ = COND["type"]
+    if typ["strength"] < 1:  # said only when set: the default run's section is unchanged
+        by = ("the refiner, unconditionally" if TYPE_REFINER else
+              "the multimodal model under the type condition")
+        text += (f" `mm_type` samples: a training material of each sample's type, noised to "
+                 f"strength {typ['strength']:g} and denoised by {by}.")
+    return text
 
 
 # ----------------------------------------------------------------------------- Table 3 (hyperbrdf.smk)

@@ -3,18 +3,25 @@
 # text- and image-conditioned sampling, their measures against unconditional, type-conditioned
 # and retrieval baselines from the same model, a guidance-scale sweep, Mitsuba figures.
 #   neumerl -> text_embeddings, train_image_encoder -> image_embeddings -> train_multimodal
-#   -> sample_text / sample_image / sample_multimodal -> conditions_eval, guidance_sweep,
-#   conditions_mitsuba -> conditions_section
+#   -> sample_text / sample_image / sample_multimodal / sample_mm_type -> conditions_eval,
+#   guidance_sweep, conditions_mitsuba -> conditions_section
 
 COND = config["conditions"]
 COND_MODEL = "multimodal"
-# conditions.image.refiner: image samples refine their retrieved training material with a model
-# that keeps a start (prediction v, loss x0: no low-noise floor), trained on ours's rows
-REFINER = COND["image"]["refiner"]
-if REFINER and COND["image"]["strength"] >= 1:
+# conditions.{image,type}.refiner: image (type) samples refine their retrieved training material
+# (one of their type) with a model that keeps a start (prediction v, loss x0: no low-noise
+# floor), trained on ours's rows by rule train_refiner
+IMAGE_REFINER = COND["image"]["refiner"]
+TYPE_REFINER = COND["type"]["refiner"]
+if IMAGE_REFINER and COND["image"]["strength"] >= 1:
     raise ValueError("config conditions.image.refiner: true refines each image's retrieved "
                      "training material and needs conditions.image.strength < 1 (e.g. 0.1); "
                      "at 1 the samples would start from noise")
+if TYPE_REFINER and COND["type"]["strength"] >= 1:
+    raise ValueError("config conditions.type.refiner: true refines a training material of each "
+                     "sample's type and needs conditions.type.strength < 1 (e.g. 0.1); at 1 the "
+                     "samples would start from noise")
+TYPE_START = COND["type"]["strength"] < 1  # mm_type from training materials of its types
 if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
     # that has sampled before, be skipped without a word (Snakemake does not look upstream)
     from neumat.io import images as _images  # noqa: E402
@@ -202,7 +209,7 @@ rule sample_image:
         manifest=out("neumerl/manifest.tsv"),
         image_embeddings=out("conditions/image.npy"),
         images=COND["image"]["images"],
-        refiner=[out("diffusion/refiner/model.pt")] if REFINER else [],
+        refiner=[out("diffusion/refiner/model.pt")] if IMAGE_REFINER else [],
     output:
         weights=out("samples/image/weights.npy"),
         table=out("samples/image/samples.tsv"),
@@ -235,28 +242,62 @@ rule sample_image:
 
 
 rule sample_multimodal:
-    """Same-run baselines from the multimodal model: type-conditioned and unconditional
-    samples for the prompts' types (`mm_type`, `mm_uncond`)."""
+    """Same-run baseline from the multimodal model: unconditional samples (`mm_uncond`), as
+    many as sample_mm_type draws."""
     input:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
     output:
-        weights=out("samples/{set}/weights.npy"),
-        table=out("samples/{set}/samples.tsv"),
-        timing=out("samples/{set}/timing.tsv"),
+        weights=out("samples/mm_uncond/weights.npy"),
+        table=out("samples/mm_uncond/samples.tsv"),
+        timing=out("samples/mm_uncond/timing.tsv"),
     params:
         sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
         per_prompt=COND["per_condition"],
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
-        mode=lambda w: w.set,
-        seed=lambda w: cond_seed(w.set),
+        mode="mm_uncond",
+        seed=cond_seed("mm_uncond"),
         activation=DIFF_ACTIVATION,
-    wildcard_constraints:
-        set="mm_type|mm_uncond",
     log:
-        log("sample_multimodal/{set}"),
+        log("sample_multimodal/mm_uncond"),
     benchmark:
-        bench("sample_multimodal/{set}")
+        bench("sample_multimodal/mm_uncond")
+    conda:
+        CONDA_ENV
+    threads: DIFF["threads"]
+    resources:
+        mem_mb=2500,
+        runtime=30,
+    script:
+        "../scripts/sample_conditions.py"
+
+
+rule sample_mm_type:
+    """Same-run baseline from the multimodal model: samples of the test prompts' types
+    (`mm_type`), from noise or (conditions.type.strength < 1) from a training material of the
+    type, refined by the refiner with conditions.type.refiner."""
+    input:
+        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        prompts=out("conditions/prompts.tsv"),
+        **({"weights": out("neumerl/weights.npy"), "manifest": out("neumerl/manifest.tsv")}
+           if TYPE_START else {}),
+        refiner=[out("diffusion/refiner/model.pt")] if TYPE_REFINER else [],
+    output:
+        weights=out("samples/mm_type/weights.npy"),
+        table=out("samples/mm_type/samples.tsv"),
+        timing=out("samples/mm_type/timing.tsv"),
+    params:
+        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
+        per_prompt=COND["per_condition"],
+        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        mode="mm_type",
+        seed=cond_seed("mm_type"),
+        activation=DIFF_ACTIVATION,
+        **neutral_params("conditions.type", ["strength", "refiner"]),
+    log:
+        log("sample_multimodal/mm_type"),
+    benchmark:
+        bench("sample_multimodal/mm_type")
     conda:
         CONDA_ENV
     threads: DIFF["threads"]

@@ -5,7 +5,10 @@ test prompts: their types ('mm_type') and no condition ('mm_uncond'). Images wit
 metric-view embedding) noised to that fraction of the schedule; with
 `conditions.image.render_step` > 0 each image's samples are also pulled toward its metric-view
 render (render guidance); with `conditions.image.refiner` the retrieved material is refined by
-the refiner model (rule train_refiner), without the image condition."""
+the refiner model (rule train_refiner), without the image condition. `mm_type` with
+`conditions.type.strength` < 1 starts each sample from a training material of its type (drawn
+with the seed's stream "type_start"), refined by the refiner with `conditions.type.refiner`;
+samples of a type no training material has start from noise."""
 import time
 
 import numpy as np
@@ -18,6 +21,7 @@ from neumat.diffusion.sample import sample
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.render import sphere
+from neumat.seeds import seed_for
 
 
 def image_conditions(inp, p, enc, weights, man):
@@ -39,6 +43,26 @@ def image_conditions(inp, p, enc, weights, man):
         table = pd.concat([table, pd.DataFrame({"source": paths, "id": -1, "type": ""})],
                           ignore_index=True)
     return table, np.concatenate(emb), np.concatenate(imgs).astype(np.float32)
+
+
+def type_starts(inp, conds, k, seed, log):
+    """(start vectors (len(conds) k, 675), conds with a `start` column): for each of a
+    condition's k samples a training material of its type (ours's rows, conditions_eval's
+    retrieval set), drawn with `seed`; NaN rows (from noise) where training has no such type."""
+    weights = np.load(inp.weights)
+    man = dataset.read_manifest(inp.manifest, len(weights))
+    rows = dataset.training_rows(man, "ours")
+    types = man["type"].iloc[rows].to_numpy()
+    rng = np.random.default_rng(seed)
+    picks = [rng.choice(rows[types == t], k) if t and (types == t).any() else np.full(k, -1)
+             for t in conds["type"]]
+    got = np.concatenate(picks) if picks else np.zeros(0, int)
+    start = np.where(got[:, None] >= 0, weights[np.maximum(got, 0)], np.nan)
+    conds = conds.assign(start=[",".join(man["name"].iloc[r] for r in g) if (g >= 0).all() else ""
+                                for g in picks])
+    log.info("mm_type: %d of %d samples start from a training material of their type",
+             int((got >= 0).sum()), len(got))
+    return start, conds
 
 
 with script_logging(snakemake) as log:
@@ -75,6 +99,12 @@ with script_logging(snakemake) as log:
             conditions = {"text": np.repeat(emb, k, 0)}
         elif p.mode == "mm_type":
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
+            strength = getattr(p, "strength", 1.0)  # absent at its neutral 1
+            if strength < 1:
+                start, conds = type_starts(inp, conds, k, seed_for(p.seed, "type_start"), log)
+            if getattr(p, "refiner", False):
+                sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
+                log.info("refining the starts with %s", inp.refiner[0])
         else:
             conditions = {}
     table = conds.reset_index(drop=True).loc[np.repeat(np.arange(len(conds)), k)]
@@ -83,11 +113,26 @@ with script_logging(snakemake) as log:
     name = "type" if p.mode == "mm_type" else p.mode
     guidance = {name: p.guidance[name]} if name in p.guidance and conditions else {}
     t0 = time.perf_counter()
-    w = sample(sampler, len(table), p.seed, conditions, guidance, s["steps"], s["eta"],
-               s["batch_size"], s["clip"], negative_step=s["negative_step"],
-               activation=p.activation, start=start, strength=strength,
-               render_targets=None if targets is None else torch.as_tensor(targets),
-               render_step=render_step)
+
+    def draw(idx, seed, start, strength):
+        """The samples `idx` (a slice of the table's conditions and targets)."""
+        cond = {m: (v[idx] if isinstance(v, np.ndarray) else [v[i] for i in idx])
+                for m, v in conditions.items()}
+        return sample(sampler, len(idx), seed, cond, guidance, s["steps"], s["eta"],
+                      s["batch_size"], s["clip"], negative_step=s["negative_step"],
+                      activation=p.activation, start=start, strength=strength,
+                      render_targets=None if targets is None else torch.as_tensor(targets[idx]),
+                      render_step=render_step)
+
+    everyone = np.arange(len(table))
+    if start is None or not np.isnan(start).any():
+        w = draw(everyone, p.seed, start, strength)
+    else:  # types no training material has: those samples from noise, on their own stream
+        noise = np.isnan(start).any(1)
+        w = np.zeros((len(table), start.shape[1]), np.float32)
+        if (~noise).any():
+            w[~noise] = draw(everyone[~noise], p.seed, start[~noise], strength)
+        w[noise] = draw(everyone[noise], seed_for(p.seed, "from_noise"), None, 1.0)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table.to_csv(out.table, sep="\t", index=False)
