@@ -28,6 +28,13 @@ if COND["image"]["images"]:  # a missing or broken image would fail only its job
 
     _images.check_images(COND["image"]["images"], "conditions.image.images")
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
+# the sampling params every conditioned sampler shares: diffusion.sample's settings with
+# conditions.guidance in place of its guidance
+COND_SAMPLING = dict(
+    sample=settings("diffusion.sample", drop=["guidance"]),
+    per_prompt=COND["per_condition"],
+    guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+)
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
 COND_MEASURED = COND["text"]["colour_words"] == "measured"
@@ -181,9 +188,7 @@ rule sample_text:
         table=out("samples/text/samples.tsv"),
         timing=out("samples/text/timing.tsv"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
-        per_prompt=COND["per_condition"],
-        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        **COND_SAMPLING,
         mode="text",
         seed=cond_seed("text"),
         activation=DIFF_ACTIVATION,
@@ -217,9 +222,7 @@ rule sample_image:
         conditioning=out("samples/image/conditioning.npy"),
         embeddings=out("samples/image/conditioning_embeddings.npy"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
-        per_prompt=COND["per_condition"],
-        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        **COND_SAMPLING,
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
         **neutral_params("conditions.image", ["render_step", "refiner"]),
@@ -252,9 +255,7 @@ rule sample_multimodal:
         table=out("samples/mm_uncond/samples.tsv"),
         timing=out("samples/mm_uncond/timing.tsv"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
-        per_prompt=COND["per_condition"],
-        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        **COND_SAMPLING,
         mode="mm_uncond",
         seed=cond_seed("mm_uncond"),
         activation=DIFF_ACTIVATION,
@@ -287,9 +288,7 @@ rule sample_mm_type:
         table=out("samples/mm_type/samples.tsv"),
         timing=out("samples/mm_type/timing.tsv"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance"]),  # conditions.guidance instead
-        per_prompt=COND["per_condition"],
-        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        **COND_SAMPLING,
         mode="mm_type",
         seed=cond_seed("mm_type"),
         activation=DIFF_ACTIVATION,
