@@ -277,6 +277,15 @@ def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
     got, _ = _sample(r, tmp_path / "b", "--text", "blue fabric", "--seed", 5)
     np.testing.assert_array_equal(got, want)
     assert "conditions/text.npy" in capsys.readouterr().err
+    # colour_words: measured: text.npy holds the descriptions as embedded, not the manifest's
+    pd.DataFrame({"id": ["a", "b"], "description": ["rubber", "fabric"],
+                  "embedded": ["rubber", "teal fabric"]}).to_csv(
+        r / "conditions/descriptions.tsv", sep="\t", index=False)
+    got, _ = _sample(r, tmp_path / "m", "--text", "teal fabric", "--seed", 5)
+    np.testing.assert_array_equal(got, want)
+    assert "conditions/text.npy" in capsys.readouterr().err
+    _sample(r, tmp_path / "n", "--text", "blue fabric", "--seed", 5)  # renamed: encoded
+    assert "the run's embedding" not in capsys.readouterr().err
     np.save(r / "conditions/prompts.npy", green)  # 1 row for 2 prompts: encoded
     got, _ = _sample(r, tmp_path / "c", "--text", "red plastic", "--seed", 5)
     np.testing.assert_array_equal(got, red)
