@@ -108,6 +108,24 @@ def test_vertex_hash_is_exact_integer_arithmetic():
     assert len({tuple(r) for r in grid.vertex_hash(v[:1] + torch.arange(50)[:, None], 1).tolist()}) == 50
 
 
+def test_wrap_fetch_coords_is_frac_of_the_sum_in_fixed_point():
+    u = torch.tensor([[1e5 + 0.25, -0.75], [3.5, 2 ** 40 + 0.125]], dtype=torch.float64)
+    off = torch.tensor([[[0.5, 0.75]], [[0.75, 2 ** -32]]], dtype=torch.float64)
+    xy = grid.wrap_fetch_coords(u, off)
+    assert xy.dtype == torch.float32
+    # wraps to 0 at 1; frac(u) survives u = 2^40; 0.125 + 2^-32 rounds to float32's 0.125
+    assert xy[:, 0].tolist() == [[0.75, 0.0], [0.25, 0.125]]
+    # random u and hash offsets: within one float32 rounding (plus 2^-32) of the float64 frac
+    g = torch.Generator().manual_seed(0)
+    u = (torch.rand(4000, 2, generator=g, dtype=torch.float64) - 0.5) * 2e5
+    off = grid.vertex_hash(torch.randint(-2 ** 20, 2 ** 20, (4000, 3, 2), generator=g), 5)
+    ref = torch.remainder(torch.remainder(u, 1.0)[:, None] + off, 1.0)
+    xy = grid.wrap_fetch_coords(u, off)
+    err = xy.double() - ref
+    err = torch.minimum(err.abs(), 1 - err.abs())  # 0 and 1 are the same place
+    assert err.max() <= 2 ** -24 + 2 ** -32 and (xy < 1).all() and (xy >= 0).all()
+
+
 @pytest.mark.parametrize("path", ["default", "torch"])
 def test_hpb_at_u_1e5_equals_float64_reference(path):
     """default: the C kernel where it is built (else torch); torch: the torch path."""

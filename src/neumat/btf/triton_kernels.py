@@ -163,19 +163,25 @@ def triangle_grid(ux, uy):
 
 
 @triton.jit
+def hpb_frac32(u):
+    """frac(u) of float64 u as uint32 2^-32 steps, rounded half to even (grid.wrap_fetch_coords;
+    low32 in neumat/btf/query_kernel.c): 1.5 2^52 added leaves the rounded integer in the low
+    bits. torch.remainder(u, 1) may round to 1, i.e. 2^32, which wraps to 0."""
+    f = (u - tl.floor(u)) * 4294967296.0 + 6755399441055744.0
+    return (f.to(tl.int64, bitcast=True) & 0xFFFFFFFF).to(tl.uint32)
+
+
+@triton.jit
 def hpb_tap(gauss_ptr, fx, fy, bx, by, hs, H, W, C: tl.constexpr, P: tl.constexpr, m):
     """One triangle vertex (bx, by) (int64) of HPB: its hashed offset (grid.vertex_hash),
-    the fetch position frac(frac(u) + offset) in float64 then float32 (grid.wrap_fetch_coords),
-    and the bilinear fetch of the Gaussianised plane (BLOCK, P)."""
+    the fetch position frac(frac(u) + offset) in 32-bit fixed point then float32
+    (grid.wrap_fetch_coords; fx, fy: frac(u) as uint32, hpb_frac32), and the bilinear fetch
+    of the Gaussianised plane (BLOCK, P)."""
     h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
     h = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
-    px = h.to(tl.float64) * (1.0 / 4294967296.0)
+    px = (h + fx).to(tl.float64) * (1.0 / 4294967296.0)  # uint32: the add wraps, modulo 1
     h = mix(h ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
-    py = h.to(tl.float64) * (1.0 / 4294967296.0)
-    px = px + fx
-    py = py + fy
-    px = px - tl.floor(px)
-    py = py - tl.floor(py)
+    py = (h + fy).to(tl.float64) * (1.0 / 4294967296.0)
     top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
     x = tl.minimum(px.to(tl.float32), top)
     y = tl.minimum(py.to(tl.float32), top)
@@ -197,8 +203,8 @@ def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, 
     ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
     uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
     i0, i1, up, w0, w1, w2 = triangle_grid(ux, uy)
-    fx = ux - tl.floor(ux)  # torch.remainder(u, 1); may round to 1, which the next frac folds
-    fy = uy - tl.floor(uy)
+    fx = hpb_frac32(ux)
+    fy = hpb_frac32(uy)
     hs = hs_bits.to(tl.uint32, bitcast=True)
     dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
     g0 = hpb_tap(gauss_ptr, fx, fy, i0 + dn, i1 + dn, hs, HG, WG, CU, PU, m)

@@ -11,8 +11,8 @@ b, b + (0, 1), b + (1, 0); else (-z, 1 - f.y, 1 - f.x) at b + (1, 1), b + (1, 0)
 Precision: the reference shaders hash vertices with frac(sin(v . k) * 43758.5453) in float32,
 which at u = 1e5 (vertices ~3.5e5) has no fractional digits left and every neighbourhood
 collapses to a few offsets. Here u is float64, vertices are int64 and the hash is integer
-arithmetic (exact for any |vertex| < 2^31); the local fetch coordinate is formed as a small
-float64 difference before it is rounded to float32."""
+arithmetic (exact for any |vertex| < 2^31); the local fetch coordinate is formed from frac(u)
+in float64 and the hash in 32-bit fixed point before it is rounded to float32."""
 
 from __future__ import annotations
 
@@ -71,7 +71,13 @@ def vertex_hash(v: torch.Tensor, seed: int, k: int = 2) -> torch.Tensor:
 
 
 def wrap_fetch_coords(u: torch.Tensor, offset: torch.Tensor) -> torch.Tensor:
-    """frac(u + offset) for u (N, 2) and offsets (N, K, 2), formed in float64 from frac(u) so
-    large u keeps its sub-texel position, returned as float32 (N, K, 2) in [0, 1)."""
-    xy = torch.remainder(torch.remainder(u.double(), 1.0)[:, None, :] + offset, 1.0)
+    """frac(u + offset) for u (N, 2) and offsets (N, K, 2) (vertex_hash's, multiples of 2^-32),
+    returned as float32 (N, K, 2) in [0, 1). Formed in 32-bit fixed point: frac(u), taken in
+    float64 so large u keeps its sub-texel position, rounded to a multiple of 2^-32 (half to
+    even) and added to the offset modulo 1, then rounded once to float32. The fused kernels
+    (neumat/btf/query_kernel.c, neumat.btf.triton_kernels) do the same integer add, so all
+    three agree to the bit here; it is within 2^-32 of the float64 sum."""
+    scale = 2.0 ** 32
+    f = torch.round(torch.remainder(u.double(), 1.0) * scale).long()
+    xy = ((f[:, None, :] + (offset * scale).long()) & _M32).double() / scale
     return xy.float().clamp_(0.0, 1.0 - 2 ** -24)
