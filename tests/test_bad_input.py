@@ -36,9 +36,10 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-@pytest.mark.parametrize("modality", ["image", "type"])
+@pytest.mark.parametrize("modality", ["image", "type", "text"])
 def test_refiner_without_a_retrieved_start_fails_when_the_dag_is_built(tmp_path, modality):
-    """conditions.{image,type}.refiner refine a start material: at strength 1 there is none."""
+    """conditions.{image,type,text}.refiner refine a start material: at strength 1 there is
+    none."""
     rc, text = _dry_run(tmp_path, {"conditions": {modality: {"refiner": True, "strength": 1.0}}},
                         "config/tiny.yaml")
     assert rc != 0

@@ -415,6 +415,29 @@ def test_type_start_samples_from_training_materials_of_the_type(tiny_run):
     assert not {"sample_text", "sample_image", "sample_multimodal", "sample_type"} & set(jobs), jobs
 
 
+def test_text_start_samples_from_the_nearest_descriptions(tiny_run):
+    """conditions.text.{strength, refiner} (neutral 1 / false; the tiny config sets 0.1 /
+    true): a prompt's k samples start from its k nearest training materials by description
+    embedding (cosine), nearest first, refined by the refiner."""
+    res = tiny_run / "results/tiny"
+    man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
+    train = np.flatnonzero((man["split"] == "train").to_numpy())
+    text = np.load(res / "conditions/text.npy")[train].astype(np.float64)
+    prompts = pd.read_csv(res / "conditions/prompts.tsv", sep="\t", keep_default_na=False)
+    emb = np.load(res / "conditions/prompts.npy").astype(np.float64)
+    table = pd.read_csv(res / "samples/text/samples.tsv", sep="\t", keep_default_na=False)
+    assert "start" in table and len(table) == 2 * len(prompts)
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
+    for c, starts in table.groupby("condition")["start"].first().items():
+        names = starts.split(",")
+        assert len(names) == 2 and set(names) <= set(man["name"].iloc[train]), starts
+        sim = unit(text) @ unit(emb[c])
+        got = [sim[list(man["name"].iloc[train]).index(n)] for n in names]
+        assert np.isclose(got[0], sim.max()) and got[0] >= got[1], (c, got, sim.max())
+    log = (res / "logs/sample_text.log").read_text()
+    assert "refining the starts" in log and "nearest training descriptions" in log
+
+
 def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
     """diffusion.sample.guidance is the type model's guidance: the conditioning rules take
     theirs from conditions.guidance, so changing it reruns type sampling, not theirs."""

@@ -325,7 +325,8 @@ def cond_seed(stage):
 
 
 def image_sampling():
-    """How sample_image drew, for the report: model, start, render guidance."""
+    """How the conditioned samplers drew, for the report: sample_image's model, start and
+    render guidance, and where set, the starts of mm_type and text samples."""
     img = COND["image"]
     how = ("the refiner (rule train_refiner; prediction v, loss x0) refining each image's "
            "retrieved training material, without the image condition" if IMAGE_REFINER else
@@ -341,6 +342,12 @@ def image_sampling():
               "the multimodal model under the type condition")
         text += (f" `mm_type` samples: a training material of each sample's type, noised to "
                  f"strength {typ['strength']:g} and denoised by {by}.")
+    txt = COND["text"]
+    if txt["strength"] < 1:
+        by = ("the refiner, unconditionally" if TEXT_REFINER else
+              "the multimodal model under the text condition")
+        text += (f" Text samples: the training materials whose descriptions are nearest each "
+                 f"prompt, noised to strength {txt['strength']:g} and denoised by {by}.")
     return text
 
 

@@ -8,11 +8,12 @@
 
 COND = config["conditions"]
 COND_MODEL = "multimodal"
-# conditions.{image,type}.refiner: image (type) samples refine their retrieved training material
-# (one of their type) with a model that keeps a start (prediction v, loss x0: no low-noise
-# floor), trained on ours's rows by rule train_refiner
+# conditions.{image,type,text}.refiner: image (type, text) samples refine their retrieved
+# training material (one of their type, the nearest descriptions) with a model that keeps a
+# start (prediction v, loss x0: no low-noise floor), trained on ours's rows by rule train_refiner
 IMAGE_REFINER = COND["image"]["refiner"]
 TYPE_REFINER = COND["type"]["refiner"]
+TEXT_REFINER = COND["text"]["refiner"]
 if IMAGE_REFINER and COND["image"]["strength"] >= 1:
     raise ValueError("config conditions.image.refiner: true refines each image's retrieved "
                      "training material and needs conditions.image.strength < 1 (e.g. 0.1); "
@@ -21,7 +22,12 @@ if TYPE_REFINER and COND["type"]["strength"] >= 1:
     raise ValueError("config conditions.type.refiner: true refines a training material of each "
                      "sample's type and needs conditions.type.strength < 1 (e.g. 0.1); at 1 the "
                      "samples would start from noise")
+if TEXT_REFINER and COND["text"]["strength"] >= 1:
+    raise ValueError("config conditions.text.refiner: true refines the training materials "
+                     "nearest each prompt and needs conditions.text.strength < 1 (e.g. 0.1); at "
+                     "1 the samples would start from noise")
 TYPE_START = COND["type"]["strength"] < 1  # mm_type from training materials of its types
+TEXT_START = COND["text"]["strength"] < 1  # text from the training materials nearest the prompt
 if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
     # that has sampled before, be skipped without a word (Snakemake does not look upstream)
     from neumat.io import images as _images  # noqa: E402
@@ -179,10 +185,16 @@ rule train_refiner:
 
 
 rule sample_text:
+    """Samples of the text prompts, from noise or (conditions.text.strength < 1) from the
+    training materials whose descriptions are nearest each prompt, refined by the refiner with
+    conditions.text.refiner."""
     input:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
         prompt_embeddings=out("conditions/prompts.npy"),
+        **({"weights": out("neumerl/weights.npy"), "manifest": out("neumerl/manifest.tsv"),
+            "text": out("conditions/text.npy")} if TEXT_START else {}),
+        refiner=[out("diffusion/refiner/model.pt")] if TEXT_REFINER else [],
     output:
         weights=out("samples/text/weights.npy"),
         table=out("samples/text/samples.tsv"),
@@ -192,6 +204,7 @@ rule sample_text:
         mode="text",
         seed=cond_seed("text"),
         activation=DIFF_ACTIVATION,
+        **neutral_params("conditions.text", ["strength", "refiner"]),
     log:
         log("sample_text"),
     benchmark:

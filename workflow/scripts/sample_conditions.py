@@ -8,7 +8,9 @@ render (render guidance); with `conditions.image.refiner` the retrieved material
 the refiner model (rule train_refiner), without the image condition. `mm_type` with
 `conditions.type.strength` < 1 starts each sample from a training material of its type (drawn
 with the seed's stream "type_start"), refined by the refiner with `conditions.type.refiner`;
-samples of a type no training material has start from noise."""
+samples of a type no training material has start from noise. Text prompts with
+`conditions.text.strength` < 1 start from the training materials whose descriptions are nearest
+(sample i of a prompt from the i-th nearest), refined with `conditions.text.refiner`."""
 import time
 
 import numpy as np
@@ -65,6 +67,24 @@ def type_starts(inp, conds, k, seed, log):
     return start, conds
 
 
+def text_starts(inp, conds, emb, k, log):
+    """(start vectors (len(conds) k, 675), conds with a `start` column): for each prompt
+    embedding (rows of `emb`) its k nearest training materials by description embedding
+    (cosine; ours's rows, conditions_eval's retrieval set, in conditions/text.npy's manifest
+    order), sample i from the i-th nearest; ties (shared descriptions) in row order."""
+    weights = np.load(inp.weights)
+    man = dataset.read_manifest(inp.manifest, len(weights))
+    rows = dataset.training_rows(man, "ours")
+    unit = lambda x: x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+    sim = unit(emb.astype(np.float64)) @ unit(np.load(inp.text)[rows].astype(np.float64)).T
+    order = np.argsort(-sim, axis=1, kind="stable")
+    got = rows[order[:, np.arange(k) % order.shape[1]]]  # fewer rows than k: cycle
+    conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])
+    log.info("text: each prompt's %d samples start from its %d nearest training descriptions",
+             k, k)
+    return weights[got.reshape(-1)], conds
+
+
 with script_logging(snakemake) as log:
     p, inp, out = snakemake.params, snakemake.input, snakemake.output
     s, k = p.sample, p.per_prompt
@@ -97,6 +117,11 @@ with script_logging(snakemake) as log:
         if p.mode == "text":
             emb = np.load(inp.prompt_embeddings)[conds.index.to_numpy()]
             conditions = {"text": np.repeat(emb, k, 0)}
+            if strength < 1:
+                start, conds = text_starts(inp, conds, emb, k, log)
+            if getattr(p, "refiner", False):
+                sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
+                log.info("refining the starts with %s", inp.refiner[0])
         elif p.mode == "mm_type":
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
             strength = getattr(p, "strength", 1.0)  # absent at its neutral 1
