@@ -103,9 +103,6 @@ with script_logging(snakemake) as log:
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
             start = weights[np.repeat(got, k)]
-        if getattr(p, "refiner", False):  # refined by the floor-free model, unconditionally
-            sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
-            log.info("refining the retrieved materials with %s", inp.refiner[0])
         if render_step:  # render guidance toward each sample's own conditioning image
             targets = np.repeat(imgs, k, 0)
             log.info("render guidance, step %g, toward %d conditioning images", render_step,
@@ -119,19 +116,16 @@ with script_logging(snakemake) as log:
             conditions = {"text": np.repeat(emb, k, 0)}
             if strength < 1:
                 start, conds = text_starts(inp, conds, emb, k, log)
-            if getattr(p, "refiner", False):
-                sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
-                log.info("refining the starts with %s", inp.refiner[0])
         elif p.mode == "mm_type":
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
-            strength = getattr(p, "strength", 1.0)  # absent at its neutral 1
             if strength < 1:
                 start, conds = type_starts(inp, conds, k, seed_for(p.seed, "type_start"), log)
-            if getattr(p, "refiner", False):
-                sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
-                log.info("refining the starts with %s", inp.refiner[0])
         else:
             conditions = {}
+    if getattr(p, "refiner", False):  # the starts refined by the floor-free model, unconditionally
+        sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
+        log.info("refining the %s with %s",
+                 "retrieved materials" if p.mode == "image" else "starts", inp.refiner[0])
     table = conds.reset_index(drop=True).loc[np.repeat(np.arange(len(conds)), k)]
     table.insert(0, "condition", np.repeat(np.arange(len(conds)), k))
     table.insert(0, "sample", np.arange(len(table)))
