@@ -47,13 +47,19 @@ def image_conditions(inp, p, enc, weights, man):
     return table, np.concatenate(emb), np.concatenate(imgs).astype(np.float32)
 
 
-def type_starts(inp, conds, k, seed, log):
-    """(start vectors (len(conds) k, 675), conds with a `start` column): for each of a
-    condition's k samples a training material of its type (ours's rows, conditions_eval's
-    retrieval set), drawn with `seed`; NaN rows (from noise) where training has no such type."""
+def training_set(inp):
+    """(weights, manifest, rows): the NeuMERL fields and ours's training rows, conditions_eval's
+    retrieval set, from which the type and text starts are drawn."""
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
-    rows = dataset.training_rows(man, "ours")
+    return weights, man, dataset.training_rows(man, "ours")
+
+
+def type_starts(inp, conds, k, seed, log):
+    """(start vectors (len(conds) k, 675), conds with a `start` column): for each of a
+    condition's k samples a training material of its type (training_set), drawn with `seed`;
+    NaN rows (from noise) where training has no such type."""
+    weights, man, rows = training_set(inp)
     types = man["type"].iloc[rows].to_numpy()
     rng = np.random.default_rng(seed)
     picks = [rng.choice(rows[types == t], k) if t and (types == t).any() else np.full(k, -1)
@@ -69,14 +75,11 @@ def type_starts(inp, conds, k, seed, log):
 
 def text_starts(inp, conds, emb, k, log):
     """(start vectors (len(conds) k, 675), conds with a `start` column): for each prompt
-    embedding (rows of `emb`) its k nearest training materials by description embedding
-    (cosine; ours's rows, conditions_eval's retrieval set, in conditions/text.npy's manifest
+    embedding (rows of `emb`) its k nearest training materials (training_set) by description
+    embedding (cosine: text.embed writes unit vectors; conditions/text.npy is in manifest
     order), sample i from the i-th nearest; ties (shared descriptions) in row order."""
-    weights = np.load(inp.weights)
-    man = dataset.read_manifest(inp.manifest, len(weights))
-    rows = dataset.training_rows(man, "ours")
-    unit = lambda x: x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
-    sim = unit(emb.astype(np.float64)) @ unit(np.load(inp.text)[rows].astype(np.float64)).T
+    weights, man, rows = training_set(inp)
+    sim = emb.astype(np.float64) @ np.load(inp.text)[rows].astype(np.float64).T
     order = np.argsort(-sim, axis=1, kind="stable")
     got = rows[order[:, np.arange(k) % order.shape[1]]]  # fewer rows than k: cycle
     conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])

@@ -308,7 +308,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
     const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
     const uint32_t hs = mix(s->seed);
-    double ux[T], uy[T], fx[T], fy[T], wd[3][T], bx[T], by[T];
+    double ux[T], uy[T], wd[3][T], bx[T], by[T];
     uint32_t fxi[T], fyi[T];
     uint32_t vx[3][T], vy[3][T];
     int upq[T];
@@ -331,12 +331,11 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
         vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
         vx[2][q] = i0 + up, vy[2][q] = i1 + !up, wd[2][q] = up ? f0 : 1 - f0;
-        double rx = ux[q] - floor(ux[q]), ry = uy[q] - floor(uy[q]);
-        fx[q] = rx >= 1 ? rx - 1 : rx;  /* torch.remainder(u, 1) may round to 1 */
-        fy[q] = ry >= 1 ? ry - 1 : ry;
         /* frac(u) in 32-bit fixed point (rounded): added to the vertex's 32-bit hash modulo
-           2^32 it is frac(u + offset), with no float64 add, floor or compare per vertex */
-        fxi[q] = low32(fx[q] * 4294967296.0), fyi[q] = low32(fy[q] * 4294967296.0);
+           2^32 it is frac(u + offset), with no float64 add, floor or compare per vertex. A
+           frac that rounds to 1 (as torch.remainder(u, 1) may) is 2^32, i.e. 0 */
+        fxi[q] = low32((ux[q] - floor(ux[q])) * 4294967296.0);
+        fyi[q] = low32((uy[q] - floor(uy[q])) * 4294967296.0);
     }
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {  /* grid.vertex_hash, grid.wrap_fetch_coords, taps */

@@ -53,11 +53,9 @@ def features(model, images, batch: int | None = None, device="cpu") -> dict[int,
     another order), as they do between thread counts."""
     if batch is None:
         batch = 4 if torch.device(device).type == "cpu" else 16
-    # (N, H, W, 3) permuted is already channels-last in memory: the layout for_inference's
-    # convolutions take
+    # (N, H, W, 3) permuted is channels-last in memory, the layout for_inference's weights take
     x = torch.as_tensor(images, dtype=torch.float32).permute(0, 3, 1, 2)
-    parts = [model.forward_dims(x[s:s + batch].to(device).contiguous(
-        memory_format=torch.channels_last)) for s in range(0, len(x), batch)]
+    parts = [model.forward_dims(x[s:s + batch].to(device)) for s in range(0, len(x), batch)]
     return {d: torch.cat([p[d].cpu() for p in parts]).double().numpy() for d in parts[0]}
 
 
