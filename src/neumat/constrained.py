@@ -344,19 +344,22 @@ def sampling_modes(category: str, guide_types: list[str] | None = None,
 def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int, batch: int,
                     seed: int, sample_cfg: dict, guide_types: list[str] | None = None,
                     bins: np.ndarray | None = None, activation: str = "relu",
-                    progress=None, guidance_step: float = 10.0) -> CategoryResult:
+                    progress=None, guidance_step: float = 10.0,
+                    pilot_every_mode: bool = True) -> CategoryResult:
     """Draw from `sampler` in batches until `n` samples fall into `category` or `budget`
     samples were drawn. The first batch is drawn in each of `sampling_modes` (unconditional;
     category guidance when `guidance_step` > 0; guided by `guide_types`, cycling), and the rest
     in whichever accepted more (ties: unconditional, the paper's setting). Every draw is judged
     by the exact rule (`classify`). Seeds: the named stream (seed, mode, batch index), the
-    pilot batch 0, so a category's draws do not depend on the others."""
+    pilot batch 0, so a category's draws do not depend on the others. `pilot_every_mode` False
+    stops as soon as `n` samples are accepted, even in the pilots (the CLI: four samples asked
+    for should not cost a pilot batch of every mode; the workflow reports every mode's pilot)."""
     modes = sampling_modes(category, guide_types, guidance_step)
     acc_w, acc_s, drawn, pilot = [], [], 0, {}
     chosen = "unconditional"
     for k, (name, mode) in enumerate(modes.items()):  # pilot batch of each mode
         b = min(batch, budget - drawn)
-        if b <= 0:
+        if b <= 0 or (not pilot_every_mode and sum(map(len, acc_w)) >= n):
             break
         w = _draw(sampler, b, seed_for(seed, name, 0), mode, sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)

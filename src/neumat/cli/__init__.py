@@ -60,7 +60,10 @@ def parser() -> argparse.ArgumentParser:
                    help="condition on a reference image: PNG (sRGB) or EXR (linear) of one sphere "
                         "filling the frame (encoded by the run's conditions/image_encoder.pt)")
     s.add_argument("--category", help="constrained synthesis: keep only samples of this category "
-                                      "(diffuse, metallic, low-/medium-/high-specular, plastic, mirror)")
+                                      "(diffuse, metallic, low-/medium-/high-specular, plastic, mirror); "
+                                      "a pilot batch per way of drawing (unconditional, category "
+                                      "guidance, type guidance), then the best, stopping as soon as "
+                                      "-n are accepted")
     s.add_argument("-n", type=int, default=8, help="number of samples (default 8)")
     s.add_argument("--out", required=True, help="output directory (created)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

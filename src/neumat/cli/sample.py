@@ -222,7 +222,7 @@ def _draw_category(args, run: Run, sampler, cfg):
                 else args.category_step)
         r = constrained.sample_category(sampler, args.category, th, args.n, args.budget, args.batch,
                                         args.seed, cfg, guide, bins, args.activation, progress,
-                                        guidance_step=step)
+                                        guidance_step=step, pilot_every_mode=False)
     row = constrained.acceptance_row(r, args.n)
     also = f"; every draw also conditioned on {', '.join(sampler.fixed)}" if isinstance(sampler, Composed) else ""
     print(f"{args.category}: {row['hits']} of {row['drawn']} draws accepted "
