@@ -54,7 +54,9 @@ CASES = {
                         ("constrained",),
                         {"guide_types": "the workflow derives them (constrained.guide: auto)",
                          "activation": "fit.activation: how the NBRDF decodes",
-                         "progress": "a callback, not a setting"}),
+                         "progress": "a callback, not a setting",
+                         "pilot_every_mode": "the workflow reports every mode's pilot (True); "
+                                             "the CLI stops once -n are accepted"}),
     "plausibility": (
         {"angles": _signature_defaults(plausibility)["n_angles"],
          "explode_factor": _signature_defaults(plausibility)["explode_factor"]},
