@@ -151,8 +151,6 @@ def test_sample_category_with_category_guidance():
     # a tie keeps the paper's unconditional draws
     r = C.sample_category(FakeSampler(), "metallic", th, 2, 8, 4, 0, cfg, None, bins, guidance_step=1)
     assert r.guide == "unconditional" and r.drawn == 8
-
-
     # the CLI's early stop: the unconditional pilot already gives the 2 metallic samples asked
     # for, so category guidance is not piloted; the workflow's default pilots every mode
     fake = FakeSampler()
@@ -160,6 +158,8 @@ def test_sample_category_with_category_guidance():
                           pilot_every_mode=False)
     assert r.pilot == {"unconditional": 1.0} and r.drawn == 4 and len(r.weights) == 2
     assert fake.steps == []
+
+
 class _Identity:  # weights are their own normalised form
     @staticmethod
     def decode(z):
