@@ -91,7 +91,8 @@ def text_starts(inp, conds, emb, k, log):
 with script_logging(snakemake) as log:
     p, inp, out = snakemake.params, snakemake.input, snakemake.output
     s, k = p.sample, p.per_prompt
-    sampler = Sampler(inp.model, snakemake.config["device"])
+    refine = getattr(p, "refiner", False)  # the starts refined by the floor-free model
+    sampler = Sampler(inp.refiner[0] if refine else inp.model, snakemake.config["device"])
     start, strength = None, getattr(p, "strength", 1.0)
     targets, render_step = None, getattr(p, "render_step", 0.0)  # absent at its neutral 0
     if p.mode == "image":
@@ -125,8 +126,8 @@ with script_logging(snakemake) as log:
                 start, conds = type_starts(inp, conds, k, seed_for(p.seed, "type_start"), log)
         else:
             conditions = {}
-    if getattr(p, "refiner", False):  # the starts refined by the floor-free model, unconditionally
-        sampler, conditions = Sampler(inp.refiner[0], snakemake.config["device"]), {}
+    if refine:  # unconditionally: the refiner takes no condition
+        conditions = {}
         log.info("refining the %s with %s",
                  "retrieved materials" if p.mode == "image" else "starts", inp.refiner[0])
     table = conds.reset_index(drop=True).loc[np.repeat(np.arange(len(conds)), k)]
