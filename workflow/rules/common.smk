@@ -346,8 +346,10 @@ def image_sampling():
     if txt["strength"] < 1:
         by = ("the refiner, unconditionally" if TEXT_REFINER else
               "the multimodal model under the text condition")
+        typed = (" of the type its nearest typed descriptions vote for (those of its colour "
+                 "word first)" if txt["start_match"] else "")
         text += (f" Text samples: the training materials whose descriptions are nearest each "
-                 f"prompt, noised to strength {txt['strength']:g} and denoised by {by}.")
+                 f"prompt{typed}, noised to strength {txt['strength']:g} and denoised by {by}.")
     return text
 
 

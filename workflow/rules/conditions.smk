@@ -28,6 +28,10 @@ if TEXT_REFINER and COND["text"]["strength"] >= 1:
                      "1 the samples would start from noise")
 TYPE_START = COND["type"]["strength"] < 1  # mm_type from training materials of its types
 TEXT_START = COND["text"]["strength"] < 1  # text from the training materials nearest the prompt
+if COND["text"]["start_match"] and not TEXT_START:
+    raise ValueError("config conditions.text.start_match: true picks each prompt's starting "
+                     "materials by type and needs conditions.text.strength < 1 (e.g. 0.05); at "
+                     "1 the samples start from noise")
 if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
     # that has sampled before, be skipped without a word (Snakemake does not look upstream)
     from neumat.io import images as _images  # noqa: E402
@@ -204,7 +208,7 @@ rule sample_text:
         mode="text",
         seed=cond_seed("text"),
         activation=DIFF_ACTIVATION,
-        **neutral_params("conditions.text", ["strength", "refiner"]),
+        **neutral_params("conditions.text", ["strength", "refiner", "start_match"]),
     log:
         log("sample_text"),
     benchmark:

@@ -10,14 +10,16 @@ the refiner model (rule train_refiner), without the image condition. `mm_type` w
 with the seed's stream "type_start"), refined by the refiner with `conditions.type.refiner`;
 samples of a type no training material has start from noise. Text prompts with
 `conditions.text.strength` < 1 start from the training materials whose descriptions are nearest
-(sample i of a prompt from the i-th nearest), refined with `conditions.text.refiner`."""
+(sample i of a prompt from the i-th nearest; with `conditions.text.start_match` only those of the
+type the nearest descriptions vote for, those of the prompt's colour first), refined with
+`conditions.text.refiner`."""
 import time
 
 import numpy as np
 import pandas as pd
 import torch
 
-from neumat.conditions import image
+from neumat.conditions import evaluate, image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
 from neumat.io.atomic import save_npy
@@ -73,18 +75,36 @@ def type_starts(inp, conds, k, seed, log):
     return start, conds
 
 
-def text_starts(inp, conds, emb, k, log):
-    """(start vectors (len(conds) k, 675), conds with a `start` column): for each prompt
-    embedding (rows of `emb`) its k nearest training materials (training_set) by description
-    embedding (cosine: text.embed writes unit vectors; conditions/text.npy is in manifest
-    order), sample i from the i-th nearest; ties (shared descriptions) in row order."""
+def text_starts(inp, conds, emb, k, vote, activation, log):
+    """(start vectors (len(conds) k, 675), conds with `start` (and `voted_type`) columns): for
+    each prompt embedding (rows of `emb`) its k nearest training materials (training_set) by
+    description embedding (cosine: text.embed writes unit vectors; conditions/text.npy is in
+    manifest order), sample i from the i-th nearest; ties (shared descriptions) in row order.
+    With `vote` (conditions.text.start_match) only materials of the type voted by the prompt's
+    nearest typed descriptions (text.vote_types, vote size by text.choose_votes) are drawn,
+    those whose metric-view colour matches the prompt's colour word first."""
     weights, man, rows = training_set(inp)
-    sim = emb.astype(np.float64) @ np.load(inp.text)[rows].astype(np.float64).T
-    order = np.argsort(-sim, axis=1, kind="stable")
-    got = rows[order[:, np.arange(k) % order.shape[1]]]  # fewer rows than k: cycle
+    library = np.load(inp.text)[rows]
+    sim = emb.astype(np.float64) @ library.astype(np.float64).T
+    types = man["type"].iloc[rows].to_numpy()
+    voted, prefer = np.full(len(sim), "", dtype=object), None  # '': the nearest of any type
+    if vote:
+        originals = np.flatnonzero((man["operation"].iloc[rows].to_numpy() == "original")
+                                   & (types != ""))
+        size, acc = text.choose_votes(library, types, man["sources"].iloc[rows].to_numpy(),
+                                      originals)
+        log.info("text: type vote over the %d nearest typed descriptions (leave-source-out "
+                 "accuracy on %d training originals by vote size: %s)", size, len(originals),
+                 ", ".join(f"{n}: {a:.3f}" for n, a in acc.items()))
+        voted = text.vote_types(sim, types, size)
+        rgb = evaluate.mean_colour(sphere.render_fields(weights[rows], text.COLOUR_RESOLUTION,
+                                                        activation))
+        prefer = text.colour_preference(list(conds["colour"]), rgb)  # prompts.tsv
+        conds = conds.assign(voted_type=voted)
+    got = rows[text.typed_starts(sim, types, voted, k, prefer)]  # fewer rows than k: cycled
     conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])
-    log.info("text: each prompt's %d samples start from its %d nearest training descriptions",
-             k, k)
+    log.info("text: each prompt's %d samples start from its %d nearest training descriptions%s",
+             k, k, " of its voted type, those of its colour word first" if vote else "")
     return weights[got.reshape(-1)], conds
 
 
@@ -119,7 +139,8 @@ with script_logging(snakemake) as log:
             emb = np.load(inp.prompt_embeddings)[conds.index.to_numpy()]
             conditions = {"text": np.repeat(emb, k, 0)}
             if strength < 1:
-                start, conds = text_starts(inp, conds, emb, k, log)
+                start, conds = text_starts(inp, conds, emb, k, getattr(p, "start_match", False),
+                                           p.activation, log)
         elif p.mode == "mm_type":
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
             if strength < 1:

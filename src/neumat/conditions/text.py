@@ -86,3 +86,83 @@ def measured_descriptions(man, rgb: np.ndarray) -> list[str]:
     from neumat.conditions.evaluate import colour_word
     return [d if op == "original" else recoloured(d, colour_word(c))
             for d, op, c in zip(man["description"], man["operation"], rgb)]
+
+
+# ------------------------------------------------------------------ typed starts for text prompts
+# A prompt's nearest training description often belongs to another type ("light red paint" ->
+# a red fabric), and a sample started there keeps that type. A vote over the k nearest typed
+# descriptions names the type far more often, so starts can be drawn from that type.
+
+VOTE_GRID = (1, 2, 3, 5, 8, 10, 15, 20, 30, 40)
+
+
+def vote_types(sim: np.ndarray, types: np.ndarray, k: int) -> np.ndarray:
+    """For each row of `sim` (queries x library cosine similarities), the type with the largest
+    summed similarity among the row's k most similar library entries that have a type ('' for
+    untyped entries, -inf for left-out ones; '' out when a row has none). Ties between types go
+    to the most similar."""
+    types = np.asarray(types)
+    typed = np.flatnonzero(types != "")
+    out = np.full(len(sim), "", dtype=object)
+    if not len(typed):
+        return out
+    s = np.asarray(sim, np.float64)[:, typed]
+    top = np.argsort(-s, axis=1, kind="stable")[:, :k]
+    for i, cols in enumerate(top):
+        votes: dict[str, float] = {}
+        for c in cols[np.isfinite(s[i, cols])]:  # -inf: left out (choose_votes)
+            # most similar first: dict order breaks ties toward it
+            votes[types[typed[c]]] = votes.get(types[typed[c]], 0.0) + s[i, c]
+        out[i] = max(votes, key=votes.get) if votes else ""
+    return out
+
+
+def choose_votes(emb: np.ndarray, types: np.ndarray, sources: np.ndarray,
+                 queries: np.ndarray, grid=VOTE_GRID) -> tuple[int, dict[int, float]]:
+    """The vote size k by leave-source-out cross-validation on the training descriptions: each
+    query row (e.g. the originals, whose descriptions are their names' words, like a test
+    prompt) votes among the rows of other sources, as a prompt for an unseen material does.
+    Ties go to the largest k, the least variable vote (each source brings several rows: its
+    RGB-permuted copies). Returns (k, {k: share of queries whose own type wins})."""
+    emb, types, sources = np.asarray(emb, np.float64), np.asarray(types), np.asarray(sources)
+    if not len(queries):  # nothing typed to validate on: the nearest typed description
+        return 1, {}
+    sim = emb[queries] @ emb.T
+    # a row's MERL sources: 'name' (original, permuted copy) or 'a@rgb|b@gbr' (mixture)
+    names = [{c.split("@")[0] for c in s.split("|")} for s in sources]
+    for i, q in enumerate(queries):  # the query's own source is unseen, mixtures included
+        sim[i, [sources[q] in n for n in names]] = -np.inf
+    acc = {k: float(np.mean(vote_types(sim, types, k) == types[queries])) for k in grid}
+    best = max(acc.values())
+    return max(k for k, a in acc.items() if a == best), acc
+
+
+def colour_preference(colours, rgb: np.ndarray) -> np.ndarray:
+    """(prompts, library) bool: which library materials, by their mean metric-view colour `rgb`
+    (N, 3), have the colour word a prompt names (`colours`, evaluate.colour_of of each prompt;
+    the match conditions_eval scores, evaluate.colour_matches); all of them for a prompt that
+    names none (''). Most training descriptions carry no colour word (RGB-permuted copies drop
+    theirs), so the description embedding alone cannot find a red material for 'red plastic'."""
+    from neumat.conditions import evaluate as ev
+    out = np.ones((len(colours), len(rgb)), bool)
+    for i, colour in enumerate(colours):
+        if colour:
+            out[i] = [ev.colour_matches(c, colour) for c in rgb]
+    return out
+
+
+def typed_starts(sim: np.ndarray, types: np.ndarray, voted: np.ndarray, n: int,
+                 prefer: np.ndarray | None = None) -> np.ndarray:
+    """(queries, n) library columns: for each query the n entries of its voted type most
+    similar to it (cycled when the type has fewer); the n most similar of any type where the
+    vote named none. With `prefer` (queries, library) bool, preferred entries of the type
+    come first (e.g. colour_preference), each group by similarity."""
+    types = np.asarray(types)
+    sim = np.asarray(sim, np.float64)
+    got = np.empty((len(sim), n), int)
+    for i, t in enumerate(voted):
+        first = np.zeros(sim.shape[1], bool) if prefer is None else ~prefer[i]
+        order = np.lexsort((-sim[i], first))  # preferred, then by similarity; stable
+        cand = order[types[order] == t] if t else order
+        got[i] = cand[np.arange(n) % len(cand)]
+    return got
