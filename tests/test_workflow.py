@@ -420,8 +420,12 @@ def test_text_start_samples_from_the_nearest_descriptions_of_the_voted_type(tiny
     """conditions.text.{strength, refiner, start_match} (neutral 1 / false / false; the tiny
     config sets 0.1 / true / true): a prompt's k samples start from its k nearest training
     materials by description embedding (cosine), nearest first, among those of the type its
-    nearest typed descriptions vote for, refined by the refiner."""
+    nearest typed descriptions vote for, those of its colour word first, refined by the
+    refiner."""
+    import yaml
+    from neumat.conditions import evaluate
     from neumat.conditions import text as text_condition
+    from neumat.render import sphere
     res = tiny_run / "results/tiny"
     man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
     train = np.flatnonzero((man["split"] == "train").to_numpy())
@@ -435,15 +439,26 @@ def test_text_start_samples_from_the_nearest_descriptions_of_the_voted_type(tiny
     size = int(re.search(r"type vote over the (\d+) nearest typed descriptions", log)[1])
     unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)
     names = list(man["name"].iloc[train])
+    schema = yaml.safe_load((tiny_run / "config/schema.yaml").read_text())
+    activation = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())["fit"].get(
+        "activation", schema["properties"]["fit"]["properties"]["activation"]["default"])
+    rgb = evaluate.mean_colour(sphere.render_fields(
+        np.load(res / "neumerl/weights.npy")[train], text_condition.COLOUR_RESOLUTION, activation))
     for c, row in table.groupby("condition")[["start", "voted_type"]].first().iterrows():
         sim = unit(text) @ unit(emb[c])
         assert row["voted_type"] == text_condition.vote_types(sim[None], types, size)[0] != ""
         starts = row["start"].split(",")
         assert len(starts) == 2 and set(starts) <= set(names), starts
         assert all(types[names.index(n)] == row["voted_type"] for n in starts), row
+        # the type's materials of the prompt's colour (all, if none has it), nearest first
+        pool = types == row["voted_type"]
+        colour = prompts["colour"].iloc[c]
+        match = np.array([bool(colour) and evaluate.colour_matches(x, colour) for x in rgb])
+        if (pool & match).any():
+            pool &= match
         got = [sim[names.index(n)] for n in starts]
-        of_type = sim[types == row["voted_type"]]
-        assert np.isclose(got[0], of_type.max()) and got[0] >= got[1], (c, got, of_type.max())
+        assert np.isclose(got[0], sim[pool].max()), (c, got, sim[pool].max())
+        assert names.index(starts[0]) in np.flatnonzero(pool), (c, starts)
     assert "refining the starts" in log and "nearest training descriptions of its voted" in log
 
 
