@@ -412,3 +412,43 @@ def test_run_settings_take_overrides_first(tmp_path):
     assert run.setting("diffusion", "sample", "clip") is None
     assert run.setting("diffusion", "sample", "steps") == schema_default("diffusion", "sample", "steps")
     assert Run(tmp_path).setting("render", "resolution") == schema_default("render", "resolution")
+
+
+def test_start_draws_the_workflows_text_starts_and_refines_them(tiny_run, tmp_path):
+    """--text --start S --refiner: the starts are the workflow's for that prompt
+    (conditions.text.start_match, the tiny config's), denoised by the run's refiner, and the
+    draw is deterministic; --type --start starts from materials of the type."""
+    run = tiny_run / "results/tiny"
+    table = pd.read_csv(run / "samples/text/samples.tsv", sep="\t", keep_default_na=False)
+    row = table[table["prompt"] == "red plastic"].iloc[0]
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        assert main("sample", "--run", run, "--text", "red plastic", "--start", 0.1, "--refiner",
+                    "-n", 2, "--no-binary", "--out", out) == 0
+    got = pd.read_csv(outs[0] / "samples.tsv", sep="\t", keep_default_na=False)
+    assert list(got["start"]) == row["start"].split(","), (got, row)
+    assert set(got["voted_type"]) == {row["voted_type"]} and set(got["model"]) == {"refiner"}
+    assert not [c for c in got if c.startswith("guidance_")]  # the refiner takes no condition
+    np.testing.assert_array_equal(np.load(outs[0] / "weights.npy"), np.load(outs[1] / "weights.npy"))
+    man = pd.read_csv(run / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
+    typed = man[(man["split"] == "train") & (man["type"] != "")]
+    kind = typed["type"].iloc[0]
+    out = tmp_path / "t"
+    assert main("sample", "--run", run, "--type", kind, "--start", 0.1, "-n", 3, "--no-binary",
+                "--out", out) == 0
+    got = pd.read_csv(out / "samples.tsv", sep="\t", keep_default_na=False)
+    assert set(got["start"]) <= set(typed.loc[typed["type"] == kind, "name"]), got
+    assert set(got["model"]) == {"ours"} and (got["strength"] == 0.1).all()
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--type", "fabric", "--refiner"], "give --start S too"),
+    (["--type", "fabric", "--start", "1"], "0 < S < 1"),
+    (["--type", "fabric", "--text", "red", "--start", "0.1"], "exactly one of --type, --text"),
+    (["--type", "fabric", "--category", "diffuse", "--start", "0.1"], "neither --image nor --category"),
+    (["--type", "fabric", "--start", "0.1", "--refiner", "--model", "ours"], "leave out --model"),
+    (["--type", "fabric", "--start", "0.1"], "needs"),  # the miniature has no neumerl/ files
+])
+def test_start_errors_name_what_to_do(run, tmp_path, capsys, args, says):
+    assert main("sample", "--run", run, *args, "-n", 2, "--out", tmp_path / "x") == 2
+    assert says in capsys.readouterr().err

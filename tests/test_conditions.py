@@ -235,6 +235,10 @@ def test_type_vote_known_answers():
     assert prefer.tolist() == [[False, True, False, False, True], [True] * 5]
     got = text.typed_starts(sim, types, np.array(["b", "a"], dtype=object), 3, prefer)
     assert got.tolist() == [[4, 2, 4], [0, 1, 0]]
+    # no vote (start_match off): the nearest of any type, ties in row order, as before the key
+    ties = np.random.default_rng(0).integers(0, 5, (20, 30)) / 5
+    assert (text.typed_starts(ties, np.full(30, ""), np.full(20, ""), 7)
+            == np.argsort(-ties, axis=1, kind="stable")[:, :7]).all()
 
 
 def test_vote_size_by_leave_source_out_validation():

@@ -85,23 +85,20 @@ def text_starts(inp, conds, emb, k, vote, activation, log):
     those whose metric-view colour matches the prompt's colour word first."""
     weights, man, rows = training_set(inp)
     library = np.load(inp.text)[rows]
-    sim = emb.astype(np.float64) @ library.astype(np.float64).T
-    types = man["type"].iloc[rows].to_numpy()
-    voted, prefer = np.full(len(sim), "", dtype=object), None  # '': the nearest of any type
     if vote:
-        originals = np.flatnonzero((man["operation"].iloc[rows].to_numpy() == "original")
-                                   & (types != ""))
-        size, acc = text.choose_votes(library, types, man["sources"].iloc[rows].to_numpy(),
-                                      originals)
-        log.info("text: type vote over the %d nearest typed descriptions (leave-source-out "
-                 "accuracy on %d training originals by vote size: %s)", size, len(originals),
-                 ", ".join(f"{n}: {a:.3f}" for n, a in acc.items()))
-        voted = text.vote_types(sim, types, size)
         rgb = evaluate.mean_colour(sphere.render_fields(weights[rows], text.COLOUR_RESOLUTION,
                                                         activation))
-        prefer = text.colour_preference(list(conds["colour"]), rgb)  # prompts.tsv
+        got, voted, size, acc = text.matched_starts(
+            emb, library, man["type"].iloc[rows].to_numpy(), man["sources"].iloc[rows].to_numpy(),
+            man["operation"].iloc[rows].to_numpy(), rgb, list(conds["colour"]), k)  # prompts.tsv
+        log.info("text: type vote over the %d nearest typed descriptions (leave-source-out "
+                 "accuracy on the training originals by vote size: %s)", size,
+                 ", ".join(f"{n}: {a:.3f}" for n, a in acc.items()))
         conds = conds.assign(voted_type=voted)
-    got = rows[text.typed_starts(sim, types, voted, k, prefer)]  # fewer rows than k: cycled
+    else:  # the nearest of any type; fewer rows than k: cycled
+        sim = emb.astype(np.float64) @ library.astype(np.float64).T
+        got = text.typed_starts(sim, np.full(len(rows), ""), np.full(len(sim), ""), k)
+    got = rows[got]
     conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])
     log.info("text: each prompt's %d samples start from its %d nearest training descriptions%s",
              k, k, " of its voted type, those of its colour word first" if vote else "")

@@ -85,6 +85,17 @@ def parser() -> argparse.ArgumentParser:
                         "the image, 0 = off; the image must show the metric view (a sphere under "
                         "neumat's light, as `neumat render` draws it). Default: the run's "
                         "conditions.image.render_step")
+    s.add_argument("--start", type=float, metavar="S",
+                   help="start from the run's training materials noised to S of the schedule "
+                        "(0 < S < 1, SDEdit), as the workflow's conditions.<type|text>.strength: "
+                        "--type from materials of the type, --text from those of the type the "
+                        "prompt's nearest training descriptions vote for, its colour word first "
+                        "(conditions.text.start_match). With exactly one of --type, --text; not "
+                        "with --image or --category. Default: from noise")
+    s.add_argument("--refiner", action="store_true",
+                   help="with --start: denoise the starts by the run's refiner "
+                        "(diffusion/refiner/model.pt, rule train_refiner), unconditionally, as "
+                        "the workflow's conditions.<type|text>.refiner")
     s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")
     s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
     s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")

@@ -128,6 +128,80 @@ class Composed:
                       category_step=category_step, render_targets=targets, render_step=step)
 
 
+def _check_start(args, chosen: list[str]) -> None:
+    """--start / --refiner: what they combine with."""
+    if args.refiner and args.start is None:
+        raise CLIError("--refiner denoises training-material starts: give --start S too, e.g. "
+                       "--start 0.05")
+    if args.start is None:
+        return
+    if not 0 < args.start < 1:
+        raise CLIError(f"--start {args.start:g}: give the share of the schedule the starts are "
+                       f"noised to, 0 < S < 1 (e.g. 0.05); without --start samples start from noise")
+    if args.image or args.category or len(chosen) != 1:
+        raise CLIError("--start draws the starts for one condition: give exactly one of --type, "
+                       "--text, and neither --image nor --category")
+    if args.refiner and args.model:
+        raise CLIError("--refiner uses the run's refiner model: leave out --model")
+
+
+def _run_file(run: Run, rel: str, rule: str) -> Path:
+    p = run.path / rel
+    if not p.exists():
+        raise CLIError(f"--start needs {p}; build it with rule {rule}: `{run.target(rel)}`")
+    return p
+
+
+def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float):
+    """(weights, table): --start. Each sample starts from a training material (`ours`'s rows)
+    noised to args.start: for --type one of the type (drawn with the seed's stream
+    "cli_type_start"), for --text the matched starts of the workflow's
+    conditions.text.start_match (sample i from the i-th); denoised by the model under its
+    condition, or by the refiner (--refiner) without one."""
+    import pandas as pd
+
+    from neumat.diffusion import dataset
+    from neumat.diffusion.sample import sample
+    from neumat.seeds import seed_for
+
+    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
+    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
+    rows = dataset.training_rows(man, "ours")
+    types = man["type"].iloc[rows].to_numpy()
+    extra = {}
+    if args.type:
+        pool = rows[types == args.type]
+        if not len(pool):
+            raise CLIError(f"--start --type {args.type}: no training material of that type in "
+                           f"{run.path}; sample it without --start")
+        got = np.random.default_rng(seed_for(args.seed, "cli_type_start")).choice(pool, args.n)
+        cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
+    else:
+        from neumat.conditions import evaluate, text
+        from neumat.render import sphere
+        library = np.load(_run_file(run, "conditions/text.npy", "text_embeddings"))[rows]
+        rgb = evaluate.mean_colour(sphere.render_fields(weights[rows], text.COLOUR_RESOLUTION,
+                                                        args.activation))
+        idx, voted, size, _ = text.matched_starts(
+            fixed["text"], library, types, man["sources"].iloc[rows].to_numpy(),
+            man["operation"].iloc[rows].to_numpy(), rgb, [evaluate.colour_of(args.text)], args.n)
+        got, extra = rows[idx[0]], {"voted_type": voted[0]}
+        print(f"--text {args.text!r}: starts of type {voted[0]!r} (vote over the {size} nearest "
+              f"typed training descriptions)", file=sys.stderr)
+        cond, guidance = {"text": np.repeat(fixed["text"], args.n, 0)}, {"text": scales["text"]}
+    if args.refiner:
+        cond, guidance = {}, {}
+    with _progress(args.n, "refining" if args.refiner else "sampling from starts") as bar:
+        w = sample(sampler, args.n, seed_for(args.seed, "cli_start"), cond, guidance, args.steps,
+                   0.0, args.batch, None, negative_step=neg, activation=args.activation,
+                   start=weights[got], strength=args.start)
+        bar.update(args.n)
+    table = pd.DataFrame({"sample": range(args.n), "type": args.type or "",
+                          "start": man["name"].iloc[got].to_numpy(), "strength": args.start,
+                          "refiner": args.refiner, **extra})
+    return w, table
+
+
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     """(weights, per-sample table) for the requested conditions."""
     import pandas as pd
@@ -135,7 +209,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     from neumat.diffusion import Sampler
     from neumat.seeds import seed_for
 
-    sampler = Sampler(bundle, args.device)
+    sampler = base = Sampler(bundle, args.device)
     if args.type and args.type not in sampler.class_names:
         raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
                        f"{', '.join(sampler.class_names)}")
@@ -172,6 +246,11 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         raise CLIError(f"--steps {args.steps}: {model_path} was trained with {T} timesteps; "
                        f"give 1 ... {T} DDIM steps")
     info["steps"] = args.steps
+    if args.start is not None:
+        if args.refiner:  # unconditional: no guidance was applied
+            info = {k: v for k, v in info.items() if not k.startswith("guidance_")}
+        w, table = _draw_from_start(args, run, base, fixed, scales, neg)
+        return w, table.assign(**info)
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
            "batch_size": args.batch, "clip": None, "negative_step": neg}
     if args.category:
@@ -244,7 +323,10 @@ def cmd_sample(args) -> int:
     chosen = [m for m in MODALITIES if getattr(args, m)]
     run = Run(args.run)
     vector = [m for m in chosen if m in VECTOR_MODALITIES]
-    if args.model is None:  # text / image: the multimodal model; otherwise `ours`, as the report
+    _check_start(args, chosen)
+    if args.refiner:  # the refiner takes no condition: the start carries it
+        model_path = run.model_path("refiner", "--refiner denoises the starts with it")
+    elif args.model is None:  # text / image: the multimodal model; otherwise `ours`, as the report
         args.model = MULTIMODAL if vector else "ours"
         why = (f"{' and '.join('--' + m for m in vector)} need{'s' if len(vector) == 1 else ''} "
                f"it (the model trained on type, text and image)") if vector else ""
@@ -252,7 +334,7 @@ def cmd_sample(args) -> int:
     else:
         model_path = run.model_path(args.model)
     bundle = load_model(model_path)
-    for m in chosen:
+    for m in [] if args.refiner else chosen:
         why = unsupported(bundle, m, model_path)
         if why:
             raise CLIError(f"--{m}: {why}")

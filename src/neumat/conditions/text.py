@@ -166,3 +166,19 @@ def typed_starts(sim: np.ndarray, types: np.ndarray, voted: np.ndarray, n: int,
         cand = order[types[order] == t] if t else order
         got[i] = cand[np.arange(n) % len(cand)]
     return got
+
+
+def matched_starts(prompt_emb: np.ndarray, library: np.ndarray, types: np.ndarray,
+                   sources: np.ndarray, operations: np.ndarray, rgb: np.ndarray, colours,
+                   n: int) -> tuple[np.ndarray, np.ndarray, int, dict[int, float]]:
+    """conditions.text.start_match for prompts (P, D) against the training descriptions
+    `library` (N, D; unit vectors) with their types, sources, operations and mean metric-view
+    colours `rgb` (N, 3); `colours` the prompts' colour words. Returns ((P, n) library rows,
+    nearest first: the voted type's, those of the colour first), the voted types, the vote
+    size and its cross-validation accuracies (choose_votes on the typed originals)."""
+    types = np.asarray(types)
+    sim = np.asarray(prompt_emb, np.float64) @ np.asarray(library, np.float64).T
+    originals = np.flatnonzero((np.asarray(operations) == "original") & (types != ""))
+    size, acc = choose_votes(library, types, sources, originals)
+    voted = vote_types(sim, types, size)
+    return typed_starts(sim, types, voted, n, colour_preference(colours, rgb)), voted, size, acc
