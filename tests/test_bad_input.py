@@ -36,17 +36,33 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+def test_start_keys_without_a_start_fail_when_the_dag_is_built(tmp_path):
+    """conditions.text.start_match picks a start material: at strength 1 there is none. The
+    check (neumat.conditions.starts.check; each key: test_start_keys_need_a_strength_below_one)
+    runs when the DAG is built."""
+    rc, text = _dry_run(tmp_path, {"conditions": {"text": {
+        "start_match": True, "refiner": False, "strength": 1.0}}}, "config/tiny.yaml")
+    assert rc != 0
+    assert "conditions.text.start_match" in text and "conditions.text.strength < 1" in text
+    assert not (tmp_path / "results").exists()
+
+
 @pytest.mark.parametrize("modality, key", [("image", "refiner"), ("type", "refiner"),
                                             ("text", "refiner"), ("text", "start_match")])
-def test_start_keys_without_a_start_fail_when_the_dag_is_built(tmp_path, modality, key):
+def test_start_keys_need_a_strength_below_one(modality, key):
     """conditions.{image,type,text}.refiner refine a start material and
-    conditions.text.start_match picks it: at strength 1 there is none."""
-    extra = {"refiner": False} if key != "refiner" else {}
-    rc, text = _dry_run(tmp_path, {"conditions": {modality: {key: True, "strength": 1.0,
-                                                             **extra}}}, "config/tiny.yaml")
-    assert rc != 0
-    assert f"conditions.{modality}.{key}" in text and f"conditions.{modality}.strength < 1" in text
-    assert not (tmp_path / "results").exists()
+    conditions.text.start_match picks it: at strength 1 there is none, and the error names both
+    keys; below 1, or with the key off, the config passes."""
+    from neumat.conditions import starts
+    cfg = {m: {"strength": 1.0, "refiner": False, "start_match": False}
+           for m in ("image", "type", "text")}
+    starts.check(cfg)
+    cfg[modality][key] = True
+    with pytest.raises(ValueError, match=rf"conditions\.{modality}\.{key}: true .*"
+                                         rf"conditions\.{modality}\.strength < 1"):
+        starts.check(cfg)
+    cfg[modality]["strength"] = 0.05
+    starts.check(cfg)
 
 
 def test_check_split():

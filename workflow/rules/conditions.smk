@@ -6,6 +6,8 @@
 #   -> sample_text / sample_image / sample_multimodal / sample_mm_type -> conditions_eval,
 #   guidance_sweep, conditions_mitsuba -> conditions_section
 
+from neumat.conditions import starts as _starts  # noqa: E402
+
 COND = config["conditions"]
 COND_MODEL = "multimodal"
 # conditions.{image,type,text}.refiner: image (type, text) samples refine their retrieved
@@ -14,24 +16,9 @@ COND_MODEL = "multimodal"
 IMAGE_REFINER = COND["image"]["refiner"]
 TYPE_REFINER = COND["type"]["refiner"]
 TEXT_REFINER = COND["text"]["refiner"]
-if IMAGE_REFINER and COND["image"]["strength"] >= 1:
-    raise ValueError("config conditions.image.refiner: true refines each image's retrieved "
-                     "training material and needs conditions.image.strength < 1 (e.g. 0.1); "
-                     "at 1 the samples would start from noise")
-if TYPE_REFINER and COND["type"]["strength"] >= 1:
-    raise ValueError("config conditions.type.refiner: true refines a training material of each "
-                     "sample's type and needs conditions.type.strength < 1 (e.g. 0.1); at 1 the "
-                     "samples would start from noise")
-if TEXT_REFINER and COND["text"]["strength"] >= 1:
-    raise ValueError("config conditions.text.refiner: true refines the training materials "
-                     "nearest each prompt and needs conditions.text.strength < 1 (e.g. 0.1); at "
-                     "1 the samples would start from noise")
+_starts.check(COND)  # a refiner or start_match needs strength < 1
 TYPE_START = COND["type"]["strength"] < 1  # mm_type from training materials of its types
 TEXT_START = COND["text"]["strength"] < 1  # text from the training materials nearest the prompt
-if COND["text"]["start_match"] and not TEXT_START:
-    raise ValueError("config conditions.text.start_match: true picks each prompt's starting "
-                     "materials by type and needs conditions.text.strength < 1 (e.g. 0.05); at "
-                     "1 the samples start from noise")
 if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
     # that has sampled before, be skipped without a word (Snakemake does not look upstream)
     from neumat.io import images as _images  # noqa: E402
