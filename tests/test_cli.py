@@ -448,6 +448,7 @@ def test_start_draws_the_workflows_text_starts_and_refines_them(tiny_run, tmp_pa
     (["--type", "fabric", "--category", "diffuse", "--start", "0.1"], "neither --image nor --category"),
     (["--type", "fabric", "--start", "0.1", "--refiner", "--model", "ours"], "leave out --model"),
     (["--type", "fabric", "--start", "0.1"], "needs"),  # the miniature has no neumerl/ files
+    (["--type", "fabric", "--start", "0.1", "--refiner"], "Build it with rule train_refiner"),
 ])
 def test_start_errors_name_what_to_do(run, tmp_path, capsys, args, says):
     assert main("sample", "--run", run, *args, "-n", 2, "--out", tmp_path / "x") == 2

@@ -64,7 +64,8 @@ class Run:
         p = self.path / "diffusion" / model / "model.pt"
         if not p.exists():
             have = ", ".join(self.models()) or "none"
-            rule = "train_multimodal" if model == MULTIMODAL else "train_diffusion"
+            rule = {MULTIMODAL: "train_multimodal", "refiner": "train_refiner"}.get(
+                model, "train_diffusion")
             raise CLIError(f"no diffusion model {model!r} in {self.path} (models here: {have})"
                            f"{'; ' + why if why else ''}. Build it with rule {rule}: "
                            f"`{self.target(f'diffusion/{model}/model.pt')}`"
