@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from neumat.conditions import evaluate, image, text
+from neumat.conditions import image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
 from neumat.io.atomic import save_npy
@@ -86,19 +86,15 @@ def text_starts(inp, conds, emb, k, vote, activation, log):
     weights, man, rows = training_set(inp)
     library = np.load(inp.text)[rows]
     if vote:
-        rgb = evaluate.mean_colour(sphere.render_fields(weights[rows], text.COLOUR_RESOLUTION,
-                                                        activation))
-        got, voted, size, acc = text.matched_starts(
-            emb, library, man["type"].iloc[rows].to_numpy(), man["sources"].iloc[rows].to_numpy(),
-            man["operation"].iloc[rows].to_numpy(), rgb, list(conds["colour"]), k)  # prompts.tsv
+        got, voted, size, acc = text.training_starts(emb, library, weights, man, rows,
+                                                     list(conds["colour"]), k, activation)
         log.info("text: type vote over the %d nearest typed descriptions (leave-source-out "
                  "accuracy on the training originals by vote size: %s)", size,
                  ", ".join(f"{n}: {a:.3f}" for n, a in acc.items()))
         conds = conds.assign(voted_type=voted)
     else:  # the nearest of any type; fewer rows than k: cycled
         sim = emb.astype(np.float64) @ library.astype(np.float64).T
-        got = text.typed_starts(sim, np.full(len(rows), ""), np.full(len(sim), ""), k)
-    got = rows[got]
+        got = rows[text.typed_starts(sim, np.full(len(rows), ""), np.full(len(sim), ""), k)]
     conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])
     log.info("text: each prompt's %d samples start from its %d nearest training descriptions%s",
              k, k, " of its voted type, those of its colour word first" if vote else "")

@@ -178,14 +178,11 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
         cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
     else:
         from neumat.conditions import evaluate, text
-        from neumat.render import sphere
         library = np.load(_run_file(run, "conditions/text.npy", "text_embeddings"))[rows]
-        rgb = evaluate.mean_colour(sphere.render_fields(weights[rows], text.COLOUR_RESOLUTION,
-                                                        args.activation))
-        idx, voted, size, _ = text.matched_starts(
-            fixed["text"], library, types, man["sources"].iloc[rows].to_numpy(),
-            man["operation"].iloc[rows].to_numpy(), rgb, [evaluate.colour_of(args.text)], args.n)
-        got, extra = rows[idx[0]], {"voted_type": voted[0]}
+        got, voted, size, _ = text.training_starts(fixed["text"], library, weights, man, rows,
+                                                   [evaluate.colour_of(args.text)], args.n,
+                                                   args.activation)
+        got, extra = got[0], {"voted_type": voted[0]}
         print(f"--text {args.text!r}: starts of type {voted[0]!r} (vote over the {size} nearest "
               f"typed training descriptions)", file=sys.stderr)
         cond, guidance = {"text": np.repeat(fixed["text"], args.n, 0)}, {"text": scales["text"]}

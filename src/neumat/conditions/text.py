@@ -182,3 +182,19 @@ def matched_starts(prompt_emb: np.ndarray, library: np.ndarray, types: np.ndarra
     size, acc = choose_votes(library, types, sources, originals)
     voted = vote_types(sim, types, size)
     return typed_starts(sim, types, voted, n, colour_preference(colours, rgb)), voted, size, acc
+
+
+def training_starts(prompt_emb: np.ndarray, library: np.ndarray, weights: np.ndarray, man,
+                    rows: np.ndarray, colours, n: int, activation: str):
+    """matched_starts for the training rows `rows` of a NeuMERL run (weights, manifest `man`;
+    `library` the rows' description embeddings), their colours measured in the metric view at
+    COLOUR_RESOLUTION: what rule sample_text and `neumat sample --start --text` both draw.
+    Returns (prompts, n) manifest rows, the voted types, the vote size and its accuracies."""
+    from neumat.conditions.evaluate import mean_colour
+    from neumat.render import sphere
+    rgb = mean_colour(sphere.render_fields(weights[rows], COLOUR_RESOLUTION, activation))
+    got, voted, size, acc = matched_starts(
+        prompt_emb, library, man["type"].iloc[rows].to_numpy(),
+        man["sources"].iloc[rows].to_numpy(), man["operation"].iloc[rows].to_numpy(), rgb,
+        colours, n)
+    return np.asarray(rows)[got], voted, size, acc
