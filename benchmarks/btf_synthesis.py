@@ -28,7 +28,10 @@ is the steady figure. On 2026-11-25 (AMD EPYC, 2 cores, load ~1 from other tenan
 query's best over 5 two-thread rounds ranged 111-137 ms between runs and HPB's overhead +4.9 to
 +16.9 %; on one thread, best of 15, the plain query took 215-224 ms and HPB +9.9 to +11.1 %;
 with the fetch coordinate in fixed point (query_kernel.c grid_prepare; idle, same day) +9.1 %
-(AVX2 build +18.7 %) against +11.3 % (+20.6 %) for the build before, run in turn.
+(AVX2 build +18.7 %) against +11.3 % (+20.6 %) for the build before, run in turn. Hex-tiling,
+one thread, best of 9 (`--methods hpb hextile --no-torch --repeat 9`, same host, idle,
+2026-11-25): its blend folded into the bilinear weights as HPB's, +30.9 % (AVX2 build +39.1 %)
+against +41.2 % (+53.6 %) before.
 """
 
 from __future__ import annotations

@@ -14,7 +14,7 @@ runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetche
 Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
 is folded into the first layer (`neumat.btf.fold.fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
-plane with the luminance channel, and hex-tiling's blend).
+plane and its luminance plane (`hex_planes`), and hex-tiling's blend).
 
 On a CUDA GPU the plain query of a Triple Plane, and its query with an HPB or hex-tiling
 synthesis as `features_u`, run as one Triton kernel each (`neumat.btf.query_triton`) where
@@ -61,7 +61,7 @@ def _library(march: str = "native"):
                                          p, i]
     lib.btf_triple_plane_hpb.restype = None
     d, f = ctypes.c_double, ctypes.c_float
-    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
+    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
                                          p, p, p, i]
     lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
@@ -86,11 +86,30 @@ def hpb_plane(hpb) -> torch.Tensor:
     cached = getattr(hpb, "_kernel_plane", None)
     if cached is not None and cached[0] is g:
         return cached[1]
-    p = g.detach().to(torch.float16)
-    p = torch.cat([p, p[:, :1]], 1)
-    p = torch.cat([p, p[:1]], 0).contiguous()
+    p = _wrapped(g.detach().to(torch.float16))
     hpb._kernel_plane = (g, p)
     return p
+
+
+def _wrapped(t: torch.Tensor) -> torch.Tensor:
+    """(H, W, ...) -> (H + 1, W + 1, ...): the first row and column repeated at the end."""
+    t = torch.cat([t, t[:, :1]], 1)
+    return torch.cat([t, t[:1]], 0).contiguous()
+
+
+def hex_planes(hexs) -> tuple[torch.Tensor, torch.Tensor]:
+    """Hex-tiling's plane (H, W, C + 1) as the kernel reads it: the features (H + 1, W + 1, C)
+    and the luminance (H + 1, W + 1), float32, each wrapped by one row and column, so a
+    vertex's bilinear footprint is one texel offset into both (struct hpb). Cached on the
+    synthesis object, as hpb_plane."""
+    pl = hexs.plane_lum
+    cached = getattr(hexs, "_kernel_planes", None)
+    if cached is not None and cached[0] is pl:
+        return cached[1]
+    p = _wrapped(pl.detach().float())
+    planes = (p[..., :-1].contiguous(), p[..., -1].contiguous())
+    hexs._kernel_planes = (pl, planes)
+    return planes
 
 
 def available(march: str = "native") -> bool:
@@ -126,8 +145,8 @@ def _hpb(features_u):
     if method not in ("hpb", "hextile"):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
-    # int32 texel offsets: HPB reads hpb_plane's (H + 1, W + 1, C); for hex-tiling's (H, W, C)
-    # plane the same bound is a little strict
+    # int32 offsets: HPB's in elements of hpb_plane's (H + 1, W + 1, C), hex-tiling's in texels
+    # (the bound is strict for those)
     return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None
 
 
@@ -177,16 +196,17 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
                 out_ptr, int(raw))
     elif hpb.method == "hextile":
         u = u.detach().double().contiguous()
-        plane, st = _f32(hpb.plane_lum), hpb.s
-        if plane.shape[-1] != cu + 1:
-            raise ValueError(f"hex-tiling plane has {plane.shape[-1] - 1} channels, the model "
-                             f"{cu}")
+        st = hpb.s
+        if hpb.plane_lum.shape[-1] != cu + 1:
+            raise ValueError(f"hex-tiling plane has {hpb.plane_lum.shape[-1] - 1} channels, "
+                             f"the model {cu}")
+        plane, lum = hex_planes(hpb)
+        H, W = hpb.plane_lum.shape[:2]
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hex(
                 n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
-                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), plane.shape[0], plane.shape[1],
-                cu, hpb.seed & 0xFFFFFFFF, float(st["rotation"]), float(st["contrast"]),
+                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), lum.data_ptr(), H, W, cu, hpb.seed & 0xFFFFFFFF, float(st["rotation"]), float(st["contrast"]),
                 float(st["exponent"]), float(st["gain"]), fh.data_ptr(), fd.data_ptr(),
                 fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
                 out_ptr, int(raw))

@@ -205,7 +205,9 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* hex-tiling: (H, W, C + 1) f_U with the luminance channel last */
+    const float *gauss;     /* hex-tiling: (H + 1, W + 1, C) f_U, wrapped by one row and column
+                               (neumat.btf.query.hex_planes) */
+    const float *lum;       /* hex-tiling: (H + 1, W + 1) its luminance, wrapped the same way */
     int H, W;
     const float *lut;       /* (C, L, 2) inverse LUT (HPB only) as (value, slope) pairs: entry
                                k = (lut[k], lut[k + 1] - lut[k]), built by neumat.btf.query.
@@ -213,8 +215,7 @@ struct hpb {
     int L;
     uint32_t seed;
     int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
-    double rotation;
-    float contrast, exponent, gain;
+    float rotation, contrast, exponent, gain;  /* the angle is formed in float (sincos_polyf) */
     const float *planar;    /* HPB, L = LUT_REG: (C, 2, L) values then slopes, for the register
                                lookup (hpb_fill_c); else NULL */
     const uint16_t *gauss16;  /* HPB: (H + 1, W + 1, C) Gaussianised decorrelated plane in
@@ -246,9 +247,10 @@ static inline float h2f(uint16_t h)
 }
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
-    int32_t off[12][T];     /* texel offsets (in elements) into the plane; HPB: off[v], the first
-                               texel of vertex v's 2 x 2 (its plane is wrapped by one row and
-                               column: the others are C, pitch and pitch + C elements on) */
+    int32_t off[3][T];      /* off[v]: the first texel of vertex v's 2 x 2 (the planes are
+                               wrapped by one row and column: the others are 1, W + 1 and W + 2
+                               texels on); HPB: in elements, hex-tiling: in texels (they index
+                               the feature and the luminance planes) */
     float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
     float w[3][T];          /* blend weights */
     float inv[T];           /* 1 / sqrt(sum of their squares) */
@@ -279,21 +281,22 @@ static inline IEEE uint32_t low32(double b)
     return (uint32_t)bits;
 }
 
-/* sin and cos of a (double, |a| < 2^20) as plain arithmetic the compiler vectorises (libm's
+/* sin and cos of a (float, |a| < 2^10) as plain arithmetic the compiler vectorises (libm's
  * scalar sincos was a third of hex-tiling's cost): a = n pi/2 + r, |r| <= pi/4 (two-part
- * pi/2), Taylor series to r^17 / r^18 (truncation < 1e-19), then the quadrant. */
-static inline IEEE void sincos_poly(double a, double *sn, double *cs)
+ * pi/2), Taylor series to r^9 / r^10 (truncation < 2e-9), then the quadrant. Float, not double:
+ * hex-tiling's angle, formed in float from the hash's top 24 bits, has sin and cos within
+ * 5.8e-7 of float64's from all 32 (2^26 random hashes), and it turns an offset of < 0.3 from
+ * the vertex, so a tap moves < 2e-7 of the plane (8e-5 texel of 400): inside float32's rounding
+ * of the features the query compares against (tests/test_btf_query.py). */
+static inline __attribute__((always_inline)) IEEE void sincos_polyf(float a, float *sn, float *cs)
 {
-    double n = floor(a * 0.6366197723675814 + 0.5);
-    double r = (a - n * 1.5707963267948966) - n * 6.123233995736766e-17, r2 = r * r;
-    double sp = r * (1 + r2 * (-1.0 / 6 + r2 * (1.0 / 120 + r2 * (-1.0 / 5040 + r2 * (
-                    1.0 / 362880 + r2 * (-1.0 / 39916800 + r2 * (1.0 / 6227020800 + r2 * (
-                    -1.0 / 1307674368000 + r2 * (1.0 / 355687428096000)))))))));
-    double cp = 1 + r2 * (-0.5 + r2 * (1.0 / 24 + r2 * (-1.0 / 720 + r2 * (1.0 / 40320 + r2 * (
-                    -1.0 / 3628800 + r2 * (1.0 / 479001600 + r2 * (-1.0 / 87178291200 + r2 * (
-                    1.0 / 20922789888000 + r2 * (-1.0 / 6402373705728000)))))))));
-    int k = (int)(n - 4 * floor(n / 4));  /* quadrant, 0 ... 3 */
-    double s0 = k & 1 ? cp : sp, c0 = k & 1 ? sp : cp;
+    float n = floorf(a * 0.63661977f + 0.5f);
+    float r = (a - n * 1.5707964f) + n * 4.371139e-08f, r2 = r * r;
+    float sp = r * (1 + r2 * (-1.0f / 6 + r2 * (1.0f / 120 + r2 * (-1.0f / 5040 + r2 * (1.0f / 362880)))));
+    float cp = 1 + r2 * (-0.5f + r2 * (1.0f / 24 + r2 * (-1.0f / 720 + r2 * (1.0f / 40320 +
+               r2 * (-1.0f / 3628800)))));
+    int k = (int)(n - 4 * floorf(n * 0.25f));  /* quadrant, 0 ... 3 */
+    float s0 = k & 1 ? cp : sp, c0 = k & 1 ? sp : cp;
     *sn = k & 2 ? -s0 : s0;
     *cs = (k + 1) & 2 ? -c0 : c0;
 }
@@ -355,16 +358,16 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             } else {  /* hextile.HexTile: the patch rotated about its vertex */
                 double px = hx * (1.0 / 4294967296.0), py = h * (1.0 / 4294967296.0);
                 h = mix(h ^ 0x9E3779B3u);
-                double a = (6.283185307179586 * (h * (1.0 / 4294967296.0)) -
-                             3.141592653589793) * s->rotation;
+                float a = (6.2831855f * ((float)(h >> 8) * 0x1p-24f) - 3.1415927f) * s->rotation;
                 int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
                     o1 = v == 0 ? !up : v == 1 ? up : !up;
                 double gx = bx[q] + o0, gy = by[q] + o1;  /* grid.vertex_uv, float64 */
-                double cx = (gx + gy / 2) / K, cy = gy * (S3 / 2) / K;
-                double dx = ux[q] - cx, dy = uy[q] - cy, cs, sn;
-                sincos_poly(a, &sn, &cs);
-                px += (cs * dx - sn * dy) + (cx - floor(cx));
-                py += (sn * dx + cs * dy) + (cy - floor(cy));
+                double cx = (gx + gy * 0.5) * (1 / K), cy = gy * (S3 / 2 / K);
+                double dx = ux[q] - cx, dy = uy[q] - cy;
+                float cs, sn;
+                sincos_polyf(a, &sn, &cs);
+                px += ((double)cs * dx - (double)sn * dy) + (cx - floor(cx));
+                py += ((double)sn * dx + (double)cs * dy) + (cy - floor(cy));
                 px -= floor(px);
                 py -= floor(py);
                 x = (float)px, y = (float)py;
@@ -373,7 +376,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             y = y > top ? top : y;
             x = x * s->W - 0.5f, y = y * s->H - 0.5f;  /* in [-0.5, W - 0.5): wrap by one */
             float x0 = floorf(x), y0 = floorf(y), ax = x - x0, ay = y - y0;
-            int32_t xa = (int32_t)x0, ya = (int32_t)y0, xb = xa + 1, yb = ya + 1;
+            int32_t xa = (int32_t)x0, ya = (int32_t)y0;
             xa += xa < 0 ? s->W : 0, ya += ya < 0 ? s->H : 0;
             float wv = (float)wd[v][q];
             p->w[v][q] = wv;
@@ -385,9 +388,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
                 p->tw[4 * v + 3][q] = wv * (ax * ay);
                 continue;
             }
-            xb -= xb >= s->W ? s->W : 0, yb -= yb >= s->H ? s->H : 0;
-            p->off[4 * v][q] = (ya * s->W + xa) * C, p->off[4 * v + 1][q] = (ya * s->W + xb) * C;
-            p->off[4 * v + 2][q] = (yb * s->W + xa) * C, p->off[4 * v + 3][q] = (yb * s->W + xb) * C;
+            p->off[v][q] = ya * (s->W + 1) + xa;
             p->tw[4 * v][q] = (1 - ax) * (1 - ay), p->tw[4 * v + 1][q] = ax * (1 - ay);
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
         }
@@ -410,20 +411,17 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             }
         return;
     }
-    /* a texel straddles two cache lines unless its size divides theirs (planes are 64-byte
-     * aligned); the lines' first and last floats then both need a prefetch */
-    int straddle = 64 % (4 * C) != 0;
-    for (int k = 0; k < 12; k++)  /* locality 1 (prefetcht2): 12 taps two tiles ahead; HPB (then
-                                     on this path) took 1.5-2 % less time than with prefetcht1,
-                                     6 % less than with prefetcht0 (btf_synthesis.py --methods
-                                     hpb, AMD EPYC AVX-512) */
-        for (int q = 0; q < T; q++)
-            __builtin_prefetch(s->gauss + p->off[k][q], 0, 1);
-    if (straddle)  /* for each pair (x0, x1) of a row only x1's last float: x0 ends one float
-                      before x1 starts, so in x1's first line or x0's (not at the wrap) */
-        for (int k = 1; k < 12; k += 2)
-            for (int q = 0; q < T; q++)
-                __builtin_prefetch(s->gauss + p->off[k][q] + C - 1, 0, 1);
+    /* hex-tiling: the features' rows as HPB's (the luminance plane, a quarter of a megabyte,
+       stays in L2: prefetching it too changed nothing measurable) */
+    const long pitch = (long)C * (s->W + 1);
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {
+            const float *a = s->gauss + (long)p->off[v][q] * C;
+            __builtin_prefetch(a, 0, 1);
+            __builtin_prefetch(a + 2 * C - 1, 0, 1);
+            __builtin_prefetch(a + pitch, 0, 1);
+            __builtin_prefetch(a + pitch + 2 * C - 1, 0, 1);
+        }
 }
 
 static IEEE __attribute__((noinline)) void
@@ -440,12 +438,82 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
 
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
 static inline __attribute__((always_inline)) IEEE __m256
-tap8(__m256 acc, const uint16_t *x, float w)  /* acc + w x[0:8], x float16 */
+tap8(__m256 acc, const void *x, int f16, float w)  /* acc + w x[0:8], x float16 or float */
 {
-    return _mm256_fmadd_ps(_mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)x)),
-                           _mm256_set1_ps(w), acc);
+    __m256 v = f16 ? _mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)x))
+                   : _mm256_loadu_ps((const float *)x);
+    return _mm256_fmadd_ps(v, _mm256_set1_ps(w), acc);
 }
 #endif
+
+/* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at texel off[v] * scale
+ * (elements) of `plane` (float16 when f16), weighted by tw (the blend weights folded into the
+ * bilinear ones), for a tile. Shared by HPB (float16, scale 1) and hex-tiling (float, scale
+ * C); C, f16 and scale are constants after inlining. */
+static inline __attribute__((always_inline)) IEEE void
+blend_taps(int C, const void *plane, int f16, long scale, long pitch,
+           const int32_t (*restrict off)[T], const float (*restrict tw)[T], float *restrict X)
+{
+    const size_t es = f16 ? 2 : 4;
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+    if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
+                      into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
+        for (int q0 = 0; q0 < T; q0 += 8) {
+            __m256 r[8];
+            for (int k = 0; k < 8; k++) {
+                int q = q0 + k;
+                __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
+                for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
+                    const char *a = (const char *)plane + es * (off[v][q] * scale),
+                               *d = a + es * pitch;
+                    acc0 = tap8(acc0, a, f16, tw[4 * v][q]);
+                    acc1 = tap8(acc1, d, f16, tw[4 * v + 2][q]);
+                    acc0 = tap8(acc0, a + 8 * es, f16, tw[4 * v + 1][q]);
+                    acc1 = tap8(acc1, d + 8 * es, f16, tw[4 * v + 3][q]);
+                }
+                r[k] = _mm256_add_ps(acc0, acc1);
+            }
+            __m256 t[8], u[8];
+            for (int k = 0; k < 8; k += 2)
+                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]),
+                t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
+            for (int k = 0; k < 8; k += 4)
+                for (int j = 0; j < 2; j++) {
+                    u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
+                    u[k + j + 2] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0xEE);
+                }
+            /* u[0..3]: queries 0-3 x channels (0, 4) (2, 6) (1, 5) (3, 7) in 128-bit halves;
+               u[4..7] the same for queries 4-7 */
+            static const int ch[4] = {0, 2, 1, 3};
+            for (int k = 0; k < 4; k++) {
+                __m256 lo = _mm256_permute2f128_ps(u[k], u[k + 4], 0x20),
+                       hi = _mm256_permute2f128_ps(u[k], u[k + 4], 0x31);
+                _mm256_storeu_ps(X + ch[k] * T + q0, lo);
+                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, hi);
+            }
+        }
+        return;
+    }
+#endif
+    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
+        float acc[C];
+        for (int c = 0; c < C; c++)
+            acc[c] = 0;
+        for (int v = 0; v < 3; v++) {
+            long o = off[v][q] * scale;
+            float t0 = tw[4 * v][q], t1 = tw[4 * v + 1][q], t2 = tw[4 * v + 2][q],
+                  t3 = tw[4 * v + 3][q];
+#define AT(k) (f16 ? h2f(((const uint16_t *)plane)[k]) : ((const float *)plane)[k])
+            for (int c = 0; c < C; c++)  /* two short chains: more in flight */
+                acc[c] += (t0 * AT(o + c) + t1 * AT(o + C + c)) +
+                          (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + C + c));
+#undef AT
+        }
+        for (int c = 0; c < C; c++)
+            X[c * T + q] = acc[c];
+    }
+}
+
 #if defined(__AVX512F__)
 /* Entry i of a 128-entry table held in 8 registers, per lane: a two-register permute on i's 5
  * low bits, then blends on bits 5 and 6. (always_inline and IEEE like hpb_fill_c: GCC does not
@@ -470,60 +538,7 @@ lut128(const __m512 t[8], __m512i i)
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    const long pitch = (long)C * (s->W + 1);
-#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
-    if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
-                      into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
-        for (int q0 = 0; q0 < T; q0 += 8) {
-            __m256 r[8];
-            for (int k = 0; k < 8; k++) {
-                int q = q0 + k;
-                __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
-                for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
-                    const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
-                    acc0 = tap8(acc0, a, p->tw[4 * v][q]);
-                    acc1 = tap8(acc1, d, p->tw[4 * v + 2][q]);
-                    acc0 = tap8(acc0, a + 8, p->tw[4 * v + 1][q]);
-                    acc1 = tap8(acc1, d + 8, p->tw[4 * v + 3][q]);
-                }
-                r[k] = _mm256_add_ps(acc0, acc1);
-            }
-            __m256 t[8], u[8];
-            for (int k = 0; k < 8; k += 2)
-                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]),
-                t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
-            for (int k = 0; k < 8; k += 4)
-                for (int j = 0; j < 2; j++) {
-                    u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
-                    u[k + j + 2] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0xEE);
-                }
-            /* u[0..3]: queries 0-3 x channels (0, 4) (2, 6) (1, 5) (3, 7) in 128-bit halves;
-               u[4..7] the same for queries 4-7 */
-            static const int ch[4] = {0, 2, 1, 3};
-            for (int k = 0; k < 4; k++) {
-                __m256 lo = _mm256_permute2f128_ps(u[k], u[k + 4], 0x20),
-                       hi = _mm256_permute2f128_ps(u[k], u[k + 4], 0x31);
-                _mm256_storeu_ps(X + ch[k] * T + q0, lo);
-                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, hi);
-            }
-        }
-    } else
-#endif
-    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
-        float acc[C];
-        for (int c = 0; c < C; c++)
-            acc[c] = 0;
-        for (int v = 0; v < 3; v++) {
-            const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
-            float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
-                  t3 = p->tw[4 * v + 3][q];
-            for (int c = 0; c < C; c++)  /* two short chains: more in flight */
-                acc[c] += (t0 * h2f(a[c]) + t1 * h2f(a[C + c])) +
-                          (t2 * h2f(d[c]) + t3 * h2f(d[C + c]));
-        }
-        for (int c = 0; c < C; c++)
-            X[c * T + q] = acc[c];
-    }
+    blend_taps(C, s->gauss16, 1, 1, (long)C * (s->W + 1), p->off, p->tw, X);
     const int L = s->L;
 #if defined(__AVX512F__)
     if (s->planar) {  /* the 128-entry LUT of a channel in 16 registers (8 of values, 8 of
@@ -576,24 +591,32 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
 
 /* hex-tiling's blend weights of a tile from the bilinear luminance and the grid weights:
  * W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then hextile.gain3 unless
- * gain = 0.5. Without IEEE: plain loops over the tile's lanes that GCC vectorises, expf and
- * logf included (libmvec), the same code for every lane. */
-static __attribute__((noinline)) void
+ * gain = 0.5. Plain loops over the tile's lanes that GCC vectorises, expf and logf included
+ * (libmvec). IEEE: with reassociation allowed, GCC gave the tile's first 16 lanes other code
+ * than the rest (w^7 rounded differently), so a value depended on its place in the batch
+ * (tests/test_btf_query.py, the pure-function test). */
+static IEEE __attribute__((noinline)) void
 hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restrict w)[T],
             float (*restrict wt)[T])
 {
     const float e = s->exponent, k = (float)(log(1.0 - s->gain) / log(0.5)), ct = s->contrast;
     const int ie = e == floorf(e) && e >= 0 && e <= 16 ? (int)e : -1;  /* hextile._power */
+    if (ie >= 0) {  /* w^e as hextile._power: repeated products in the same order, the loop
+                       over the power outside the lanes' loop so it vectorises */
+        for (int v = 0; v < 3; v++)
+            for (int q = 0; q < T; q++)
+                wt[v][q] = 1;
+        for (int i = 0; i < ie; i++)
+            for (int v = 0; v < 3; v++)
+                for (int q = 0; q < T; q++)
+                    wt[v][q] *= w[v][q];
+    } else
+        for (int v = 0; v < 3; v++)
+            for (int q = 0; q < T; q++)
+                wt[v][q] = powf(w[v][q], e);
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {
-            float pw = 1;
-            if (ie >= 0)
-                for (int i = 0; i < ie; i++)
-                    pw *= w[v][q];
-            else
-                pw = powf(w[v][q], e);
-            wt[v][q] = (1 + ct * (lum[v][q] - 1)) * pw;
-        }
+        for (int q = 0; q < T; q++)
+            wt[v][q] *= 1 + ct * (lum[v][q] - 1);
     for (int q = 0; q < T; q++) {
         float sum = wt[0][q] + wt[1][q] + wt[2][q];
         sum = sum > 1e-30f ? sum : 1e-30f;
@@ -616,29 +639,24 @@ hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restric
 }
 
 /* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
- * fetch of the C + 1 channels (the last the luminance) in one pass over the texels, the
- * weights (hex_weights), then sum W_i c_i. */
+ * luminance, the weights W_v (hex_weights), then sum W_v c_v with W_v folded into the bilinear
+ * weights, as HPB's blend (blend_taps). */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    const float *g = s->gauss;
-    float lum[3][T], wt[3][T], bil[3][T][C + 1];
-    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
-        for (int v = 0; v < 3; v++) {
-            const float *a = g + p->off[4 * v][q], *b = g + p->off[4 * v + 1][q],
-                        *d = g + p->off[4 * v + 2][q], *e = g + p->off[4 * v + 3][q];
-            float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q], t2 = p->tw[4 * v + 2][q],
-                  t3 = p->tw[4 * v + 3][q];
-            for (int c = 0; c <= C; c++)
-                bil[v][q][c] = (t0 * a[c] + t1 * b[c]) + (t2 * d[c] + t3 * e[c]);
-            lum[v][q] = bil[v][q][C];
+    const long W1 = s->W + 1;
+    float lum[3][T], wt[3][T], tw[12][T];
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {  /* the luminance plane is in L2 (grid_prepare's prefetch) */
+            const float *l = s->lum + p->off[v][q];
+            lum[v][q] = fmaf(p->tw[4 * v + 1][q], l[1], p->tw[4 * v][q] * l[0]) +
+                        fmaf(p->tw[4 * v + 3][q], l[W1 + 1], p->tw[4 * v + 2][q] * l[W1]);
         }
-    }
     hex_weights(s, lum, p->w, wt);
-    for (int q = 0; q < T; q++)
-        for (int c = 0; c < C; c++)
-            X[c * T + q] = (bil[0][q][c] * wt[0][q] + bil[1][q][c] * wt[1][q]) +
-                           bil[2][q][c] * wt[2][q];
+    for (int k = 0; k < 12; k++)
+        for (int q = 0; q < T; q++)
+            tw[k][q] = wt[k / 4][q] * p->tw[k][q];
+    blend_taps(C, s->gauss, 0, C, (long)C * W1, p->off, tw, X);
 }
 
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
@@ -689,8 +707,8 @@ struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a
  * tile of 64 queries costs nothing measurable. */
 static __attribute__((noinline)) void prepare(const struct source *src, long t0, long N, struct prepared *p)
 {
-    if (src->hpb && src->hpb->hex)  /* texels of C + 1 floats, the luminance last */
-        hex_prepare(src->hpb, src->Cu + 1, t0, N, &p->hpb);
+    if (src->hpb && src->hpb->hex)
+        hex_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (src->hpb)
         hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (!src->feat)
@@ -780,7 +798,7 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, NULL, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
     s.planar = lut_planar(&s, Cu, planar);
@@ -788,14 +806,16 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
 
-/* The query with hex-tiling's f_U at float64 u (plane: (H, W, Cu + 1), luminance last). */
+/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) and lum (H + 1, W + 1):
+ * neumat.btf.query.hex_planes). */
 void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
-                          const float *plane, int H, int W, int Cu, uint32_t seed,
+                          const float *plane, const float *lum, int H, int W, int Cu, uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, plane, H, W, NULL, 0, seed, 1, rotation, contrast, exponent, gain};
+    struct hpb s = {u, plane, lum, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
+                    gain};
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
@@ -805,7 +825,7 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
                   const float *lut, int Lut, uint32_t seed, const float *mean,
                   const float *basis, float *out)
 {
-    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, NULL, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);
