@@ -311,7 +311,8 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     const double S3 = 1.7320508075688772, K = 2 * 1.7320508075688772;
     const float top = 1.0f - 5.9604644775390625e-08f;  /* 1 - 2^-24: grid.wrap_fetch_coords */
     const uint32_t hs = mix(s->seed);
-    double ux[T], uy[T], wd[3][T], bx[T], by[T];
+    double ux[T], uy[T], wd[3][T];
+    float ef0[T], ef1[T];
     uint32_t fxi[T], fyi[T];
     uint32_t vx[3][T], vy[3][T];
     int upq[T];
@@ -329,7 +330,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         double b0 = floor(s0), b1 = floor(s1);
         double f0 = s0 - b0, f1 = s1 - b1, z = 1 - f0 - f1;
         int up = z > 0;
-        bx[q] = b0, by[q] = b1, upq[q] = up;
+        ef0[q] = (float)f0, ef1[q] = (float)f1, upq[q] = up;
         uint32_t i0 = low32(b0), i1 = low32(b1);
         vx[0][q] = i0 + !up, vy[0][q] = i1 + !up, wd[0][q] = up ? z : -z;
         vx[1][q] = i0 + !up, vy[1][q] = i1 + up, wd[1][q] = up ? f1 : 1 - f1;
@@ -346,6 +347,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             h = mix(h ^ 0x9E3779B1u);
             uint32_t hx = h;
             h = mix(h ^ 0x9E3779B2u);
+            const uint32_t h0 = h;
             float x, y;
             if (!hex) {  /* grid.wrap_fetch_coords: one rounding to float of the coordinate,
                             exact to 2^-32 (vcvtudq2ps; on AVX2 GCC's two exact halves). In
@@ -355,22 +357,23 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
                             of 15, AMD EPYC, 2026-11-25) */
                 x = (float)(hx + fxi[q]) * 0x1p-32f;
                 y = (float)(h + fyi[q]) * 0x1p-32f;
-            } else {  /* hextile.HexTile: the patch rotated about its vertex */
-                double px = hx * (1.0 / 4294967296.0), py = h * (1.0 / 4294967296.0);
+            } else {  /* hextile.HexTile: the patch rotated about its vertex c. With d = u - c,
+                         frac(c) = frac(frac(u) - d), so the fetch coordinate frac(offset + R d +
+                         frac(c)) is frac(offset + frac(u) + (R d - d)): the hash and frac(u) in
+                         fixed point as HPB's, and only R d - d (|.| < 0.6) in float. d comes
+                         from the skewed fractions (f0, f1) less the vertex's corner, unskewed
+                         (grid.vertex_uv), so no float64 is needed past the grid */
                 h = mix(h ^ 0x9E3779B3u);
                 float a = (6.2831855f * ((float)(h >> 8) * 0x1p-24f) - 3.1415927f) * s->rotation;
                 int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
                     o1 = v == 0 ? !up : v == 1 ? up : !up;
-                double gx = bx[q] + o0, gy = by[q] + o1;  /* grid.vertex_uv, float64 */
-                double cx = (gx + gy * 0.5) * (1 / K), cy = gy * (S3 / 2 / K);
-                double dx = ux[q] - cx, dy = uy[q] - cy;
+                float e0 = ef0[q] - o0, e1 = ef1[q] - o1;
+                float dx = (e0 + 0.5f * e1) * (float)(1 / K), dy = e1 * (float)(S3 / 2 / K);
                 float cs, sn;
                 sincos_polyf(a, &sn, &cs);
-                px += ((double)cs * dx - (double)sn * dy) + (cx - floor(cx));
-                py += ((double)sn * dx + (double)cs * dy) + (cy - floor(cy));
-                px -= floor(px);
-                py -= floor(py);
-                x = (float)px, y = (float)py;
+                float zx = (cs - 1) * dx - sn * dy, zy = sn * dx + (cs - 1) * dy;
+                x = (float)(hx + fxi[q] + 2u * (uint32_t)(int32_t)(zx * 0x1p31f)) * 0x1p-32f;
+                y = (float)(h0 + fyi[q] + 2u * (uint32_t)(int32_t)(zy * 0x1p31f)) * 0x1p-32f;
             }
             x = x > top ? top : x;
             y = y > top ? top : y;
