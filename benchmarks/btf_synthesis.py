@@ -30,8 +30,9 @@ query's best over 5 two-thread rounds ranged 111-137 ms between runs and HPB's o
 with the fetch coordinate in fixed point (query_kernel.c grid_prepare; idle, same day) +9.1 %
 (AVX2 build +18.7 %) against +11.3 % (+20.6 %) for the build before, run in turn. Hex-tiling,
 one thread, best of 9 (`--methods hpb hextile --no-torch --repeat 9`, same host, idle,
-2026-11-25): its blend folded into the bilinear weights as HPB's, +30.9 % (AVX2 build +39.1 %)
-against +41.2 % (+53.6 %) before.
+2026-11-25): +41.2 % (AVX2 build +53.6 %); with its blend folded into the bilinear weights as
+HPB's (f5f8541) +30.9 % (+39.1 %); with its rotated fetch coordinate in fixed point too +26.9 %
+(+34.7 %).
 """
 
 from __future__ import annotations
