@@ -28,7 +28,9 @@ is the steady figure. On 2026-11-25 (AMD EPYC, 2 cores, load ~1 from other tenan
 query's best over 5 two-thread rounds ranged 111-137 ms between runs and HPB's overhead +4.9 to
 +16.9 %; on one thread, best of 15, the plain query took 215-224 ms and HPB +9.9 to +11.1 %;
 with the fetch coordinate in fixed point (query_kernel.c grid_prepare; idle, same day) +9.1 %
-(AVX2 build +18.7 %) against +11.3 % (+20.6 %) for the build before, run in turn. Hex-tiling,
+(AVX2 build +18.7 %) against +11.3 % (+20.6 %) for the build before, run in turn; AVX2 build
+with the LUT read by scalar loads (lut_fetch, best of 9, in turn) +15.4 and +16.4 % against
++17.7 and +18.2 %. Hex-tiling,
 one thread, best of 9 (`--methods hpb hextile --no-torch --repeat 9`, same host, idle,
 2026-11-25): +41.2 % (AVX2 build +53.6 %); with its blend folded into the bilinear weights as
 HPB's (f5f8541) +30.9 % (+39.1 %); with its rotated fetch coordinate in fixed point too +26.9 %
