@@ -34,7 +34,7 @@ with the LUT read by scalar loads (lut_fetch, best of 9, in turn) +15.4 and +16.
 one thread, best of 9 (`--methods hpb hextile --no-torch --repeat 9`, same host, idle,
 2026-11-25): +41.2 % (AVX2 build +53.6 %); with its blend folded into the bilinear weights as
 HPB's (f5f8541) +30.9 % (+39.1 %); with its rotated fetch coordinate in fixed point too +26.9 %
-(+34.7 %).
+(+34.7 %); with Gain3's power by polynomials (query_kernel.c powk) +24.9 % (+33.8 %).
 """
 
 from __future__ import annotations
