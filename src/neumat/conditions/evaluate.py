@@ -105,16 +105,30 @@ def negative_share(samples: np.ndarray, angles: int, seed: int, activation: str)
     return (df["negative_share"] > 0).to_numpy()
 
 
+def _srgb_pair(samples, targets, resolution: int, activation: str):
+    a = sphere.to_srgb(sphere.render_fields(np.nan_to_num(samples), resolution, activation))
+    return a, sphere.to_srgb(torch.as_tensor(targets))
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
+    mse = ((a - b) ** 2).flatten(1).mean(1).double().clamp_min(distances.PSNR_FLOOR_MSE)
+    return (-10 * torch.log10(mse)).numpy()
+
+
+def render_psnr(samples: np.ndarray, targets, resolution: int, activation: str) -> np.ndarray:
+    """PSNR (sRGB, data range 1) of each sample's metric-view render against its target image
+    (image_scores without SSIM)."""
+    return _psnr(*_srgb_pair(samples, targets, resolution, activation))
+
+
 def image_scores(samples: np.ndarray, targets: torch.Tensor, resolution: int,
                  activation: str) -> pd.DataFrame:
     """PSNR / SSIM (sRGB, data range 1, as Table 2) of each sample's metric-view render against
     its conditioning image (targets (B, H, W, 3) linear HDR in the same view)."""
-    a = sphere.to_srgb(sphere.render_fields(np.nan_to_num(samples), resolution, activation))
-    b = sphere.to_srgb(targets)
-    mse = ((a - b) ** 2).flatten(1).mean(1).double().clamp_min(distances.PSNR_FLOOR_MSE)
+    a, b = _srgb_pair(samples, targets, resolution, activation)
     ssim = torch.stack([distances.pairwise_ssim(a[i:i + 1], b[i:i + 1])[0, 0] for i in range(len(a))]) \
         if len(a) else torch.zeros(0)
-    return pd.DataFrame({"psnr": (-10 * torch.log10(mse)).numpy(), "ssim": ssim.numpy()})
+    return pd.DataFrame({"psnr": _psnr(a, b), "ssim": ssim.numpy()})
 
 
 # ----------------------------------------------------------------------------- sample sets

@@ -252,6 +252,23 @@ def retrieve(embeddings: np.ndarray, library: np.ndarray, rows: np.ndarray) -> n
     return np.asarray(rows)[((e[:, None] - lib[None]) ** 2).sum(-1).argmin(1)]
 
 
+def best_of(score: np.ndarray, draws: int, k: int) -> np.ndarray:
+    """Indices of the k highest scores in each consecutive group of `draws` (one image's
+    candidates), in the groups' order, best first; ties keep the draw order."""
+    score = np.asarray(score, np.float64)
+    if draws < k or len(score) % draws:
+        raise ValueError(f"{len(score)} scores are not groups of {draws} draws (>= k = {k})")
+    groups = score.reshape(-1, draws)
+    top = np.argsort(-groups, axis=1, kind="stable")[:, :k]
+    return (top + draws * np.arange(len(groups))[:, None]).reshape(-1)
+
+
+def selection_score(psnr: np.ndarray, clamps: np.ndarray, clamp_penalty: float) -> np.ndarray:
+    """A candidate's score for best_of: its render PSNR against the image (dB), less
+    `clamp_penalty` dB where its field clamps negative values (conditions.image.clamp_penalty)."""
+    return np.asarray(psnr, np.float64) - clamp_penalty * np.asarray(clamps, bool)
+
+
 def load_image(path, resolution: int) -> np.ndarray:
     """A user's reference image -> (resolution, resolution, 3) linear HDR.
 
