@@ -229,10 +229,10 @@ rule sample_image:
         **COND_SAMPLING,
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
-        **neutral_params("conditions.image", ["render_step", "refiner", "candidates",
-                                              "clamp_penalty"]),
-        # the bins best of n checks for clamping: a param only where it is used
-        **({"angles": DIFF["plausibility_angles"]} if COND["image"]["candidates"] > 1 else {}),
+        **neutral_params("conditions.image", ["render_step", "refiner", "candidates"]),
+        # best of n's penalty and the bins it checks for clamping: params only where used
+        **({"clamp_penalty": COND["image"]["clamp_penalty"], "angles": DIFF["plausibility_angles"]}
+           if COND["image"]["candidates"] > 1 else {}),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
         mode="image",
