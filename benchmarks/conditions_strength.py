@@ -18,6 +18,16 @@ and to the start, and the share of samples clamping negative values.
 render (`conditions.image.render_step`, RenderConstraint); every strength with every step.
 --model: another model file trained on the same NeuMERL rows (e.g. a `prediction: v` one, which
 keeps a start it is given); one without the mode's condition refines the start unconditionally.
+--candidates / --clamp-penalties (image mode): best of n (`conditions.image.candidates`,
+`clamp_penalty`): each image's samples are the best of n times as many draws by render PSNR
+against it, less the penalty (dB) for a clamping draw (clamps checked on their own seed stream,
+not the one the clamping column reports); n = 1 is the plain sampling of the same run. Adds the
+samples' spread: the mean pairwise PSNR between the metric-view renders of an image's samples
+(higher: more alike) and their mean pairwise weight-space L2. The workflow's image sampling of
+config/config.yaml:
+
+    python benchmarks/conditions_strength.py --results results/<run> --model results/<run>/diffusion/refiner/model.pt \
+        --strengths 0.05 --render-steps 0.5 --candidates 1 4 8 --clamp-penalties 0 3 10
 """
 
 import argparse
@@ -78,6 +88,10 @@ def main():
     ap.add_argument("--bins", type=int, default=20000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--model", help="model file (default: <results>/diffusion/multimodal/model.pt)")
+    ap.add_argument("--candidates", type=int, nargs="+", default=[1],
+                    help="image mode: best of n draws (conditions.image.candidates)")
+    ap.add_argument("--clamp-penalties", type=float, nargs="+", default=[10.0],
+                    help="dB off a clamping draw's score (conditions.image.clamp_penalty)")
     a = ap.parse_args()
     R, k, mode = a.results, a.per_image, a.mode
     print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}; mode {mode}",
@@ -102,29 +116,63 @@ def main():
         print(f"{a.model}: no {mode} condition; the start is refined unconditionally", flush=True)
         c = {}
     f_start = np.repeat(ts.fv(ret), k, 0)
-    if mode != "image" and a.render_steps != [0.0]:
-        raise SystemExit("--render-steps needs --mode image (render guidance follows an image)")
-    tgt = None if cond is None else cond.repeat_interleave(k, 0)
-    for st, rs in [(st, rs) for st in a.strengths for rs in a.render_steps]:
+    if mode != "image" and (a.render_steps != [0.0] or a.candidates != [1]):
+        raise SystemExit("--render-steps and --candidates need --mode image (they follow an image)")
+    for st, rs, n in [(st, rs, n) for st in a.strengths for rs in a.render_steps
+                      for n in a.candidates]:
+        kd = k * n  # draws per condition
+        cd = {m: (list(np.repeat(v, n)) if mode == "type" else np.repeat(v, n, 0))
+              for m, v in c.items()}
+        tgt = None if cond is None else cond.repeat_interleave(kd, 0)
         t0 = time.perf_counter()
-        w = sample(sampler, len(emb) * k, a.seed, c, {mode: a.guidance} if c else None, a.steps,
-                   0.0, 256, None,
-                   negative_step=a.negative_step, start=weights[np.repeat(got, k)], strength=st,
-                   render_targets=tgt if rs else None, render_step=rs)
+        draws = sample(sampler, len(emb) * kd, a.seed, cd, {mode: a.guidance} if c else None,
+                       a.steps, 0.0, 256, None, negative_step=a.negative_step,
+                       start=weights[np.repeat(got, kd)], strength=st,
+                       render_targets=tgt if rs else None, render_step=rs)
         dt = time.perf_counter() - t0
-        near = ts.nearest(w)
-        hits = (near.nearest_type.to_numpy() == asked)[scorable].mean()
-        line = f"strength {st:g}{f', render step {rs:g}' if rs else ''}: type hits {hits:.3f} ({scorable.sum()} samples)"
-        if cond is not None:
-            sc = ev.image_scores(w, cond.repeat_interleave(k, 0), a.resolution, "relu")
-            per = sc.groupby(np.repeat(np.arange(len(emb)), k)).mean()
-            line += (f", PSNR {per.psnr.mean():.2f} dB, SSIM {per.ssim.mean():.4f}; beats "
-                     f"retrieval on {(per.psnr.to_numpy() > rsc.psnr.to_numpy()).sum()}/{len(emb)}")
-        to_start = np.abs(np.asarray(ts.fv(w)) - np.asarray(f_start)).mean(1)
-        neg = ev.negative_share(w, a.bins, seed_for(a.seed, "negative_share"), "relu").mean()
-        print(f"{line}; median BRDF-L1 to nearest training {near.brdf_l1.median():.3f}, "
-              f"to its start {np.median(to_start):.3f}; clamping {neg:.3f}; sampling {dt:.0f} s",
-              flush=True)
+        if n == 1:
+            picks = [(None, draws)]
+        else:
+            psnr = ev.render_psnr(draws, tgt, a.resolution, "relu")
+            clamps = ev.negative_share(draws, a.bins, seed_for(a.seed, "candidates_clamp"), "relu")
+            picks = [(pen, draws[image.best_of(image.selection_score(psnr, clamps, pen), kd, k)])
+                     for pen in a.clamp_penalties]
+        for pen, w in picks:
+            tag = f", best of {n}, clamp penalty {pen:g} dB" if n > 1 else ""
+            report(a, ts, w, k, emb, cond, rsc if cond is not None else None, asked, scorable,
+                   f_start, f"strength {st:g}{f', render step {rs:g}' if rs else ''}{tag}", dt)
+
+
+def spread(w, k, resolution):
+    """Mean over conditions of the mean pairwise PSNR between the metric-view renders (sRGB) of
+    a condition's k samples, and of their mean pairwise weight-space L2."""
+    from neumat.render import sphere
+    r = sphere.to_srgb(sphere.render_fields(w, resolution, "relu")).reshape(-1, k, resolution ** 2 * 3)
+    iu = torch.triu_indices(k, k, 1)
+    mse = torch.stack([(torch.cdist(x.double(), x.double()) ** 2)[iu[0], iu[1]] for x in r]) / r.shape[-1]
+    wt = torch.as_tensor(w).double().reshape(-1, k, w.shape[1])
+    l2 = torch.stack([torch.pdist(x).mean() for x in wt])
+    return (-10 * torch.log10(mse.clamp_min(distances.PSNR_FLOOR_MSE))).mean().item(), l2.mean().item()
+
+
+def report(a, ts, w, k, emb, cond, rsc, asked, scorable, f_start, head, dt):
+    """One line of measures for the samples w (len(emb) k, 675)."""
+    near = ts.nearest(w)
+    hits = (near.nearest_type.to_numpy() == asked)[scorable].mean()
+    line = f"{head}: type hits {hits:.3f} ({scorable.sum()} samples)"
+    if cond is not None:
+        sc = ev.image_scores(w, cond.repeat_interleave(k, 0), a.resolution, "relu")
+        per = sc.groupby(np.repeat(np.arange(len(emb)), k)).mean()
+        sp, l2 = spread(w, k, a.resolution)
+        line += (f", PSNR {per.psnr.mean():.2f} dB, SSIM {per.ssim.mean():.4f}; beats "
+                 f"retrieval on {(per.psnr.to_numpy() > rsc.psnr.to_numpy()).sum()}/{len(emb)} "
+                 f"(SSIM {(per.ssim.to_numpy() >= rsc.ssim.to_numpy()).sum()}); spread: "
+                 f"pairwise render PSNR {sp:.2f} dB, weight L2 {l2:.3f}")
+    to_start = np.abs(np.asarray(ts.fv(w)) - np.asarray(f_start)).mean(1)
+    neg = ev.negative_share(w, a.bins, seed_for(a.seed, "negative_share"), "relu").mean()
+    print(f"{line}; median BRDF-L1 to nearest training {near.brdf_l1.median():.3f}, "
+          f"to its start {np.median(to_start):.3f}; clamping {neg:.3f}; sampling {dt:.0f} s",
+          flush=True)
 
 
 if __name__ == "__main__":
