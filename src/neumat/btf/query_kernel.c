@@ -414,8 +414,8 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             }
         return;
     }
-    /* hex-tiling: the features' rows as HPB's (the luminance plane, a quarter of a megabyte,
-       stays in L2: prefetching it too changed nothing measurable) */
+    /* hex-tiling: the features' rows as HPB's (prefetching the luminance plane's too, 0.64 MB
+       at 400 x 400, changed nothing measurable at any locality) */
     const long pitch = (long)C * (s->W + 1);
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {
@@ -537,8 +537,9 @@ lut128(const __m512 t[8], __m512i i)
 #if !defined(__AVX512F__)
 /* The (value, slope) pairs of a tile's LUT entries, one 64-bit scalar load each: below AVX-512
  * GCC gathered them (vpgatherdq), and the loads are faster. HPB's overhead over the plain
- * query, AVX2 build (one thread, best of 7, AMD EPYC, 2026-11-25): 245.0-245.8 -> 240.4-240.5
- * ms a frame against 210 ms plain. noinline: the optimize attribute needs its own function. */
+ * query, AVX2 build: +17.7, +18.2 -> +15.4, +16.4 % (btf_synthesis.py --methods hpb --march
+ * x86-64-v3, one thread, best of 9, in turn; AMD EPYC, 2026-11-25). noinline: the optimize
+ * attribute needs its own function. */
 static __attribute__((noinline, optimize("no-tree-vectorize"))) void
 lut_fetch(const pair_t *restrict row, const int *restrict is, pair_t *restrict out)
 {
@@ -672,10 +673,10 @@ static inline __attribute__((always_inline)) IEEE float powk(float b, float k)
 
 /* hex-tiling's blend weights of a tile from the bilinear luminance and the grid weights:
  * W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then hextile.gain3 unless
- * gain = 0.5. Plain loops over the tile's lanes that GCC vectorises, expf and logf included
- * (libmvec). IEEE: with reassociation allowed, GCC gave the tile's first 16 lanes other code
- * than the rest (w^7 rounded differently), so a value depended on its place in the batch
- * (tests/test_btf_query.py, the pure-function test). */
+ * gain = 0.5. Plain loops over the tile's lanes that GCC vectorises (Gain3's power by powk,
+ * a non-integer exponent by libmvec's powf). IEEE: with reassociation allowed, GCC gave the
+ * tile's first 16 lanes other code than the rest, which rounded differently, so a value
+ * depended on its place in the batch (tests/test_btf_query.py, the pure-function test). */
 static IEEE __attribute__((noinline)) void
 hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restrict w)[T],
             float (*restrict wt)[T])
