@@ -133,8 +133,7 @@ def main():
         if n == 1:
             picks = [(None, draws)]
         else:
-            psnr = ev.render_psnr(draws, tgt, a.resolution, "relu")
-            clamps = ev.negative_share(draws, a.bins, seed_for(a.seed, "candidates_clamp"), "relu")
+            psnr, clamps = image.score_draws(draws, cond, a.bins, a.seed, "relu")
             picks = [(pen, draws[image.best_of(image.selection_score(psnr, clamps, pen), kd, k)])
                      for pen in a.clamp_penalties]
         for pen, w in picks:

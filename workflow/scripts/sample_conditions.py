@@ -22,7 +22,6 @@ import numpy as np
 import pandas as pd
 import torch
 
-from neumat.conditions import evaluate as ev
 from neumat.conditions import image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
@@ -170,8 +169,7 @@ with script_logging(snakemake) as log:
     everyone = np.arange(len(table))
     if n_cand > 1:  # best of n (image conditions: start is never NaN)
         w = draw(np.arange(len(conds) * kd), p.seed, start, strength)
-        psnr = ev.render_psnr(w, np.repeat(imgs, kd, 0), imgs.shape[1], p.activation)
-        clamps = ev.negative_share(w, p.angles, seed_for(p.seed, "candidates_clamp"), p.activation)
+        psnr, clamps = image.score_draws(w, imgs, p.angles, p.seed, p.activation)
         keep = image.best_of(image.selection_score(psnr, clamps, p.clamp_penalty), kd, k)
         w = w[keep]
         table = table.assign(candidate=keep % kd, render_psnr=psnr[keep].round(3),

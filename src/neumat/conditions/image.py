@@ -263,6 +263,21 @@ def best_of(score: np.ndarray, draws: int, k: int) -> np.ndarray:
     return (top + draws * np.arange(len(groups))[:, None]).reshape(-1)
 
 
+def score_draws(draws: np.ndarray, images, angles: int, seed: int, activation: str):
+    """(render PSNR, clamps) of each draw for best of n: draws (M kd, 675) in groups of kd per
+    conditioning image (images (M, R, R, 3), linear HDR in the metric view); the PSNR of each
+    draw's metric-view render against its image, and whether its field clamps negative values on
+    `angles` bins (seed stream "candidates_clamp" of `seed`, not the one conditions_eval
+    reports clamping with)."""
+    from neumat.conditions import evaluate as ev
+    from neumat.seeds import seed_for
+    images = np.asarray(images)
+    targets = np.repeat(images, len(draws) // len(images), 0)
+    psnr = ev.render_psnr(draws, targets, images.shape[1], activation)
+    clamps = ev.negative_share(draws, angles, seed_for(seed, "candidates_clamp"), activation)
+    return psnr, clamps
+
+
 def selection_score(psnr: np.ndarray, clamps: np.ndarray, clamp_penalty: float) -> np.ndarray:
     """A candidate's score for best_of: its render PSNR against the image (dB), less
     `clamp_penalty` dB where its field clamps negative values (conditions.image.clamp_penalty)."""
