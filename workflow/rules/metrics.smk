@@ -50,8 +50,8 @@ rule metrics_reference:
 rule metrics:
     input:
         reference=REFERENCE_WEIGHTS,
-        # the halves row splits the reference set itself: nothing to share
-        prepared=lambda wc: [] if wc.model == "reference_halves" else out("metrics/reference.pt"),
+        # the halves row (the sanity row) is read from it alone: sub-matrices and feature rows
+        prepared=out("metrics/reference.pt"),
         samples=lambda wc: model_weights(wc.model),
         weights=out("neumerl/weights.npy"),  # training materials, for the novelty rows
         manifest=out("neumerl/manifest.tsv"),

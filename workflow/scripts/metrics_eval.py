@@ -1,7 +1,7 @@
 """Table-2 metrics of one model's sample draws against the reference set -> one CSV (a row per
 draw x metric). `reference_halves` (sanity row): random halves of the reference set against
-each other, one split per seed. The reference set's renders, distances and Inception features
-come prepared from rule metrics_reference."""
+each other, one split per seed, read from the prepared reference alone. The reference set's
+renders, distances and Inception features come prepared from rule metrics_reference."""
 import numpy as np
 import pandas as pd
 
@@ -28,16 +28,16 @@ with script_logging(snakemake) as log:
     net, reason = inception.fid_network(p.inception_weights, device, log)
     kw = dict(resolution=p.resolution, bins=distances.brdf_sample(p.brdf_samples, p.seed),
               activation=p.activation, fid_model=net, fid_unavailable=reason, device=device)
+    prepared = evaluate.load_reference(snakemake.input.prepared)  # rule metrics_reference
     if model == "reference_halves":
         halves = [np.random.default_rng(s).permutation(len(ref)) for s in p.halves_seeds]
         h = len(ref) // 2
         log.info("sanity: %d random halves of %d references", len(halves), len(ref))
-        table = evaluate.evaluate_draws(None, [materials.rows(ref, o[h:2 * h]) for o in halves],
-                                        refs=[materials.rows(ref, o[:h]) for o in halves], **kw)
+        table = evaluate.evaluate_halves(prepared, halves, ref=ref, resolution=p.resolution,
+                                         bins=kw["bins"], fid_unavailable=reason)
     else:
         smp = materials.load(snakemake.input.samples)
         log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
-        prepared = evaluate.load_reference(snakemake.input.prepared)  # rule metrics_reference
         table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw,
                                         reference=prepared)
     # novelty: nearest NeuMERL training material at a subset of the BRDF-L1 bins (inside every

@@ -55,17 +55,23 @@ FID_DIMS = {2048: "Inception-v3", 64: "Inception-64"}  # rows of the FID block
 
 
 def fid_rows(fid_model, ref_images, smp_images, unavailable: str = "", device="cpu",
-             ref_features=None) -> pd.DataFrame:
+             ref_features=None, smp_features=None) -> pd.DataFrame:
     """FID on the standard 2048-d pool3 features and on the 64-d first max-pool features
-    (`pytorch_fid --dims 64`, what the released M3ashy code reports). `ref_features`: the
-    reference set's {dims: features}, to reuse across draws."""
+    (`pytorch_fid --dims 64`, what the released M3ashy code reports). `ref_features`,
+    `smp_features`: a set's {dims: features} when already computed (the reference's, shared
+    by the draws; both, for the reference halves)."""
     if fid_model is None:
         note = f"unavailable: {unavailable or 'no Inception-v3 weights'}"
         return pd.DataFrame([("FID", d, np.nan, note) for d in FID_DIMS.values()], columns=COLUMNS)
     from neumat.metrics import fid as fidlib
     fr = ref_features or fidlib.features(fid_model, ref_images, device=device)
-    fs = fidlib.features(fid_model, smp_images, device=device)
-    return pd.DataFrame([("FID", name, fidlib.fid_from_features(fr[d], fs[d]),
+    fs = smp_features or fidlib.features(fid_model, smp_images, device=device)
+    return _fid_table(fr, fs)
+
+
+def _fid_table(ref_features: dict, smp_features: dict) -> pd.DataFrame:
+    from neumat.metrics import fid as fidlib
+    return pd.DataFrame([("FID", name, fidlib.fid_from_features(ref_features[d], smp_features[d]),
                           f"Inception-v3 {d}-d features, sRGB sphere renders")
                          for d, name in FID_DIMS.items()], columns=COLUMNS)
 
@@ -160,6 +166,33 @@ def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_
                           ignore_index=True)
         out.append(table.assign(draw=i))
         log.info("draw %d: %d vs %d materials, %.1fs so far", i, len(sv), len(rv), time.time() - t0)
+    return pd.concat(out, ignore_index=True)[["draw", *COLUMNS]]
+
+
+def evaluate_halves(reference: dict, splits, *, ref, resolution: int, bins,
+                    fid_unavailable: str = "") -> pd.DataFrame:
+    """The sanity row from the prepared reference alone (`prepare_reference`): per split (a
+    permutation of the reference set), its second half scored as a draw against its first.
+    Every number it needs is a sub-matrix of the reference's self-distances or rows of its
+    Inception features, so nothing is rendered, embedded or compared again. FID is unavailable, with `fid_unavailable`, when the reference
+    was prepared without an Inception network. Long table with a `draw` column, as
+    `evaluate_draws`. `ref`, `resolution`, `bins`: the set and settings it must have been
+    prepared for."""
+    _check_reference(reference, ref, resolution, bins)
+    n = len(reference["values"])
+    h = n // 2
+    if h < 2:
+        raise ValueError(f"{n} reference materials cannot make two halves of at least 2")
+    feats = {d: f.numpy() for d, f in reference["fid"].items()} if "fid" in reference else None
+    out = []
+    for i, order in enumerate(splits):
+        a, b = (torch.as_tensor(np.asarray(order[s]), dtype=torch.long)
+                for s in (slice(0, h), slice(h, 2 * h)))
+        mats = {name: (d[a][:, a], d[b][:, b], d[a][:, b]) for name, d in reference["self"].items()}
+        fid = (_fid_table({k: f[a.numpy()] for k, f in feats.items()},
+                          {k: f[b.numpy()] for k, f in feats.items()})
+               if feats is not None else fid_rows(None, None, None, fid_unavailable))
+        out.append(pd.concat([fid, set_metric_rows(mats)], ignore_index=True).assign(draw=i))
     return pd.concat(out, ignore_index=True)[["draw", *COLUMNS]]
 
 
