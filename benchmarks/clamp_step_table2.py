@@ -7,7 +7,10 @@ reference, metrics/reference.pt). It is set beside the run's other generative co
 - each Table 2 row, mean +- std over the draws;
 - the rows where `ours` is best of the generative columns, or tied within one std (the larger
   of the two), as the README's table counts them;
-- the share of samples with a clamped negative bin (rule diffusion_plausibility's measure).
+- the share of samples with a clamped negative bin (rule diffusion_plausibility's measure);
+- the brightness of the first draw's metric-view renders (mean sRGB over the sphere, per
+  material: median and 10th / 90th percentiles), beside the reference set's and the other
+  columns': the step lifts the NBRDF's output, and dark renders go missing first.
 
 The baseline is the run's own `ours` (metrics/ours.csv) at the run's lambda. A line checks that
 lambda's resampled draws reproduce that file.
@@ -32,6 +35,15 @@ from neumat.metrics import distances, evaluate, inception, materials
 ROWS = ["FID", "MMD", "COV", "1-NNA"]
 HIGHER = {"COV"}  # better when higher; the other metrics (NegPSNR, NegSSIM included) when lower
 OTHERS = ["pca_a", "pca_n", "vae_a", "vae_n", "merl100"]  # the generative columns beside ours
+SAMPLES = {"pca_a": "samples/pca_a/tables.npz", "training_set": "samples/training/weights.npy"}
+# (the others: samples/<model>/weights.npy; workflow/rules/common.smk MODEL_WEIGHTS)
+
+
+def brightness(s, resolution: int, activation: str) -> str:
+    """Median [10th, 90th percentile] over materials of the mean sRGB of the metric render."""
+    lum = materials.renders(s, resolution, activation).mean(dim=(1, 2, 3)).numpy()
+    q10, q50, q90 = np.quantile(lum, [0.1, 0.5, 0.9])
+    return f"{q50:.3f} [{q10:.3f}, {q90:.3f}]"
 
 
 def stats(table: pd.DataFrame) -> pd.DataFrame:
@@ -80,6 +92,11 @@ def main():
     baseline = pd.read_csv(run / "metrics/ours.csv")
     print(f"machine: {machine.describe()}; {run}: {draws} draws x {n_ref} samples, "
           f"{len(ref)} references, run's lambda {s['negative_step']}")
+    print("render brightness, median [10th, 90th percentile] of the mean sRGB per material, first "
+          "draw: reference " + brightness(ref, kw["resolution"], activation) + "; " + "; ".join(
+              f"{m} " + brightness(materials.rows(materials.load(run / SAMPLES.get(
+                  m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
+              for m in ["training_set", *OTHERS]))
     cols, clamp = {}, {}
     for lam in a.steps:
         t0 = time.perf_counter()
@@ -94,7 +111,8 @@ def main():
         clamp[lam] = plausibility.summarize(pl)["share_any_negative"]
         cols[lam] = stats(table)
         print(f"lambda {lam:g}: sampled in {t1 - t0:.0f} s, scored in {time.perf_counter() - t1:.0f} s; "
-              f"samples clamping a negative bin {clamp[lam]:.3f}")
+              f"samples clamping a negative bin {clamp[lam]:.3f}; render brightness "
+              f"{brightness(w[:n_ref], kw['resolution'], activation)}")
         if lam == s["negative_step"]:
             got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
             rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
