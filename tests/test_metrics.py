@@ -310,6 +310,9 @@ def test_halves_from_the_prepared_reference_equal_scoring_them_afresh():
     pd.testing.assert_frame_equal(no_fid[no_fid["metric"] != "FID"], got[got["metric"] != "FID"])
     with pytest.raises(ValueError, match="the metrics ask for 9 at 300 and 24 px"):
         evaluate.evaluate_halves(prepared, splits, ref=ref, **{**kw, "resolution": 24})
+    with pytest.raises(ValueError, match="3 reference materials cannot make two halves"):
+        evaluate.evaluate_halves(evaluate.prepare_reference(ref[:3], **kw), [np.arange(3)],
+                                 ref=ref[:3], **kw)
 
 
 def test_table_set_scores_like_its_field():

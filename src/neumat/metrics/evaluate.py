@@ -174,10 +174,10 @@ def evaluate_halves(reference: dict, splits, *, ref, resolution: int, bins,
     """The sanity row from the prepared reference alone (`prepare_reference`): per split (a
     permutation of the reference set), its second half scored as a draw against its first.
     Every number it needs is a sub-matrix of the reference's self-distances or rows of its
-    Inception features, so nothing is rendered, embedded or compared again. FID is unavailable, with `fid_unavailable`, when the reference
-    was prepared without an Inception network. Long table with a `draw` column, as
-    `evaluate_draws`. `ref`, `resolution`, `bins`: the set and settings it must have been
-    prepared for."""
+    Inception features, so nothing is rendered, embedded or compared again. FID is
+    unavailable, with `fid_unavailable`, when the reference was prepared without an Inception
+    network. Long table with a `draw` column, as `evaluate_draws`. `ref`, `resolution`,
+    `bins`: the set and settings it must have been prepared for."""
     _check_reference(reference, ref, resolution, bins)
     n = len(reference["values"])
     h = n // 2
