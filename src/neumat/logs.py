@@ -34,8 +34,12 @@ def script_logging(smk):
     logging.basicConfig(level=logging.INFO, handlers=handlers, force=True,
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     logging.captureWarnings(True)  # library warnings in the job's log too, not only the terminal
+    log = logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
+    # how the job's threads share the cores (workflow/rules/common.smk sets the wait policy)
+    log.info("threads %s, OMP_WAIT_POLICY=%s", getattr(smk, "threads", None),
+             os.environ.get("OMP_WAIT_POLICY", "unset"))
     try:
-        yield logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
+        yield log
     except InputError as e:
         # the terminal gets the message once, not two tracebacks per failed job, which buried
         # the remedy (an offline run of the default config; issue #20's note)

@@ -12,6 +12,14 @@ SRC = str(Path(workflow.basedir) / "src")
 sys.path.insert(0, SRC)
 # ...and for the scripts' interpreters too (e.g. under --use-conda, where neumat is not installed).
 os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONPATH")) if p))
+# Jobs' idle OpenMP threads sleep instead of spinning (libgomp's default). A job shares its cores
+# with Snakemake and whatever else runs there, and a thread that spins while its partner waits
+# for a core burns that core. benchmarks/omp_wait.py, 2 threads on a 2-core AMD EPYC (AVX-512):
+# alone, the same wall time (0.99x Inception, 1.03x denoiser training) for 9-12 % less CPU;
+# beside one busy process 0.59-0.62x the wall time and half the CPU; beside niced bursty
+# processes 1.5x the wall time, their CPU going to those processes (the test suite's case,
+# where the tiny run's jobs took 254 instead of 304 CPU-s). Set OMP_WAIT_POLICY to keep another.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 CONDA_ENV = "../envs/neumat.yaml"
 
 from neumat.data import catalog as _catalog  # noqa: E402

@@ -1,0 +1,161 @@
+"""Idle OpenMP threads: spinning (libgomp's default) against sleeping (OMP_WAIT_POLICY=PASSIVE,
+which workflow/rules/common.smk sets for every job unless the environment sets it), on two
+workloads of the workflow's 2-thread jobs, alone and beside other processes.
+
+libgomp reads the policy once, when torch loads it, so each measurement is a fresh process.
+Workloads (2 torch threads each):
+  inception  Inception-v3 FID features of 2 x 32 images (32 px, resized to 299), as a `metrics`
+             job computes per draw; also printed as the convolutions' FLOP per CPU second
+             against this machine's fp32 matmul rate per CPU second (machine.sgemm_peak), so
+             a thread that spins shows as a lower fraction.
+  denoiser   training steps of config/config.yaml's denoiser (width 256, depth 4, batch 128),
+             as `train_diffusion` runs them: many small parallel regions, where waking a
+             sleeping thread costs most.
+Beside:
+  alone      nothing else runs;
+  busy       one nice-0 process spinning: another job, or another program on the same cores;
+  niced      two nice-19 processes alternating 2 ms of work and 2 ms of sleep: the test suite's
+             tests (tests/conftest.py nices them) beside its tiny run.
+Prints wall and CPU seconds per policy, PASSIVE against the default, each the median of
+--repeat fresh processes, with the machine.
+
+    python benchmarks/omp_wait.py [--repeat 3] [--workloads inception denoiser] [--beside alone busy niced]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+POLICIES = ("default", "PASSIVE")
+
+
+def _inception() -> dict:
+    import numpy as np
+    import torch
+
+    from neumat.metrics import fid, inception
+    net, reason = inception.fid_network(None, "cpu")
+    if net is None:
+        raise SystemExit(f"inception workload unavailable: {reason}")
+    images = np.random.default_rng(0).random((32, 32, 32, 3), dtype=np.float32)
+    fid.features(net, images[:2])  # warm-up: first-call allocations
+    flop = []
+    hooks = [m.register_forward_hook(lambda m, i, o: flop.append(
+        2 * o.numel() * m.in_channels // m.groups * m.kernel_size[0] * m.kernel_size[1]))
+        for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    fid.features(net, images[:1])
+    for h in hooks:
+        h.remove()
+    t, c = time.perf_counter(), time.process_time()
+    for _ in range(2):
+        fid.features(net, images)
+    return {"wall": time.perf_counter() - t, "cpu": time.process_time() - c,
+            "flop": 2 * len(images) * float(sum(flop))}
+
+
+def _denoiser(steps: int = 30) -> dict:
+    import torch
+    import yaml
+
+    from neumat.diffusion import Denoiser, DenoiserConfig, Diffusion, ScheduleConfig
+    cfg = yaml.safe_load((ROOT / "config/config.yaml").read_text())["diffusion"]
+    torch.manual_seed(0)
+    model = Denoiser(DenoiserConfig(**cfg["model"], n_classes=48))
+    diffusion = Diffusion(ScheduleConfig(**cfg["schedule"]))
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    batch = cfg["train"]["batch_size"]
+    x0 = torch.randn(batch, 675)
+    cond = {"type": torch.zeros(batch, dtype=torch.long)}
+    drop = {"type": torch.zeros(batch, dtype=torch.bool)}  # conditioned, as most training rows
+
+    def step():
+        opt.zero_grad(set_to_none=True)
+        diffusion.loss(model, x0, cond, drop).backward()
+        opt.step()
+
+    for _ in range(3):  # warm-up
+        step()
+    t, c = time.perf_counter(), time.process_time()
+    for _ in range(steps):
+        step()
+    return {"wall": time.perf_counter() - t, "cpu": time.process_time() - c}
+
+
+def child(workload: str) -> None:
+    import torch
+    torch.set_num_threads(2)
+    r = {"inception": _inception, "denoiser": _denoiser}[workload]()
+    if workload == "inception":
+        from neumat import machine
+        r["peak_per_cpu_s"] = machine.sgemm_peak(threads=1)[1]
+    print(json.dumps(r))
+
+
+def _others(beside: str) -> list[subprocess.Popen]:
+    spin = "import time\nwhile True:\n    t = time.perf_counter()\n" \
+           "    while time.perf_counter() - t < {busy}: pass\n    time.sleep({idle})\n"
+    if beside == "busy":
+        return [subprocess.Popen([sys.executable, "-c", "while True: pass"])]
+    if beside == "niced":
+        return [subprocess.Popen(["nice", "-n", "19", sys.executable, "-c",
+                                  spin.format(busy=0.002, idle=0.002)]) for _ in range(2)]
+    return []
+
+
+def measure(workload: str, policy: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env.pop("OMP_NUM_THREADS", None)
+    if policy != "default":
+        env["OMP_WAIT_POLICY"] = policy
+    out = subprocess.run([sys.executable, __file__, "--child", workload], env=env, check=True,
+                         capture_output=True, text=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--repeat", type=int, default=3, help="fresh processes per cell, median kept")
+    ap.add_argument("--workloads", nargs="+", default=["inception", "denoiser"])
+    ap.add_argument("--beside", nargs="+", default=["alone", "busy", "niced"])
+    a = ap.parse_args()
+    if a.child:
+        return child(a.child)
+    from neumat import machine
+    print(f"# {machine.describe()}; 2 torch threads per workload; median of {a.repeat} processes")
+    print(f"{'workload':10} {'beside':6} | {'default wall':>12} {'CPU-s':>6} | {'PASSIVE wall':>12} "
+          f"{'CPU-s':>6} | {'wall ratio':>10} {'CPU ratio':>9} | conv FLOP/CPU-s of peak (def, PASSIVE)")
+    for w in a.workloads:
+        for b in a.beside:
+            others = _others(b)
+            try:
+                time.sleep(0.3)
+                runs = {p: [] for p in POLICIES}
+                for _ in range(a.repeat):  # interleaved, so that drift in load hits both alike
+                    for p in POLICIES:
+                        runs[p].append(measure(w, p))
+            finally:
+                for o in others:
+                    o.kill()
+                    o.wait()
+            med = {p: {k: statistics.median(r[k] for r in runs[p]) for k in ("wall", "cpu")}
+                   for p in POLICIES}
+            d, q = med["default"], med["PASSIVE"]
+            line = (f"{w:10} {b:6} | {d['wall']:10.2f} s {d['cpu']:6.2f} | {q['wall']:10.2f} s "
+                    f"{q['cpu']:6.2f} | {q['wall'] / d['wall']:10.2f} {q['cpu'] / d['cpu']:9.2f} |")
+            if "flop" in runs["default"][0]:
+                peak = statistics.median(r["peak_per_cpu_s"] for p in POLICIES for r in runs[p])
+                flop = runs["default"][0]["flop"]
+                line += f" {flop / d['cpu'] / peak:.0%}, {flop / q['cpu'] / peak:.0%}"
+            print(line, flush=True)
+
+
+if __name__ == "__main__":
+    main()
