@@ -1,6 +1,7 @@
-"""Idle OpenMP threads: spinning (libgomp's default) against sleeping (OMP_WAIT_POLICY=PASSIVE,
-which workflow/rules/common.smk sets for every job unless the environment sets it), on two
-workloads of the workflow's 2-thread jobs, alone and beside other processes.
+"""Idle OpenMP threads: libgomp's default (spin 300,000 times at every barrier) against a short
+spin (GOMP_SPINCOUNT=1000, which workflow/rules/common.smk sets for every job unless the
+environment sets OMP_WAIT_POLICY or GOMP_SPINCOUNT) and no spin (OMP_WAIT_POLICY=PASSIVE), on
+two workloads of the workflow's 2-thread jobs, alone and beside other processes.
 
 libgomp reads the policy once, when torch loads it, so each measurement is a fresh process.
 Workloads (2 torch threads each):
@@ -16,10 +17,10 @@ Beside:
   busy       one nice-0 process spinning: another job, or another program on the same cores;
   niced      two nice-19 processes alternating 2 ms of work and 2 ms of sleep: the test suite's
              tests (tests/conftest.py nices them) beside its tiny run.
-Prints wall and CPU seconds per policy, PASSIVE against the default, each the median of
---repeat fresh processes, with the machine.
+Prints wall and CPU seconds per policy and their ratios to the first policy's, each the
+median of --repeat fresh processes, with the machine.
 
-    python benchmarks/omp_wait.py [--repeat 3] [--workloads inception denoiser] [--beside alone busy niced]
+    python benchmarks/omp_wait.py [--repeat 3] [--policies default spin:1000 PASSIVE] [--beside alone busy niced]
 """
 from __future__ import annotations
 
@@ -33,7 +34,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-POLICIES = ("default", "PASSIVE")
 
 
 def _inception() -> dict:
@@ -110,9 +110,13 @@ def _others(beside: str) -> list[subprocess.Popen]:
 
 
 def measure(workload: str, policy: str) -> dict:
+    """One fresh process; `policy`: default (libgomp's), an OMP_WAIT_POLICY value, or
+    spin:N (GOMP_SPINCOUNT=N: spin N iterations, then sleep)."""
     env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
     env.pop("OMP_NUM_THREADS", None)
-    if policy != "default":
+    if policy.startswith("spin:"):
+        env["GOMP_SPINCOUNT"] = policy.split(":", 1)[1]
+    elif policy != "default":
         env["OMP_WAIT_POLICY"] = policy
     out = subprocess.run([sys.executable, __file__, "--child", workload], env=env, check=True,
                          capture_output=True, text=True).stdout
@@ -125,36 +129,41 @@ def main():
     ap.add_argument("--repeat", type=int, default=3, help="fresh processes per cell, median kept")
     ap.add_argument("--workloads", nargs="+", default=["inception", "denoiser"])
     ap.add_argument("--beside", nargs="+", default=["alone", "busy", "niced"])
+    ap.add_argument("--policies", nargs="+", default=["default", "spin:1000", "PASSIVE"],
+                    help="default (libgomp's), spin:N (GOMP_SPINCOUNT=N, the workflow's "
+                         "spin:1000), or an OMP_WAIT_POLICY value")
     a = ap.parse_args()
     if a.child:
         return child(a.child)
     from neumat import machine
-    print(f"# {machine.describe()}; 2 torch threads per workload; median of {a.repeat} processes")
-    print(f"{'workload':10} {'beside':6} | {'default wall':>12} {'CPU-s':>6} | {'PASSIVE wall':>12} "
-          f"{'CPU-s':>6} | {'wall ratio':>10} {'CPU ratio':>9} | conv FLOP/CPU-s of peak (def, PASSIVE)")
+    print(f"# {machine.describe()}; 2 torch threads per workload; median of {a.repeat} processes;"
+          f" ratios against {a.policies[0]}")
+    print(f"{'workload':10} {'beside':6} {'policy':10} | {'wall s':>7} {'CPU-s':>6} | "
+          f"{'wall ratio':>10} {'CPU ratio':>9} | conv FLOP/CPU-s of peak")
     for w in a.workloads:
         for b in a.beside:
             others = _others(b)
             try:
                 time.sleep(0.3)
-                runs = {p: [] for p in POLICIES}
-                for _ in range(a.repeat):  # interleaved, so that drift in load hits both alike
-                    for p in POLICIES:
+                runs = {p: [] for p in a.policies}
+                for _ in range(a.repeat):  # interleaved, so that drift in load hits all alike
+                    for p in a.policies:
                         runs[p].append(measure(w, p))
             finally:
                 for o in others:
                     o.kill()
                     o.wait()
             med = {p: {k: statistics.median(r[k] for r in runs[p]) for k in ("wall", "cpu")}
-                   for p in POLICIES}
-            d, q = med["default"], med["PASSIVE"]
-            line = (f"{w:10} {b:6} | {d['wall']:10.2f} s {d['cpu']:6.2f} | {q['wall']:10.2f} s "
-                    f"{q['cpu']:6.2f} | {q['wall'] / d['wall']:10.2f} {q['cpu'] / d['cpu']:9.2f} |")
-            if "flop" in runs["default"][0]:
-                peak = statistics.median(r["peak_per_cpu_s"] for p in POLICIES for r in runs[p])
-                flop = runs["default"][0]["flop"]
-                line += f" {flop / d['cpu'] / peak:.0%}, {flop / q['cpu'] / peak:.0%}"
-            print(line, flush=True)
+                   for p in a.policies}
+            base = med[a.policies[0]]
+            for p in a.policies:
+                m = med[p]
+                line = (f"{w:10} {b:6} {p:10} | {m['wall']:7.2f} {m['cpu']:6.2f} | "
+                        f"{m['wall'] / base['wall']:10.2f} {m['cpu'] / base['cpu']:9.2f} |")
+                if "flop" in runs[p][0]:
+                    peak = statistics.median(r["peak_per_cpu_s"] for r in runs[p])
+                    line += f" {runs[p][0]['flop'] / m['cpu'] / peak:.0%}"
+                print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -12,14 +12,17 @@ SRC = str(Path(workflow.basedir) / "src")
 sys.path.insert(0, SRC)
 # ...and for the scripts' interpreters too (e.g. under --use-conda, where neumat is not installed).
 os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONPATH")) if p))
-# Jobs' idle OpenMP threads sleep instead of spinning (libgomp's default). A job shares its cores
-# with Snakemake and whatever else runs there, and a thread that spins while its partner waits
-# for a core burns that core. benchmarks/omp_wait.py, 2 threads on a 2-core AMD EPYC (AVX-512):
-# alone, the same wall time (0.99x Inception, 1.03x denoiser training) for 9-12 % less CPU;
-# beside one busy process 0.59-0.62x the wall time and half the CPU; beside niced bursty
-# processes 1.5x the wall time, their CPU going to those processes (the test suite's case,
-# where the tiny run's jobs took 254 instead of 304 CPU-s). Set OMP_WAIT_POLICY to keep another.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Jobs' idle OpenMP threads spin briefly, then sleep: libgomp's default spins 300,000 times at
+# every barrier, and a 2-thread job whose partner waits for a core then burns the other core,
+# which Snakemake, other jobs and whatever else runs there need. benchmarks/omp_wait.py, 2 torch
+# threads on a 2-core AMD EPYC (AVX-512), GOMP_SPINCOUNT=1000 against the default: alone 0.98x
+# and 1.04x the wall time (Inception features, denoiser training); beside one busy process
+# 0.73x and 0.62x, for about half the CPU; beside niced bursty processes 1.41x and 1.61x, the
+# slept time going to them (inside pytest the tiny run's jobs took 251 instead of 304 CPU-s).
+# OMP_WAIT_POLICY=PASSIVE (no spinning) measured the same under load, 1.14x and 1.08x alone.
+# Either variable set in the environment wins.
+if "OMP_WAIT_POLICY" not in os.environ:
+    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 CONDA_ENV = "../envs/neumat.yaml"
 
 from neumat.data import catalog as _catalog  # noqa: E402
