@@ -1,7 +1,7 @@
-"""Idle OpenMP threads: libgomp's default (spin 300,000 times at every barrier) against a short
-spin (GOMP_SPINCOUNT=1000, which workflow/rules/common.smk sets for every job unless the
-environment sets OMP_WAIT_POLICY or GOMP_SPINCOUNT) and no spin (OMP_WAIT_POLICY=PASSIVE), on
-two workloads of the workflow's 2-thread jobs, alone and beside other processes.
+"""Idle OpenMP threads: libgomp's default (spin 300,000 times at every barrier) against no spin
+(OMP_WAIT_POLICY=PASSIVE, which workflow/rules/common.smk sets for every job unless the
+environment sets it or GOMP_SPINCOUNT) and a short spin (GOMP_SPINCOUNT=1000), on two workloads
+of the workflow's 2-thread jobs, alone and beside other processes.
 
 libgomp reads the policy once, when torch loads it, so each measurement is a fresh process.
 Workloads (2 torch threads each):
@@ -130,8 +130,8 @@ def main():
     ap.add_argument("--workloads", nargs="+", default=["inception", "denoiser"])
     ap.add_argument("--beside", nargs="+", default=["alone", "busy", "niced"])
     ap.add_argument("--policies", nargs="+", default=["default", "spin:1000", "PASSIVE"],
-                    help="default (libgomp's), spin:N (GOMP_SPINCOUNT=N, the workflow's "
-                         "spin:1000), or an OMP_WAIT_POLICY value")
+                    help="default (libgomp's), an OMP_WAIT_POLICY value (the workflow's: "
+                         "PASSIVE), or spin:N (GOMP_SPINCOUNT=N)")
     a = ap.parse_args()
     if a.child:
         return child(a.child)

@@ -35,7 +35,7 @@ def script_logging(smk):
                         format="%(asctime)s %(name)s %(levelname)s: %(message)s")
     logging.captureWarnings(True)  # library warnings in the job's log too, not only the terminal
     log = logging.getLogger(f"neumat.{getattr(smk, 'rule', 'script')}")
-    # how the job's threads share the cores (workflow/rules/common.smk sets the spin count)
+    # how the job's threads share the cores (workflow/rules/common.smk sets the wait policy)
     log.info("threads %s, OMP_WAIT_POLICY=%s, GOMP_SPINCOUNT=%s", getattr(smk, "threads", None),
              os.environ.get("OMP_WAIT_POLICY", "unset"), os.environ.get("GOMP_SPINCOUNT", "unset"))
     try:

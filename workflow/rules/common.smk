@@ -12,17 +12,17 @@ SRC = str(Path(workflow.basedir) / "src")
 sys.path.insert(0, SRC)
 # ...and for the scripts' interpreters too (e.g. under --use-conda, where neumat is not installed).
 os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONPATH")) if p))
-# Jobs' idle OpenMP threads spin briefly, then sleep: libgomp's default spins 300,000 times at
-# every barrier, and a 2-thread job whose partner waits for a core then burns the other core,
-# which Snakemake, other jobs and whatever else runs there need. benchmarks/omp_wait.py, 2 torch
-# threads on a 2-core AMD EPYC (AVX-512), GOMP_SPINCOUNT=1000 against the default: alone 0.98x
-# and 1.04x the wall time (Inception features, denoiser training); beside one busy process
-# 0.73x and 0.62x, for about half the CPU; beside niced bursty processes 1.41x and 1.61x, the
-# slept time going to them (inside pytest the tiny run's jobs took 251 instead of 304 CPU-s).
-# OMP_WAIT_POLICY=PASSIVE (no spinning) measured the same under load, 1.14x and 1.08x alone.
-# Either variable set in the environment wins.
-if "OMP_WAIT_POLICY" not in os.environ:
-    os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+# Jobs' idle OpenMP threads sleep (OMP_WAIT_POLICY=PASSIVE): libgomp's default spins 300,000
+# times at every barrier, and a 2-thread job whose partner waits for a core then burns the other
+# core, which Snakemake, other jobs and whatever else runs there need. benchmarks/omp_wait.py,
+# 2 torch threads on a 2-core AMD EPYC (AVX-512), against the default: beside one busy process
+# 0.74x and 0.57x the wall time (Inception features, denoiser training), for about half the CPU;
+# alone 0.99-1.14x and 1.03-1.19x over several runs. Inside pytest, beside the niced tests, the
+# tiny run's jobs took 235-254 instead of 304 CPU-s. A short spin (GOMP_SPINCOUNT=1000) costs
+# less alone (0.98x, 1.04x) but measured worse inside pytest (316.1 against 306.1 s, tiny run
+# 258 against 247 CPU-s) and binds only libgomp. Either variable set in the environment wins.
+if "GOMP_SPINCOUNT" not in os.environ:
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 CONDA_ENV = "../envs/neumat.yaml"
 
 from neumat.data import catalog as _catalog  # noqa: E402
