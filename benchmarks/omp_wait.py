@@ -38,26 +38,19 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _inception() -> dict:
     import numpy as np
-    import torch
 
+    from fid_features import conv_flop  # benchmarks/: the convolutions' FLOP per image
     from neumat.metrics import fid, inception
     net, reason = inception.fid_network(None, "cpu")
     if net is None:
         raise SystemExit(f"inception workload unavailable: {reason}")
     images = np.random.default_rng(0).random((32, 32, 32, 3), dtype=np.float32)
     fid.features(net, images[:2])  # warm-up: first-call allocations
-    flop = []
-    hooks = [m.register_forward_hook(lambda m, i, o: flop.append(
-        2 * o.numel() * m.in_channels // m.groups * m.kernel_size[0] * m.kernel_size[1]))
-        for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
-    fid.features(net, images[:1])
-    for h in hooks:
-        h.remove()
     t, c = time.perf_counter(), time.process_time()
     for _ in range(2):
         fid.features(net, images)
     return {"wall": time.perf_counter() - t, "cpu": time.process_time() - c,
-            "flop": 2 * len(images) * float(sum(flop))}
+            "flop": 2 * len(images) * conv_flop(net)}
 
 
 def _denoiser(steps: int = 30) -> dict:
@@ -135,9 +128,13 @@ def main():
     a = ap.parse_args()
     if a.child:
         return child(a.child)
+    import torch
+
     from neumat import machine
-    print(f"# {machine.describe()}; 2 torch threads per workload; median of {a.repeat} processes;"
-          f" ratios against {a.policies[0]}")
+    # torch's kernels may run another ISA than the host's (ATEN_CPU_CAPABILITY=avx2)
+    print(f"# {machine.describe()}; torch kernels {torch.backends.cpu.get_cpu_capability()}; "
+          f"2 torch threads per workload; median of {a.repeat} processes; ratios against "
+          f"{a.policies[0]}")
     print(f"{'workload':10} {'beside':6} {'policy':10} | {'wall s':>7} {'CPU-s':>6} | "
           f"{'wall ratio':>10} {'CPU ratio':>9} | conv FLOP/CPU-s of peak")
     for w in a.workloads:

@@ -17,7 +17,7 @@ os.environ.update(PYTHONPATH=os.pathsep.join(p for p in (SRC, os.getenv("PYTHONP
 # core, which Snakemake, other jobs and whatever else runs there need. benchmarks/omp_wait.py,
 # 2 torch threads on a 2-core AMD EPYC (AVX-512), against the default: beside one busy process
 # 0.74x and 0.57x the wall time (Inception features, denoiser training), for about half the CPU;
-# alone 0.99-1.14x and 1.03-1.19x over several runs. Inside pytest, beside the niced tests, the
+# alone 0.99-1.14x and 1.03-1.17x over four runs (one on torch's AVX2 kernels). Inside pytest, beside the niced tests, the
 # tiny run's jobs took 235-254 instead of 304 CPU-s. A short spin (GOMP_SPINCOUNT=1000) costs
 # less alone (0.98x, 1.04x) but measured worse inside pytest (316.1 against 306.1 s, tiny run
 # 258 against 247 CPU-s) and binds only libgomp. Either variable set in the environment wins.
