@@ -66,6 +66,33 @@ def test_write_read_round_trip_bit_exact(tmp_path):
     assert not (tmp_path / "b.binary.part").exists()
 
 
+def test_written_bytes_are_the_table_over_the_scale(tmp_path):
+    """write_merl scales row by row from a reused buffer: the file holds exactly table / SCALE
+    in float64, from float64 and float32 tables and from a non-contiguous view."""
+    x = rng.lognormal(-3, 3, merl.SHAPE)
+    for table in (x, x.astype(np.float32), x[:, ::-1][:, ::-1]):
+        merl.write_merl(tmp_path / "c.binary", table)
+        raw = (tmp_path / "c.binary").read_bytes()
+        assert raw[:12] == np.array([90, 90, 180], "<i4").tobytes()
+        assert raw[12:] == (np.asarray(table, np.float64) / merl.SCALE[:, None, None, None]).astype("<f8").tobytes()
+
+
+def test_evaluate_grid_is_the_field_at_every_bin_whatever_the_chunk():
+    w = nbrdf.init_weights(3, torch.Generator().manual_seed(4)) * 2
+    valid = merl.valid_mask()
+    for act in nbrdf.ACTIVATIONS:
+        t = nbrdf.evaluate_grid(w, act)
+        assert t.shape == (3, *merl.SHAPE) and t.dtype == np.float64
+        for chunk in (1024, 1 << 18, merl.N_BINS):  # the smallest default, the old one, one chunk
+            assert np.array_equal(nbrdf.evaluate_grid(w, act, chunk=chunk), t)
+        assert np.array_equal(nbrdf.evaluate_grid(w[1:2], act)[0], t[1])  # batch-independent
+        flat = t.reshape(3, 3, -1)
+        sub = rng.choice(np.flatnonzero(valid), 5000, replace=False)
+        direct = nbrdf.forward(w, torch.from_numpy(merl.grid_inputs()[sub].copy()), act)
+        np.testing.assert_allclose(flat[:, :, sub], direct.numpy().transpose(0, 2, 1), rtol=1e-5, atol=1e-6)
+        assert (flat[:, :, ~valid] == -merl.SCALE[None, :, None]).all()
+
+
 def test_round_trip_of_arbitrary_table_within_one_ulp(tmp_path):
     x = rng.lognormal(-3, 3, merl.SHAPE)
     merl.write_merl(tmp_path / "c.binary", x)

@@ -77,21 +77,33 @@ def init_weights(n: int, generator: torch.Generator | None = None) -> torch.Tens
     return torch.cat(parts, -1)
 
 
-def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int = 1 << 18,
+def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int | None = None,
                   device: str | torch.device = "cpu") -> np.ndarray:
     """Evaluate fields on the full MERL grid -> (B, 3, 90, 90, 180) float64 physical BRDF.
 
-    Below-horizon bins are set to -1/scale like measured MERL files (negative = invalid)."""
+    Below-horizon bins are set to -1/scale like measured MERL files (negative = invalid).
+    `chunk` bins at a time; on the CPU by default 2^15 / B rounded down to a power of two (at
+    least 1024), so a chunk's activations stay in cache and the allocator reuses them. With the
+    old 2^18 bins each chunk mapped and zeroed fresh pages: one table took 1.10-1.25x and a batch
+    of 8 3.9-4.2x as long (best of 5 in benchmarks/merl_export.py, 1 and 2 threads, AMD EPYC
+    AVX-512, 2026-11-26). The values do not depend on the chunk size (power-of-two chunks, on
+    this machine: tests/test_merl_io.py)."""
     from neumat.io import merl
 
-    # a writable copy for torch (from_numpy of the shared read-only array warns): 35 MB, 3-4 ms
-    # (AMD EPYC)
-    x_all = torch.from_numpy(merl.grid_inputs().copy())
+    grid = merl.grid_inputs()
     w = w.to(device=device, dtype=torch.float32)
-    out = np.empty((w.shape[0], merl.N_BINS, 3), dtype=np.float64)
+    if not chunk:  # a GPU wants large launches; cache sizes matter on the CPU
+        # a power of two: matmul kernels are chosen by size, and a chunk of 10922 bins (2^15 / 3)
+        # moved values by float32 rounding (up to 7e-7 near 2) where every power of two from
+        # 2^10 to 2^18 gave the same bits (tests/test_merl_io.py)
+        per = (1 << 15) // max(1, w.shape[0])
+        chunk = 1 << 18 if w.device.type != "cpu" else 1 << max(10, per.bit_length() - 1)
+    # written in the file's channel-major layout, so the reshape below copies nothing
+    out = np.empty((w.shape[0], 3, merl.N_BINS), dtype=np.float64)
     with torch.no_grad():
         for s in range(0, merl.N_BINS, chunk):
-            out[:, s:s + chunk] = forward(w, x_all[s:s + chunk].to(device), activation).cpu().numpy()
-    out = out.transpose(0, 2, 1)
+            # a writable copy of the chunk (torch warns on the shared read-only array)
+            x = torch.from_numpy(grid[s:s + chunk].copy()).to(device)
+            out[:, :, s:s + chunk] = forward(w, x, activation).cpu().numpy().transpose(0, 2, 1)
     out[:, :, ~merl.valid_mask()] = -1.0 * merl.SCALE[None, :, None]
     return out.reshape(w.shape[0], *merl.SHAPE)

@@ -61,17 +61,22 @@ def write_merl(path: str | os.PathLike, brdf: np.ndarray) -> None:
 
     Written to a temporary name and renamed, so a killed writer never leaves a
     file that looks complete."""
-    brdf = np.asarray(brdf, dtype=np.float64)
+    brdf = np.asarray(brdf)
     if brdf.shape != SHAPE:
         raise ValueError(f"MERL table must have shape {SHAPE}, got {brdf.shape}")
     if not np.isfinite(brdf).all():
         raise ValueError(f"{path}: refusing to write a table with NaN or inf values")
-    stored = (brdf / SCALE[:, None, None, None]).astype("<f8")
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     with open(tmp, "wb") as f:
         f.write(HEADER.tobytes())
-        f.write(stored.tobytes())
+        # one theta_h row (130 kB) at a time: scaled and written from a buffer the allocator
+        # reuses, not three 35 MB copies of the table (benchmarks/merl_export.py)
+        row = np.empty((N_TD, N_PD), dtype="<f8")
+        for c in range(3):
+            for i in range(N_TH):
+                np.divide(brdf[c, i], SCALE[c], out=row)
+                f.write(row.data)
     os.replace(tmp, path)
 
 
