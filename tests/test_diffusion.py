@@ -488,6 +488,21 @@ def test_lambertian_albedo_and_passivity():
     assert plausibility(neg)["negative_share"][0] == 1.0
 
 
+def test_plausibility_does_not_depend_on_the_block_of_materials():
+    """The checks run 1-2 materials per NBRDF pass (cache-sized); any block gives the same
+    table, up to float64 rounding in the albedo sums."""
+    from neumat import nbrdf
+    w = nbrdf.init_weights(7, torch.Generator().manual_seed(3)).numpy() * 2
+    w[2, 4] = np.nan
+    kw = dict(reference_max=1.0, n_angles=3000, albedo_kw=dict(n_theta_o=2, n_theta_h=16, n_phi_h=16))
+    ref = plausibility(w, block=7, **kw)
+    for block in (None, 1, 3):
+        df = plausibility(w, block=block, **kw)
+        assert df.drop(columns="max_albedo").equals(ref.drop(columns="max_albedo")), block
+        np.testing.assert_allclose(df["max_albedo"], ref["max_albedo"], rtol=1e-12)
+    assert ref["nonfinite"].tolist() == [False, False, True] + [False] * 4
+
+
 # ----------------------------------------------------------------------------- dataset
 
 

@@ -42,46 +42,63 @@ def albedo_quadrature(n_theta_o: int = 8, n_theta_h: int = 64, n_phi_h: int = 64
     return np.stack(xs), np.stack(ws), theta_o
 
 
+def _block(n_points: int) -> int:
+    """Materials per NBRDF pass over `n_points` inputs: about 2^15 points in all, so the hidden
+    activations (21 floats a point) stay in cache and the allocator reuses them instead of
+    mapping fresh pages each pass: 64 materials' checks took 4.0x as long at 64 a pass, with
+    0.37 M page faults (benchmarks/plausibility.py, 1 and 2 threads, AMD EPYC AVX-512,
+    2026-11-26; nbrdf.evaluate_grid likewise)."""
+    return max(1, (1 << 15) // max(1, n_points))
+
+
 @torch.no_grad()
 def directional_albedo(weights: np.ndarray, n_theta_o: int = 8, n_theta_h: int = 64,
-                       n_phi_h: int = 64, activation: str = "relu", chunk: int = 64) -> np.ndarray:
-    """(B, 675) weights -> (B, n_theta_o, 3) directional albedo per outgoing elevation."""
+                       n_phi_h: int = 64, activation: str = "relu", chunk: int | None = None) -> np.ndarray:
+    """(B, 675) weights -> (B, n_theta_o, 3) directional albedo per outgoing elevation;
+    `chunk` materials per pass (default `_block`)."""
     x, w, _ = albedo_quadrature(n_theta_o, n_theta_h, n_phi_h)
     n_o, m, _ = x.shape
     xt = torch.as_tensor(x.reshape(-1, 6), dtype=torch.float32)
     wt = torch.as_tensor(w, dtype=torch.float64)
-    out = []
+    chunk = chunk or _block(n_o * m)
+    out = np.zeros((len(weights), n_o, 3))
     for s in range(0, len(weights), chunk):
         f = nbrdf.forward(torch.as_tensor(weights[s:s + chunk], dtype=torch.float32), xt, activation)
         f = f.double().reshape(-1, n_o, m, 3)
-        out.append(torch.einsum("bomc,om->boc", f, wt).numpy())
-    return np.concatenate(out) if out else np.zeros((0, n_o, 3))
+        out[s:s + chunk] = torch.einsum("bomc,om->boc", f, wt).numpy()
+    return out
 
 
 @torch.no_grad()
 def plausibility(weights: np.ndarray, reference_max: float | None = None, n_angles: int = 20000,
                  explode_factor: float = 10.0, albedo_tol: float = 0.01, seed: int = 0,
-                 activation: str = "relu", albedo_kw: dict | None = None) -> pd.DataFrame:
+                 activation: str = "relu", albedo_kw: dict | None = None,
+                 block: int | None = None) -> pd.DataFrame:
     """Per-material checks -> DataFrame with columns
     nonfinite (weights or outputs NaN/inf), negative_share (share of valid MERL bins whose
     unclamped value exp(x) - 1 < 0, i.e. clamped to 0), max_value, exploding (max above
     explode_factor x `reference_max`, e.g. the training set's largest value),
     max_albedo (largest directional albedo over directions and channels), passivity_violation
     (max_albedo > 1 + albedo_tol; the tolerance absorbs quadrature error, ~1e-4 for a
-    Lambertian BRDF on the default grid)."""
+    Lambertian BRDF on the default grid). `block` materials per NBRDF pass (default
+    `_block`: 1-2 materials; the values do not depend on it beyond float64 rounding in the
+    albedo sums, ~3e-15)."""
     weights = np.asarray(weights, dtype=np.float32)
     rng = np.random.default_rng(seed)
     valid = np.flatnonzero(merl.valid_mask())
     idx = np.sort(rng.choice(valid, size=min(n_angles, len(valid)), replace=False))
     th, td, pd_ = (a[idx] for a in merl.grid_angles())
     x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
-    raw = nbrdf.forward_raw(torch.as_tensor(weights), x, activation).double()
-    vals = torch.expm1(raw)
+    finite_o, neg, vmax = (np.zeros(len(weights), t) for t in (bool, float, float))
+    step = block or _block(len(x))
+    for s in range(0, len(weights), step):
+        vals = torch.expm1(nbrdf.forward_raw(torch.as_tensor(weights[s:s + step]), x, activation).double())
+        finite_o[s:s + step] = torch.isfinite(vals).flatten(1).all(1).numpy()
+        neg[s:s + step] = (vals < 0).flatten(1).double().mean(1).numpy()
+        vmax[s:s + step] = torch.nan_to_num(vals, nan=np.inf).flatten(1).amax(1).numpy()
     finite_w = np.isfinite(weights).all(1)
-    finite_o = torch.isfinite(vals).flatten(1).all(1).numpy()
-    neg = (vals < 0).flatten(1).double().mean(1).numpy()
-    vmax = torch.nan_to_num(vals, nan=np.inf).flatten(1).amax(1).numpy()
-    albedo = directional_albedo(np.nan_to_num(weights), activation=activation, **(albedo_kw or {}))
+    albedo = directional_albedo(np.nan_to_num(weights), activation=activation, chunk=block,
+                                **(albedo_kw or {}))
     max_alb = np.nan_to_num(albedo.reshape(len(weights), -1).max(1), nan=np.inf) \
         if len(weights) else np.zeros(0)
     max_alb[~finite_w] = np.inf  # the albedo above was computed on zeroed NaNs: meaningless

@@ -1,0 +1,54 @@
+"""The plausibility checks of synthesised NBRDFs (`neumat.diffusion.plausibility.plausibility`:
+clamped negatives and largest value at 20,000 MERL bins, directional albedo on 8 x 64 x 64
+directions; rules `diffusion_plausibility`, `conditions_eval`) in the library's blocks of 1-2
+materials per NBRDF pass, against 64 materials a pass (the albedo's block before 2026-11-26,
+and all of them for the value checks: the baseline, in the same run). Prints the best wall
+time, CPU seconds split user/system, the minor page faults, the ratio, the NBRDF passes' rate
+as a fraction of this machine's fp32 sgemm rate, and the largest difference between the two
+tables (float64 rounding in the albedo sums), with the ISA and the CPU model.
+
+    OMP_NUM_THREADS=1 python benchmarks/plausibility.py [--materials 64] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+import torch
+
+sys.path.insert(0, os.path.dirname(__file__))
+from merl_export import measure, row  # noqa: E402
+
+from neumat import machine, nbrdf  # noqa: E402
+from neumat.diffusion import plausibility as P  # noqa: E402
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--materials", type=int, default=64)
+    ap.add_argument("--repeat", type=int, default=3)
+    a = ap.parse_args()
+    peak = machine.sgemm_peak()[0]
+    print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}, "
+          f"fp32 sgemm {peak / 1e9:.0f} GFLOP/s")
+    w = nbrdf.init_weights(a.materials, torch.Generator().manual_seed(1)).numpy() * 2
+    n_points = 20000 + 8 * 64 * 64
+    flop = a.materials * n_points * 2 * sum(i * o for i, o in nbrdf.LAYERS)
+    print(f"{a.materials} materials x {n_points} points, {flop / 1e9:.2f} GFLOP in NBRDF passes")
+    print(f"{'':34s} {'wall ms':>8s} {'user s':>7s} {'sys s':>7s} {'faults':>9s} "
+          f"{'speed-up':>9s} {'of sgemm':>7s}")
+    base, t_base = measure(lambda: P.plausibility(w, reference_max=1.0, block=64), a.repeat)
+    new, t_new = measure(lambda: P.plausibility(w, reference_max=1.0), a.repeat)
+    row("64 materials a pass", base, rate=flop / base[0] / peak)
+    row("library blocks", new, base, rate=flop / new[0] / peak)
+    num = t_base.select_dtypes("number")
+    diff = (num - t_new[num.columns]).abs().max()
+    same = t_base.select_dtypes("bool").equals(t_new[t_base.select_dtypes("bool").columns])
+    print(f"largest difference: {diff.max():.1e} ({diff.idxmax()}); flags equal: {same}")
+
+
+if __name__ == "__main__":
+    main()
