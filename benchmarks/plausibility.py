@@ -1,11 +1,14 @@
-"""The plausibility checks of synthesised NBRDFs (`neumat.diffusion.plausibility.plausibility`:
+"""NBRDF passes over many materials at shared points, in the library's blocks
+(`nbrdf.materials_per_pass`) against 64 materials a pass. (1) The plausibility checks of synthesised NBRDFs (`neumat.diffusion.plausibility.plausibility`:
 clamped negatives and largest value at 20,000 MERL bins, directional albedo on 8 x 64 x 64
 directions; rules `diffusion_plausibility`, `conditions_eval`) in the library's blocks of 1-2
 materials per NBRDF pass, against 64 materials a pass (the albedo's block before 2026-11-26,
 and all of them for the value checks: the baseline, in the same run). Prints the best wall
 time, CPU seconds split user/system, the minor page faults, the ratio, the NBRDF passes' rate
 as a fraction of this machine's fp32 sgemm rate, and the largest difference between the two
-tables (float64 rounding in the albedo sums), with the ISA and the CPU model.
+tables (float64 rounding in the albedo sums), with the ISA and the CPU model. (2) Table 2's
+BRDF values of the same materials at 20,000 bins (`neumat.metrics.distances.field_values`),
+the same comparison; the values must be equal.
 
     OMP_NUM_THREADS=1 python benchmarks/plausibility.py [--materials 64] [--repeat 3]
 """
@@ -16,13 +19,13 @@ import argparse
 import os
 import sys
 
-import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(__file__))
 from merl_export import measure, row  # noqa: E402
 
 from neumat import machine, nbrdf  # noqa: E402
+from neumat.metrics import distances  # noqa: E402
 from neumat.diffusion import plausibility as P  # noqa: E402
 
 
@@ -48,6 +51,13 @@ def main():
     diff = (num - t_new[num.columns]).abs().max()
     same = t_base.select_dtypes("bool").equals(t_new[t_base.select_dtypes("bool").columns])
     print(f"largest difference: {diff.max():.1e} ({diff.idxmax()}); flags equal: {same}")
+    bins = distances.brdf_sample(20000, 0)
+    flop = a.materials * len(bins) * 2 * sum(i * o for i, o in nbrdf.LAYERS)
+    base, v_base = measure(lambda: distances.field_values(w, bins, chunk=64), a.repeat)
+    new, v_new = measure(lambda: distances.field_values(w, bins), a.repeat)
+    row("field_values, 64 materials a pass", base, rate=flop / base[0] / peak)
+    row("field_values, library blocks", new, base, rate=flop / new[0] / peak)
+    print(f"field values equal: {torch.equal(v_base, v_new)}")
 
 
 if __name__ == "__main__":

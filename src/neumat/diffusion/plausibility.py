@@ -42,25 +42,16 @@ def albedo_quadrature(n_theta_o: int = 8, n_theta_h: int = 64, n_phi_h: int = 64
     return np.stack(xs), np.stack(ws), theta_o
 
 
-def _block(n_points: int) -> int:
-    """Materials per NBRDF pass over `n_points` inputs: about 2^15 points in all, so the hidden
-    activations (21 floats a point) stay in cache and the allocator reuses them instead of
-    mapping fresh pages each pass: 64 materials' checks took 4.0x as long at 64 a pass, with
-    0.37 M page faults (benchmarks/plausibility.py, 1 and 2 threads, AMD EPYC AVX-512,
-    2026-11-26; nbrdf.evaluate_grid likewise)."""
-    return max(1, (1 << 15) // max(1, n_points))
-
-
 @torch.no_grad()
 def directional_albedo(weights: np.ndarray, n_theta_o: int = 8, n_theta_h: int = 64,
                        n_phi_h: int = 64, activation: str = "relu", chunk: int | None = None) -> np.ndarray:
     """(B, 675) weights -> (B, n_theta_o, 3) directional albedo per outgoing elevation;
-    `chunk` materials per pass (default `_block`)."""
+    `chunk` materials per pass (default `nbrdf.materials_per_pass`)."""
     x, w, _ = albedo_quadrature(n_theta_o, n_theta_h, n_phi_h)
     n_o, m, _ = x.shape
     xt = torch.as_tensor(x.reshape(-1, 6), dtype=torch.float32)
     wt = torch.as_tensor(w, dtype=torch.float64)
-    chunk = chunk or _block(n_o * m)
+    chunk = chunk or nbrdf.materials_per_pass(n_o * m)
     out = np.zeros((len(weights), n_o, 3))
     for s in range(0, len(weights), chunk):
         f = nbrdf.forward(torch.as_tensor(weights[s:s + chunk], dtype=torch.float32), xt, activation)
@@ -81,7 +72,8 @@ def plausibility(weights: np.ndarray, reference_max: float | None = None, n_angl
     max_albedo (largest directional albedo over directions and channels), passivity_violation
     (max_albedo > 1 + albedo_tol; the tolerance absorbs quadrature error, ~1e-4 for a
     Lambertian BRDF on the default grid). `block` materials per NBRDF pass (default
-    `_block`: 1-2 materials; the values do not depend on it beyond float64 rounding in the
+    `nbrdf.materials_per_pass`: 1-2 materials; 64 materials' checks took 4.0x as long at 64 a
+    pass, benchmarks/plausibility.py); the values do not depend on it beyond float64 rounding in the
     albedo sums, ~3e-15)."""
     weights = np.asarray(weights, dtype=np.float32)
     rng = np.random.default_rng(seed)
@@ -90,7 +82,7 @@ def plausibility(weights: np.ndarray, reference_max: float | None = None, n_angl
     th, td, pd_ = (a[idx] for a in merl.grid_angles())
     x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
     finite_o, neg, vmax = (np.zeros(len(weights), t) for t in (bool, float, float))
-    step = block or _block(len(x))
+    step = block or nbrdf.materials_per_pass(len(x))
     for s in range(0, len(weights), step):
         vals = torch.expm1(nbrdf.forward_raw(torch.as_tensor(weights[s:s + step]), x, activation).double())
         finite_o[s:s + step] = torch.isfinite(vals).flatten(1).all(1).numpy()

@@ -42,14 +42,18 @@ def brdf_sample(n: int | str, seed: int) -> np.ndarray:
     return np.sort(np.random.default_rng(seed).choice(valid, n, replace=False))
 
 
-def field_values(weights, bins, activation: str = "relu", chunk: int = 64) -> torch.Tensor:
-    """Neural fields (B, 675) at the centres of `bins` -> (B, len(bins) * 3) float32."""
+def field_values(weights, bins, activation: str = "relu", chunk: int | None = None) -> torch.Tensor:
+    """Neural fields (B, 675) at the centres of `bins` -> (B, len(bins) * 3) float32, `chunk`
+    materials a pass (default `nbrdf.materials_per_pass`: the same values as 64 a pass)."""
     th, td, pd = (a[bins] for a in merl.grid_angles())
     x = torch.as_tensor(merl.half_diff_cartesian(th, td, pd), dtype=torch.float32)
     w = torch.as_tensor(weights, dtype=torch.float32)
+    chunk = chunk or nbrdf.materials_per_pass(len(x))
+    out = torch.empty(len(w), 3 * len(x))
     with torch.no_grad():
-        return torch.cat([nbrdf.forward(w[s:s + chunk], x, activation).reshape(len(w[s:s + chunk]), -1)
-                          for s in range(0, len(w), chunk)])
+        for s in range(0, len(w), chunk):
+            out[s:s + chunk] = nbrdf.forward(w[s:s + chunk], x, activation).reshape(len(w[s:s + chunk]), -1)
+    return out
 
 
 def table_values(tables, bins) -> torch.Tensor:
