@@ -1,10 +1,11 @@
 """Exporting NBRDF fields to MERL .binary tables (`neumat sample`, rules `export_samples` and
-`neumerl_export`): `nbrdf.evaluate_grid` at the library's chunk size (2^15 / B bins on the CPU, a power of two)
-against 2^18 bins per chunk (the default before 2026-11-26: the baseline, in the same run), one table and a batch of
-8, and `merl.write_merl` against writing the same bytes with one `ndarray.tofile` (the bound).
-Prints the best wall time, CPU seconds split user/system, the minor page faults, the ratios,
-and the evaluation's rate as a fraction of this machine's fp32 sgemm rate, with the ISA and
-the CPU model. The chunk sizes give identical tables (checked here).
+`neumerl_export`): `nbrdf.evaluate_grid` at the library's chunk size (on the CPU 2^15 / B bins,
+a power of two) against 2^18 bins per chunk (the default before 2026-11-26: the baseline, in
+the same run), for one table and a batch of 8; and `merl.write_merl` against writing the same
+bytes with one `ndarray.tofile` (the bound). Prints the best wall time, CPU seconds split
+user/system, the minor page faults, the ratios, and the evaluation's rate as a fraction of this
+machine's fp32 sgemm rate, with the ISA and the CPU model. The chunk sizes give identical tables
+(checked here).
 
     OMP_NUM_THREADS=1 python benchmarks/merl_export.py [--repeat 5]
 """

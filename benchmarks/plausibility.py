@@ -1,14 +1,16 @@
 """NBRDF passes over many materials at shared points, in the library's blocks
-(`nbrdf.materials_per_pass`) against 64 materials a pass. (1) The plausibility checks of synthesised NBRDFs (`neumat.diffusion.plausibility.plausibility`:
-clamped negatives and largest value at 20,000 MERL bins, directional albedo on 8 x 64 x 64
-directions; rules `diffusion_plausibility`, `conditions_eval`) in the library's blocks of 1-2
-materials per NBRDF pass, against 64 materials a pass (the albedo's block before 2026-11-26,
-and all of them for the value checks: the baseline, in the same run). Prints the best wall
-time, CPU seconds split user/system, the minor page faults, the ratio, the NBRDF passes' rate
-as a fraction of this machine's fp32 sgemm rate, and the largest difference between the two
-tables (float64 rounding in the albedo sums), with the ISA and the CPU model. (2) Table 2's
-BRDF values of the same materials at 20,000 bins (`neumat.metrics.distances.field_values`),
-the same comparison; the values must be equal.
+(`nbrdf.materials_per_pass`, about 2^15 points a pass) against 64 materials a pass (the
+baseline, in the same run):
+(1) the plausibility checks of synthesised NBRDFs (`neumat.diffusion.plausibility`: clamped
+    negatives and largest value at 20,000 MERL bins, directional albedo on 8 x 64 x 64
+    directions; rules `diffusion_plausibility`, `conditions_eval`), whose value checks took all
+    materials in one pass and the albedo 64 before 2026-11-26;
+(2) Table 2's BRDF values of the same materials at 20,000 bins
+    (`neumat.metrics.distances.field_values`), 64 a pass before.
+Prints the best wall time, CPU seconds split user/system, the minor page faults, the ratio, the
+passes' rate as a fraction of this machine's fp32 sgemm rate, and the largest difference
+between the two results (float64 rounding in the albedo sums; the BRDF values must be equal),
+with the ISA and the CPU model.
 
     OMP_NUM_THREADS=1 python benchmarks/plausibility.py [--materials 64] [--repeat 3]
 """

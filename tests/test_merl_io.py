@@ -74,7 +74,8 @@ def test_written_bytes_are_the_table_over_the_scale(tmp_path):
         merl.write_merl(tmp_path / "c.binary", table)
         raw = (tmp_path / "c.binary").read_bytes()
         assert raw[:12] == np.array([90, 90, 180], "<i4").tobytes()
-        assert raw[12:] == (np.asarray(table, np.float64) / merl.SCALE[:, None, None, None]).astype("<f8").tobytes()
+        stored = np.asarray(table, np.float64) / merl.SCALE[:, None, None, None]
+        assert raw[12:] == stored.astype("<f8").tobytes()
 
 
 def test_evaluate_grid_is_the_field_at_every_bin_whatever_the_chunk():
