@@ -45,18 +45,28 @@ def row(name, m, base=None, rate=None):
     print(f"{name:34s} {m[0] * 1e3:8.1f} {m[1]:7.3f} {m[2]:7.3f} {m[3]:9d} {ratio} {frac}")
 
 
+def machine_line() -> float:
+    """Print the machine, torch's threads and the fp32 sgemm rate; return that rate (FLOP/s)."""
+    peak = machine.sgemm_peak()[0]
+    print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}, "
+          f"fp32 sgemm {peak / 1e9:.0f} GFLOP/s")
+    return peak
+
+
+def header():
+    print(f"{'':34s} {'wall ms':>8s} {'user s':>7s} {'sys s':>7s} {'faults':>9s} "
+          f"{'speed-up':>9s} {'of sgemm':>7s}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--batch", type=int, default=8)
     a = ap.parse_args()
-    peak = machine.sgemm_peak()[0]
-    print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}, "
-          f"fp32 sgemm {peak / 1e9:.0f} GFLOP/s")
+    peak = machine_line()
     flop = 2 * merl.N_BINS * sum(i * o for i, o in nbrdf.LAYERS)  # per table, matmuls only
     print(f"{merl.N_BINS} bins, {flop / 1e9:.2f} GFLOP per table")
-    print(f"{'':34s} {'wall ms':>8s} {'user s':>7s} {'sys s':>7s} {'faults':>9s} "
-          f"{'speed-up':>9s} {'of sgemm':>7s}")
+    header()
     for b in (1, a.batch):
         w = nbrdf.init_weights(b, torch.Generator().manual_seed(b)) * 2
         base, t_base = measure(lambda: nbrdf.evaluate_grid(w, chunk=1 << 18), a.repeat)

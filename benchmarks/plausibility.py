@@ -24,9 +24,9 @@ import sys
 import torch
 
 sys.path.insert(0, os.path.dirname(__file__))
-from merl_export import measure, row  # noqa: E402
+from merl_export import header, machine_line, measure, row  # noqa: E402
 
-from neumat import machine, nbrdf  # noqa: E402
+from neumat import nbrdf  # noqa: E402
 from neumat.metrics import distances  # noqa: E402
 from neumat.diffusion import plausibility as P  # noqa: E402
 
@@ -36,15 +36,12 @@ def main():
     ap.add_argument("--materials", type=int, default=64)
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
-    peak = machine.sgemm_peak()[0]
-    print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}, "
-          f"fp32 sgemm {peak / 1e9:.0f} GFLOP/s")
+    peak = machine_line()
     w = nbrdf.init_weights(a.materials, torch.Generator().manual_seed(1)).numpy() * 2
     n_points = 20000 + 8 * 64 * 64
     flop = a.materials * n_points * 2 * sum(i * o for i, o in nbrdf.LAYERS)
     print(f"{a.materials} materials x {n_points} points, {flop / 1e9:.2f} GFLOP in NBRDF passes")
-    print(f"{'':34s} {'wall ms':>8s} {'user s':>7s} {'sys s':>7s} {'faults':>9s} "
-          f"{'speed-up':>9s} {'of sgemm':>7s}")
+    header()
     base, t_base = measure(lambda: P.plausibility(w, reference_max=1.0, block=64), a.repeat)
     new, t_new = measure(lambda: P.plausibility(w, reference_max=1.0), a.repeat)
     row("64 materials a pass", base, rate=flop / base[0] / peak)
