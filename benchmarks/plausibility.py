@@ -6,10 +6,14 @@ baseline, in the same run):
     directions; rules `diffusion_plausibility`, `conditions_eval`), whose value checks took all
     materials in one pass and the albedo 64 before 2026-11-26;
 (2) Table 2's BRDF values of the same materials at 20,000 bins
-    (`neumat.metrics.distances.field_values`), 64 a pass before.
+    (`neumat.metrics.distances.field_values`), 64 a pass before;
+(3) the category statistics of the same materials at 65,536 bins (`neumat.constrained.
+    field_stats`: `neumat sample --category`'s and rule `constrained_classify`'s), 2^22
+    field-bin pairs a pass before 2026-11-26 (here: all 64 materials at once).
 Prints the best wall time, CPU seconds split user/system, the minor page faults, the ratio, the
 passes' rate as a fraction of this machine's fp32 sgemm rate, and the largest difference
-between the two results (float64 rounding in the albedo sums; the BRDF values must be equal),
+between the two results (float64 rounding in the albedo sums and the statistics' sums; the BRDF
+values must be equal),
 with the ISA and the CPU model.
 
     OMP_NUM_THREADS=1 python benchmarks/plausibility.py [--materials 64] [--repeat 3]
@@ -26,7 +30,7 @@ import torch
 sys.path.insert(0, os.path.dirname(__file__))
 from merl_export import header, machine_line, measure, row  # noqa: E402
 
-from neumat import nbrdf  # noqa: E402
+from neumat import constrained, nbrdf  # noqa: E402
 from neumat.metrics import distances  # noqa: E402
 from neumat.diffusion import plausibility as P  # noqa: E402
 
@@ -57,6 +61,17 @@ def main():
     row("field_values, 64 materials a pass", base, rate=flop / base[0] / peak)
     row("field_values, library blocks", new, base, rate=flop / new[0] / peak)
     print(f"field values equal: {torch.equal(v_base, v_new)}")
+    bins = constrained.grid_bins(65536, 0)
+    flop = a.materials * len(bins) * 2 * sum(i * o for i, o in nbrdf.LAYERS)
+    base, s_base = measure(lambda: constrained.field_stats(w, bins=bins, points_per_pass=1 << 22),
+                           a.repeat)
+    new, s_new = measure(lambda: constrained.field_stats(w, bins=bins), a.repeat)
+    row("field_stats, 2^22 pairs a pass", base, rate=flop / base[0] / peak)
+    row("field_stats, library blocks", new, base, rate=flop / new[0] / peak)
+    cols = list(constrained.STAT_COLUMNS)
+    rel = ((s_base[cols] - s_new[cols]).abs() / s_base[cols].abs().clip(lower=1e-300)).max().max()
+    print(f"statistics: largest relative difference {rel:.1e}; counts above the diffuse "
+          f"bound equal: {s_base['n_above'].equals(s_new['n_above'])}")
 
 
 if __name__ == "__main__":

@@ -252,11 +252,11 @@ def test_merl_white_diffuse_bball_is_diffuse(merl_classes):
 
 
 def test_field_stats_chunk_bound_keeps_the_statistics():
-    """Many fields go through fewer bins at a time (memory bound, default-config OOM); the
-    statistics must not depend on the chunking."""
+    """Fields and bins go through the network in blocks (cache-sized passes; the default-config
+    OOM); the statistics must not depend on the blocks."""
     rng = np.random.default_rng(3)
     w = np.stack([constant_field(a) for a in (0.05, 0.2, 0.4)]) + rng.normal(0, 1e-3, (3, 675)).astype(np.float32)
     bins = C.grid_bins(20000, 2)
     one = C.field_stats(w, bins=bins)
-    many = C.field_stats(w, bins=bins, max_elements=3 * 997)  # 997 bins per chunk
+    many = C.field_stats(w, bins=bins, points_per_pass=997)  # one field and 997 bins a pass
     pd.testing.assert_frame_equal(one, many, rtol=1e-9)

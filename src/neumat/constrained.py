@@ -89,12 +89,15 @@ class _Accumulator:
         self.w = weights_per_bin  # stratification weight of each used bin (sums to n_used)
         self.n_valid_full = n_valid_full
 
-    def add(self, f: np.ndarray, sl: slice) -> None:
-        """f (B, n, 3) physical BRDF at bins[sl]."""
-        w = self.w[sl]
-        self.sum += np.einsum("bnc,n->bc", f, w)
-        self.max = np.maximum(self.max, f.max(1))
-        self.above += ((f.max(2) > F_DIFFUSE) * w).sum(1)
+    def add(self, f: torch.Tensor | np.ndarray, sl: slice) -> None:
+        """f (B, n, 3) physical BRDF at bins[sl], float32 or float64. In torch: numpy's maxima
+        over the (n, 3) axes took twice as long as the NBRDF pass itself (a profile of
+        field_stats). Maxima are exact in either precision; sums are taken in float64."""
+        f = torch.as_tensor(f)
+        w = torch.from_numpy(self.w[sl])
+        self.sum += torch.einsum("bnc,n->bc", f.double(), w).numpy()
+        self.max = np.maximum(self.max, f.amax(1).double().numpy())
+        self.above += ((f.amax(2).double() > F_DIFFUSE).double() @ w).numpy()
 
     def frame(self, names) -> pd.DataFrame:
         n = self.n_valid_full / self.scale
@@ -120,28 +123,36 @@ def _stratified_weights(bins: np.ndarray) -> np.ndarray:
 
 
 def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins: np.ndarray | None = None,
-                chunk: int = 1 << 16, device: str = "cpu", progress=None,
-                max_elements: int = 1 << 22) -> pd.DataFrame:
+                device: str = "cpu", progress=None, points_per_pass: int | None = None) -> pd.DataFrame:
     """Statistics (STAT_COLUMNS) of neural fields (N, 675) over `bins` (default: all valid).
 
-    Bins go through the fields `chunk` at a time, fewer when N is large, so that a chunk holds at
-    most `max_elements` field-bin pairs (~0.5 GB of activations at the default): 2400 fields
-    at 65,536 bins in one chunk took 21 GB and were OOM-killed in the default-config run.
-    Non-finite weights give NaN statistics (such a sample belongs to no category)."""
+    A block of fields goes through a chunk of bins a pass, about `points_per_pass` field-bin
+    pairs in all (on the CPU 2^15, nbrdf.materials_per_pass; on a GPU 2^22). Passes of 2^22
+    pairs mapped and zeroed fresh pages for their ~0.35 GB of activations every time: 64 fields
+    at 65,536 bins took 3.5-4.1x as long (benchmarks/plausibility.py, 1-2 threads; AMD EPYC
+    AVX-512, 2026-11-26); 2400 fields at 65,536 bins in one pass took 21 GB and were OOM-killed in the
+    default-config run. Non-finite weights give NaN statistics (no category)."""
     weights = np.asarray(weights, dtype=np.float32).reshape(-1, nbrdf.N_PARAMS)
-    chunk = max(1, min(chunk, max_elements // max(len(weights), 1)))
     names = names if names is not None else [str(i) for i in range(len(weights))]
     bins = grid_bins() if bins is None else bins
+    pairs = points_per_pass or (1 << 22 if torch.device(device).type == "cuda" else 1 << 15)
+    chunk = max(min(4096, pairs), pairs // max(len(weights), 1))  # bins a pass
+    per = max(1, pairs // chunk)  # fields a pass
     x = _inputs(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
-    acc = _Accumulator(len(weights), int(merl.valid_mask().sum()), len(bins), _stratified_weights(bins))
+    n_valid, sw = int(merl.valid_mask().sum()), _stratified_weights(bins)
     w = torch.as_tensor(np.nan_to_num(weights, nan=0.0, posinf=0.0, neginf=0.0), device=device)
+    frames, total = [], len(weights) * len(bins)
     with torch.no_grad():
-        for s in range(0, len(bins), chunk):
-            f = nbrdf.forward(w, x[s:s + chunk].to(device), activation).double().cpu().numpy()
-            acc.add(np.nan_to_num(f, nan=np.inf, posinf=np.inf), slice(s, s + chunk))
-            if progress:
-                progress(min(s + chunk, len(bins)), len(bins))
-    df = acc.frame(names)
+        for m in range(0, len(weights), per):
+            acc = _Accumulator(len(w[m:m + per]), n_valid, len(bins), sw)
+            for s in range(0, len(bins), chunk):
+                f = nbrdf.forward(w[m:m + per], x[s:s + chunk].to(device), activation).cpu()
+                acc.add(torch.nan_to_num(f, nan=np.inf, posinf=np.inf), slice(s, s + chunk))
+                if progress:
+                    progress(m * len(bins) + len(f) * min(s + chunk, len(bins)), total)
+            frames.append(acc.frame(names[m:m + per]))
+    df = pd.concat(frames, ignore_index=True) if frames else _Accumulator(
+        0, n_valid, len(bins), sw).frame([])
     bad = ~np.isfinite(weights).all(1)
     df.loc[bad, STAT_COLUMNS] = np.nan
     return df
