@@ -23,6 +23,19 @@ def _chunks(n, size):
         yield torch.arange(s, min(n, s + size))
 
 
+def _planar(data, texels: torch.Tensor, chunk: int) -> torch.Tensor:
+    """ABRDFs of `texels` as contiguous channel planes (3, n, lights x views), decoded `chunk`
+    texels at a time. svd_lowrank copied a strided channel (a permuted view) at every product,
+    and decoding all texels at once mapped fresh pages for each 52 MB temporary (UBO2014's
+    22,801 directions, 576 texels; the tiny run's `btf_pca` benchmark file has the cost). The
+    mean is summed in another order than from the view: the fit moved by float32 rounding."""
+    X = torch.empty(3, len(texels), data.n_lights * data.n_views)
+    for s in range(0, len(texels), chunk):
+        t = texels[s:s + chunk]
+        X[:, s:s + len(t)] = data.abrdf(t).reshape(len(t), -1, 3).permute(2, 0, 1)
+    return X
+
+
 class PCA(GridBTF):
     method = "pca"
 
@@ -44,9 +57,9 @@ class PCA(GridBTF):
         m = cls(data.width, data.height, data.light_dirs, data.view_dirs, components)
         gen = torch.Generator().manual_seed(seed)
         sub = torch.randperm(data.n_texels, generator=gen)[:fit_texels].sort().values
-        X = data.abrdf(sub).reshape(len(sub), -1, 3).permute(2, 0, 1)   # (3, n, LV)
+        X = _planar(data, sub, chunk)  # (3, n, LV)
         mean = X.mean(1, keepdim=True)
-        X = X - mean
+        X -= mean
         torch.manual_seed(seed)
         for c in range(3):  # randomized SVD: only the top components of the (n x LV) matrix
             _, _, V = torch.svd_lowrank(X[c], q=min(components + 10, *X[c].shape), niter=4)
