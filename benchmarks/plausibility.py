@@ -9,7 +9,11 @@ baseline, in the same run):
     (`neumat.metrics.distances.field_values`), 64 a pass before;
 (3) the category statistics of the same materials at 65,536 bins (`neumat.constrained.
     field_stats`: `neumat sample --category`'s and rule `constrained_classify`'s), 2^22
-    field-bin pairs a pass before 2026-11-26 (here: all 64 materials at once).
+    field-bin pairs a pass before 2026-11-26 (here: all 64 materials at once);
+(4) metric-view renders of the same materials at 128^2 (`neumat.render.sphere.render_fields`,
+    every metric, figure and conditioning render), 2^24 floats of activations a pass before
+    2026-11-26 (51 materials); a material's pixels then move by float32 rounding, as they do
+    with its place in a batch (the shared-input product's column blocking).
 Prints the best wall time, CPU seconds split user/system, the minor page faults, the ratio, the
 passes' rate as a fraction of this machine's fp32 sgemm rate, and the largest difference
 between the two results (float64 rounding in the albedo sums and the statistics' sums; the BRDF
@@ -31,6 +35,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 from merl_export import header, machine_line, measure, row  # noqa: E402
 
 from neumat import constrained, nbrdf  # noqa: E402
+from neumat.render import sphere  # noqa: E402
 from neumat.metrics import distances  # noqa: E402
 from neumat.diffusion import plausibility as P  # noqa: E402
 
@@ -72,6 +77,15 @@ def main():
     rel = ((s_base[cols] - s_new[cols]).abs() / s_base[cols].abs().clip(lower=1e-300)).max().max()
     print(f"statistics: largest relative difference {rel:.1e}; counts above the diffuse "
           f"bound equal: {s_base['n_above'].equals(s_new['n_above'])}")
+    view = len(sphere.sphere_view(128))
+    flop = a.materials * view * 2 * sum(i * o for i, o in nbrdf.LAYERS)
+    old = max(1, sphere._CHUNK_FLOATS // (view * 21))
+    base, r_base = measure(lambda: sphere.render_fields(w, 128, chunk=old), a.repeat)
+    new, r_new = measure(lambda: sphere.render_fields(w, 128), a.repeat)
+    row(f"renders, {old} materials a pass", base, rate=flop / base[0] / peak)
+    row("renders, library blocks", new, base, rate=flop / new[0] / peak)
+    print(f"renders: largest difference {(r_base - r_new).abs().max().item():.1e} "
+          f"(pixel values up to {r_base.abs().max().item():.2g})")
 
 
 if __name__ == "__main__":

@@ -37,8 +37,8 @@ LIGHT_INTENSITY = float(np.pi * (np.linalg.norm(LIGHT_POS) - 1.0) ** 2)
 AMBIENT = 0.1
 N_THETA_O, AMB_U, AMB_PHI = 24, 16, 16
 EXPOSURE = 0.0  # stops applied by `tonemap`
-# Floats per material kept alive while evaluating a chunk of neural fields (two hidden layers
-# of 21 plus output): bounds the chunk size so thousands of materials fit in memory.
+# Floats of hidden activations a pass on a GPU (two hidden layers of 21 plus output): bounds
+# the chunk so thousands of materials fit in memory. The CPU takes nbrdf.materials_per_pass.
 _CHUNK_FLOATS = 1 << 24
 
 
@@ -171,7 +171,10 @@ def render_fields(weights, resolution: int = 128, activation: str = "relu",
     if w.dim() != 2 or w.shape[1] != nbrdf.N_PARAMS:
         raise ValueError(f"weights must have shape (B, {nbrdf.N_PARAMS}), got {tuple(w.shape)}")
     view = sphere_view(resolution, str(device), None if light is None else tuple(light))
-    chunk = chunk or max(1, _CHUNK_FLOATS // (len(view) * 21))
+    if chunk is None:  # on the CPU in cache-sized passes: 2^24 floats (51 materials at 128^2)
+        # mapped fresh pages for every pass (benchmarks/plausibility.py)
+        chunk = (nbrdf.materials_per_pass(len(view)) if torch.device(device).type == "cpu"
+                 else max(1, _CHUNK_FLOATS // (len(view) * 21)))
     out = torch.empty(len(w), resolution, resolution, 3)
     with torch.no_grad():
         for s in _chunks(len(w), chunk):
