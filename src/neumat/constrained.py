@@ -90,9 +90,9 @@ class _Accumulator:
         self.n_valid_full = n_valid_full
 
     def add(self, f: torch.Tensor | np.ndarray, sl: slice) -> None:
-        """f (B, n, 3) physical BRDF at bins[sl], float32 or float64. In torch: numpy's maxima
-        over the (n, 3) axes took twice as long as the NBRDF pass itself (a profile of
-        field_stats). Maxima are exact in either precision; sums are taken in float64."""
+        """f (B, n, 3) physical BRDF at bins[sl], float32 or float64. Reduced in torch: numpy's
+        reductions over the short strided axes cost nearly as much as the NBRDF pass. Maxima
+        are exact in either precision; sums are taken in float64."""
         f = torch.as_tensor(f)
         w = torch.from_numpy(self.w[sl])
         self.sum += torch.einsum("bnc,n->bc", f.double(), w).numpy()
@@ -127,11 +127,11 @@ def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins:
     """Statistics (STAT_COLUMNS) of neural fields (N, 675) over `bins` (default: all valid).
 
     A block of fields goes through a chunk of bins a pass, about `points_per_pass` field-bin
-    pairs in all (on the CPU 2^15, nbrdf.materials_per_pass; on a GPU 2^22). Passes of 2^22
+    pairs in all (on the CPU 2^15, as nbrdf.materials_per_pass; on a GPU 2^22). Passes of 2^22
     pairs mapped and zeroed fresh pages for their ~0.35 GB of activations every time: 64 fields
     at 65,536 bins took 3.5-4.1x as long (benchmarks/plausibility.py, 1-2 threads; AMD EPYC
-    AVX-512, 2026-11-26); 2400 fields at 65,536 bins in one pass took 21 GB and were OOM-killed in the
-    default-config run. Non-finite weights give NaN statistics (no category)."""
+    AVX-512, 2026-11-26); 2400 fields at 65,536 bins in one pass took 21 GB and were
+    OOM-killed in the default-config run. Non-finite weights give NaN statistics (no category)."""
     weights = np.asarray(weights, dtype=np.float32).reshape(-1, nbrdf.N_PARAMS)
     names = names if names is not None else [str(i) for i in range(len(weights))]
     bins = grid_bins() if bins is None else bins
