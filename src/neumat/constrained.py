@@ -138,15 +138,15 @@ def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins:
     pairs = points_per_pass or (1 << 22 if torch.device(device).type == "cuda" else 1 << 15)
     chunk = max(min(4096, pairs), pairs // max(len(weights), 1))  # bins a pass
     per = max(1, pairs // chunk)  # fields a pass
-    x = _inputs(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
+    x = _inputs(np.ascontiguousarray(bins, dtype=np.int64).tobytes()).to(device)
     n_valid, sw = int(merl.valid_mask().sum()), _stratified_weights(bins)
     w = torch.as_tensor(np.nan_to_num(weights, nan=0.0, posinf=0.0, neginf=0.0), device=device)
     frames, total = [], len(weights) * len(bins)
     with torch.no_grad():
         for m in range(0, len(weights), per):
-            acc = _Accumulator(len(w[m:m + per]), n_valid, len(bins), sw)
+            acc = _Accumulator(min(per, len(w) - m), n_valid, len(bins), sw)
             for s in range(0, len(bins), chunk):
-                f = nbrdf.forward(w[m:m + per], x[s:s + chunk].to(device), activation).cpu()
+                f = nbrdf.forward(w[m:m + per], x[s:s + chunk], activation).cpu()
                 acc.add(torch.nan_to_num(f, nan=np.inf, posinf=np.inf), slice(s, s + chunk))
                 if progress:
                     progress(m * len(bins) + len(f) * min(s + chunk, len(bins)), total)
