@@ -1,5 +1,8 @@
 """Table 2 against the clamp step (`diffusion.sample.negative_step`, lambda), on a finished run.
 
+With `--refit N ...`, each lambda is also sampled with the clamp-aware refit of N Adam steps
+(`diffusion.sample.refit_steps`, neumat.diffusion.refit) as its own column.
+
 `ours` is sampled again at each lambda with the run's model, sampling settings and draw seeds
 (what rule sample_uncond does), and scored as rule metrics scores it (the run's prepared
 reference, metrics/reference.pt). It is set beside the run's other generative columns
@@ -16,6 +19,7 @@ The baseline is the run's own `ours` (metrics/ours.csv) at the run's lambda. A l
 lambda's resampled draws reproduce that file.
 
     OMP_NUM_THREADS=2 python benchmarks/clamp_step_table2.py --results results/default --steps 0 10 30
+        [--refit 0 300]   # per lambda: without the refit, and with 300 steps of it
         [--config C]   # settings: the run's recorded config (report/index.md), else the schema
 """
 from __future__ import annotations
@@ -62,11 +66,18 @@ def best_or_tied(ours: pd.DataFrame, others: dict[str, pd.DataFrame]) -> pd.Seri
     return pd.Series(out)
 
 
+def name(lam: float, refit: int) -> str:
+    """A variant's column: the clamp step, and the refit's steps when on."""
+    return f"{lam:g}" + (f" + refit {refit}" if refit else "")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--results", required=True, help="a finished run: results/<run>")
     ap.add_argument("--steps", type=float, nargs="+", default=[0.0, 10.0, 30.0],
                     help="clamp steps (lambda) to sample and score")
+    ap.add_argument("--refit", type=int, nargs="+", default=[0],
+                    help="clamp-aware refit steps (diffusion.sample.refit_steps) per lambda; 0 = none")
     ap.add_argument("--config", help="a config whose keys override the run's recorded config "
                                      "(default: that, or the schema's defaults)")
     a = ap.parse_args()
@@ -78,6 +89,8 @@ def main():
     s = {k: setting("diffusion", "sample", k)
          for k in ("steps", "eta", "batch_size", "clip", "negative_step")}
     activation = setting("fit", "activation")
+    run_variant = (s["negative_step"], setting("diffusion", "sample", "refit_steps"))
+    variants = [(lam, r) for lam in a.steps for r in a.refit]
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
                                          seeds.seed_for(seed, "metrics")),
@@ -98,37 +111,41 @@ def main():
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
               for m in ["training_set", *OTHERS]))
     cols, clamp = {}, {}
-    for lam in a.steps:
+    for lam, r in variants:
         t0 = time.perf_counter()
         w = np.concatenate([sampler.sample(n_ref, d, None, s["steps"], s["eta"], 1.0, s["batch_size"],
-                                           s["clip"], lam, activation) for d in draw_seeds])
+                                           s["clip"], lam, activation, refit_steps=r)
+                      for d in draw_seeds])
+        lam = name(lam, r)
         t1 = time.perf_counter()
         table = evaluate.evaluate_draws(ref, [w[i * n_ref:(i + 1) * n_ref] for i in range(draws)],
                                         **kw, reference=prepared)
         pl = plausibility.plausibility(w, n_angles=setting("diffusion", "plausibility_angles"),
                                        seed=seeds.seed_for(seed, "diffusion_plausibility"),
                                        activation=activation)
-        clamp[lam] = plausibility.summarize(pl)["share_any_negative"]
+        summary = plausibility.summarize(pl)
+        clamp[lam] = summary["share_any_negative"]
         cols[lam] = stats(table)
-        print(f"lambda {lam:g}: sampled in {t1 - t0:.0f} s, scored in {time.perf_counter() - t1:.0f} s; "
-              f"samples clamping a negative bin {clamp[lam]:.3f}; render brightness "
+        print(f"lambda {lam}: sampled in {t1 - t0:.0f} s, scored in {time.perf_counter() - t1:.0f} s; "
+              f"samples clamping a negative bin {clamp[lam]:.3f} (mean clamped share "
+              f"{summary['mean_negative_share']:.4f}); render brightness "
               f"{brightness(w[:n_ref], kw['resolution'], activation)}")
-        if lam == s["negative_step"]:
+        if lam == name(*run_variant):
             got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
             rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
             print(f"  check against the run's metrics/ours.csv: {len(got)} values, max relative "
                   f"difference {rel.max():.2g}")
     wins = pd.DataFrame({lam: best_or_tied(c, others) for lam, c in cols.items()})
     rows = []
-    for row in cols[a.steps[0]].index:
+    for row in next(iter(cols.values())).index:
         rows.append({"metric": row[0], "distance": row[1],
-                     **{f"lambda {lam:g}": f"{c.loc[row, 'mean']:.4g} ± {c.loc[row, 'std']:.2g}"
+                     **{f"lambda {lam}": f"{c.loc[row, 'mean']:.4g} ± {c.loc[row, 'std']:.2g}"
                         + (" *" if wins.loc[row, lam] else "") for lam, c in cols.items()},
                      **{m: f"{o.loc[row, 'mean']:.4g} ± {o.loc[row, 'std']:.2g}" for m, o in others.items()}})
     print(pd.DataFrame(rows).to_string(index=False))
     print("* best of the generative columns or tied within one std")
-    for lam in a.steps:
-        print(f"lambda {lam:g}: ours best or tied on {int(wins[lam].sum())} of {len(wins)} rows; "
+    for lam in cols:
+        print(f"lambda {lam}: ours best or tied on {int(wins[lam].sum())} of {len(wins)} rows; "
               f"clamping {clamp[lam]:.3f}")
 
 

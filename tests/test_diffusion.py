@@ -587,6 +587,35 @@ def test_constrained_sampling_fewer_negative_bins_and_off_is_unchanged():
     assert np.array_equal(sample(s, 16, 5, steps=10, negative_step=20.0), on)
 
 
+def test_clamp_refit_lifts_negative_bins_and_keeps_the_clamped_output():
+    """Random NBRDFs (about half their log-space outputs below 0): the refit leaves almost no
+    bin below -0.01 at directions it never saw, while the output the renderer sees, max(x, 0),
+    moves far less than the per-step constraint's lift; deterministic; whole or in parts the
+    same to float rounding; 0 steps returns the input; bad settings are refused by key."""
+    from neumat.diffusion.constraints import constraint_directions
+    from neumat.diffusion.refit import clamp_refit
+    w = nbrdf.init_weights(16, torch.Generator().manual_seed(2)).numpy()
+    kw = dict(seed=4, n_directions=1024)  # the default 4096 costs 4x: the same behaviour
+    x = constraint_directions(99, 2000)  # not the refit's own directions
+    raw = lambda v: nbrdf.forward_raw(torch.as_tensor(v), x)  # noqa: E731
+    r = clamp_refit(w, 100, **kw)
+    before, after = raw(w), raw(r)
+    assert (before < -0.01).float().mean() > 0.25
+    assert (after < -0.01).float().mean() < 0.005, (after < -0.01).float().mean()
+    moved = (after.clamp_min(0) - before.clamp_min(0)).abs()
+    assert moved.mean() < 0.01 and torch.quantile(moved.flatten(), 0.99) < 0.05, moved.max()
+    assert np.array_equal(clamp_refit(w, 100, **kw), r)
+    assert np.abs(clamp_refit(w[11:], 100, **kw) - r[11:]).max() < 1e-5
+    assert np.array_equal(clamp_refit(w, 0, **kw), w)
+    with pytest.raises(ValueError, match="refit_steps"):
+        clamp_refit(w, -1, **kw)
+    # the samplers take it as a post-step
+    s = _tiny_sampler()
+    plain = s.sample(8, 5, steps=5, guidance=1.0, negative_step=0.0)
+    assert np.array_equal(s.sample(8, 5, steps=5, guidance=1.0, negative_step=0.0, refit_steps=20),
+                          clamp_refit(plain, 20, seed=5))
+
+
 def test_render_guidance_pulls_each_sample_toward_its_own_image():
     """Known answer: at the material that rendered the target the penalty is 0; one step
     lowers every sample's own image error; sampling with it gets closer to the targets, each

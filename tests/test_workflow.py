@@ -341,14 +341,16 @@ def test_speed_and_cosmetic_keys_rerun_no_fit(tiny_run):
 
 
 @pytest.mark.slow
-def test_negative_step_reruns_only_sampling(tiny_run):
-    """diffusion.sample.negative_step (the clamp constraint) is a param of the sampling rules
-    only: changing it retrains nothing, and sample_plain (drawn without it) stays."""
+@pytest.mark.parametrize("key, value", [("negative_step", 7.0), ("refit_steps", 3)])
+def test_clamp_keys_rerun_only_sampling(tiny_run, key, value):
+    """diffusion.sample.negative_step (the clamp constraint) and refit_steps (the clamp refit)
+    are params of the sampling rules only: changing one retrains nothing, and sample_plain
+    (drawn without them) stays."""
     import yaml
     cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
-    _set(cfg, "diffusion.sample.negative_step", 7.0)
-    (tiny_run / "config/negative_step.yaml").write_text(yaml.safe_dump(cfg))
-    jobs = _planned_jobs(tiny_run, "config/negative_step.yaml")
+    _set(cfg, f"diffusion.sample.{key}", value)
+    (tiny_run / f"config/{key}.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, f"config/{key}.yaml")
     assert "sample_uncond" in jobs and "sample_type" in jobs, jobs
     assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_plain"))], jobs
 

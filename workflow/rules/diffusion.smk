@@ -12,9 +12,10 @@ DIFF_CLASSES = sorted(set(MERL["type"]))
 DIFF_ACTIVATION = config["fit"]["activation"]
 # Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
 # split ('reference', for the distance of unseen real materials to their nearest training one).
-# With the clamp constraint on (diffusion.sample.negative_step > 0), `ours_plain` is `ours`
-# sampled with the same seeds without it: the before/after of plausibility and novelty.
-PLAIN_SETS = ["ours_plain"] if DIFF["sample"]["negative_step"] > 0 else []
+# With the clamp constraint or the clamp refit on (diffusion.sample.negative_step,
+# refit_steps > 0), `ours_plain` is `ours` sampled with the same seeds without them: the
+# before/after of plausibility and novelty.
+PLAIN_SETS = ["ours_plain"] if DIFF["sample"]["negative_step"] or DIFF["sample"]["refit_steps"] else []
 DIFF_SETS = ["training", "ours", "merl100", "ours_type"] + PLAIN_SETS
 NEAREST_SETS = ["reference", "ours", "merl100", "ours_type"] + PLAIN_SETS
 
@@ -86,7 +87,7 @@ rule sample_plain:
         table=out("samples/ours_plain/samples.tsv"),
         timing=out("samples/ours_plain/timing.tsv"),
     params:
-        cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step"])},
+        cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step", "refit_steps"])},
         mode="uncond",
         seeds=draw_seeds("sample", "ours"),  # the seeds of `ours`: paired samples
         activation=DIFF_ACTIVATION,

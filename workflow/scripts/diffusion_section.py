@@ -15,6 +15,7 @@ from neumat import report  # noqa: E402
 from neumat.device import resolve_device  # noqa: E402
 from neumat.diffusion import dataset  # noqa: E402
 from neumat.diffusion.constraints import CONSTRAINT_DIRECTIONS  # noqa: E402
+from neumat.diffusion.refit import FLOOR  # noqa: E402
 from neumat.diffusion.model import token_sizes  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
@@ -33,14 +34,22 @@ def render(w, p):
 
 
 def clamp_note(s: dict) -> str:
-    step = s.get("negative_step", 0.0)
-    if not step:
-        return "Clamp-aware constraint off (diffusion.sample.negative_step = 0)."
-    return (f"Clamp-aware constraint: at every DDIM step the predicted x0 takes one gradient "
-            f"step of size {step:g} down mean(relu(-x)), x the NBRDF's log-space output at "
-            f"{CONSTRAINT_DIRECTIONS} "
-            f"seeded valid MERL bins (the values the output max(exp(x) - 1, 0) clamps); "
-            f"`ours_plain` is `ours` drawn with the same seeds without it (before/after below).")
+    step, refit = s.get("negative_step", 0.0), s.get("refit_steps", 0)  # refit: neutral 0
+    if not step and not refit:
+        return ("Clamp-aware constraint and refit off (diffusion.sample.negative_step = 0, "
+                "refit_steps = 0).")
+    parts = []
+    if step:
+        parts.append(f"Clamp-aware constraint: at every DDIM step the predicted x0 takes one "
+                     f"gradient step of size {step:g} down mean(relu(-x)), x the NBRDF's "
+                     f"log-space output at {CONSTRAINT_DIRECTIONS} seeded valid MERL bins (the "
+                     f"values the output max(exp(x) - 1, 0) clamps).")
+    if refit:
+        parts.append(f"Clamp-aware refit: each sample's NBRDF refitted from its own weights by "
+                     f"{refit} Adam steps to its own log-space output raised to {FLOOR:g} "
+                     f"(neumat.diffusion.refit).")
+    return " ".join(parts) + (" `ours_plain` is `ours` drawn with the same seeds without them "
+                              "(before/after below).")
 
 
 def gallery(samples, near, weights, n, p, path, title):

@@ -48,7 +48,7 @@ with script_logging(snakemake) as log:
             t0 = time.perf_counter()
             w = sample(sampler, len(want), p.seed, cond, {name: scale}, s["steps"], s["eta"],
                        s["batch_size"], s["clip"], negative_step=s["negative_step"],
-                       activation=p.activation)
+                       activation=p.activation, refit_steps=s.get("refit_steps", 0))
             near = ts.nearest(w)
             ok = ts.scorable(want)  # asked types that some training material has
             hits = near["nearest_type"].to_numpy()[ok] == want[ok]

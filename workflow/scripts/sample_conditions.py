@@ -163,6 +163,7 @@ with script_logging(snakemake) as log:
         return sample(sampler, len(idx), seed, cond, guidance, s["steps"], s["eta"],
                       s["batch_size"], s["clip"], negative_step=s["negative_step"],
                       activation=p.activation, start=start, strength=strength,
+                      refit_steps=s.get("refit_steps", 0),  # neutral 0: not in params
                       render_targets=None if targets is None else torch.as_tensor(targets[idx]),
                       render_step=render_step)
 

@@ -1,8 +1,9 @@
 """Sample weight vectors from a trained model: unconditional (one draw as large as the test
 reference set per seed in `seeds`, draw-major, for Table 2's mean ± std) or type-conditioned
 (`per_type` for each requested type, classifier-free guidance). diffusion.sample.negative_step
-turns on the clamp-aware constraint (neumat.diffusion.constraints.NegativeConstraint); rule
-sample_plain drops that key: the same draws without it."""
+turns on the clamp-aware constraint (neumat.diffusion.constraints.NegativeConstraint) and
+diffusion.sample.refit_steps the clamp-aware refit (neumat.diffusion.refit); rule sample_plain
+drops those keys: the same draws without them."""
 import time
 
 import numpy as np
@@ -14,7 +15,8 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
-    s = {"negative_step": 0.0, **p.cfg["sample"]}  # sample_plain: the constraint off
+    # sample_plain: constraint and refit off; refit_steps at its neutral 0 is not in params
+    s = {"negative_step": 0.0, "refit_steps": 0, **p.cfg["sample"]}
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
     draw = None
@@ -30,11 +32,13 @@ with script_logging(snakemake) as log:
     t0 = time.perf_counter()
     if draw is None:
         w = sampler.sample(n, p.seed, types, s["steps"], s["eta"], guidance, s["batch_size"],
-                           s["clip"], s["negative_step"], p.activation)
+                           s["clip"], s["negative_step"], p.activation,
+                           refit_steps=s["refit_steps"])
     else:
         w = np.concatenate([sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance,
                                            s["batch_size"], s["clip"], s["negative_step"],
-                                           p.activation) for seed in p.seeds])
+                                           p.activation, refit_steps=s["refit_steps"])
+                            for seed in p.seeds])
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
@@ -43,6 +47,6 @@ with script_logging(snakemake) as log:
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
                    "steps": s["steps"], "eta": s["eta"], "guidance": guidance,
-                   "negative_step": s["negative_step"]}]).to_csv(
+                   "negative_step": s["negative_step"], "refit_steps": s["refit_steps"]}]).to_csv(
         out.timing, sep="\t", index=False, float_format="%.6g")
     log.info("%d samples (%s) in %.2f s: %.1f samples/s", n, p.mode, dt, n / max(dt, 1e-9))

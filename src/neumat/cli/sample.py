@@ -113,7 +113,7 @@ class Composed:
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
-               category_step: float = 0.0) -> np.ndarray:
+               category_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
         from neumat.diffusion.sample import sample
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
@@ -125,7 +125,8 @@ class Composed:
             targets, step = torch.as_tensor(self.render[0])[None].expand(n, -1, -1, -1), self.render[1]
         return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
                       negative_step=negative_step, activation=activation, category=category,
-                      category_step=category_step, render_targets=targets, render_step=step)
+                      category_step=category_step, render_targets=targets, render_step=step,
+                      refit_steps=refit_steps)
 
 
 def _check_start(args, chosen: list[str]) -> None:
@@ -152,7 +153,8 @@ def _run_file(run: Run, rel: str, rule: str) -> Path:
     return p
 
 
-def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float):
+def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float,
+                     refit: int = 0):
     """(weights, table): --start. Each sample starts from a training material (`ours`'s rows)
     noised to args.start: for --type one of the type (drawn with the seed's stream
     "cli_type_start"), for --text the matched starts of the workflow's
@@ -191,7 +193,7 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
     with _progress(args.n, "refining" if args.refiner else "sampling from starts") as bar:
         w = sample(sampler, args.n, seed_for(args.seed, "cli_start"), cond, guidance, args.steps,
                    0.0, args.batch, None, negative_step=neg, activation=args.activation,
-                   start=weights[got], strength=args.start)
+                   start=weights[got], strength=args.start, refit_steps=refit)
         bar.update(args.n)
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or "",
                           "start": man["name"].iloc[got].to_numpy(), "strength": args.start,
@@ -234,8 +236,10 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.image:
         info["image_encoder"] = str(enc_path)
         info["render_step"] = render[1] if render else 0.0
-    # the run's clamp constraint (diffusion.sample.negative_step), as its workflow sampled
+    # the run's clamp constraint and refit (diffusion.sample.negative_step, refit_steps), as its
+    # workflow sampled
     neg = float(run.setting("diffusion", "sample", "negative_step"))
+    refit = int(run.setting("diffusion", "sample", "refit_steps"))
     T = int(bundle["sched_cfg"]["timesteps"])
     if args.steps is None:  # and its DDIM steps (at most the model's timesteps)
         args.steps = min(int(run.setting("diffusion", "sample", "steps")), T)
@@ -246,10 +250,10 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.start is not None:
         if args.refiner:  # unconditional: no guidance was applied
             info = {k: v for k, v in info.items() if not k.startswith("guidance_")}
-        w, table = _draw_from_start(args, run, base, fixed, scales, neg)
+        w, table = _draw_from_start(args, run, base, fixed, scales, neg, refit)
         return w, table.assign(**info)
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
-           "batch_size": args.batch, "clip": None, "negative_step": neg}
+           "batch_size": args.batch, "clip": None, "negative_step": neg, "refit_steps": refit}
     if args.category:
         w, table = _draw_category(args, run, sampler, cfg)
         return w, table.assign(**info)
@@ -262,7 +266,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
             ws.append(sampler.sample(b, seed_for(args.seed, "cli_sample", s),
                                      types[s:s + b] if types else None, args.steps,
                                      0.0, scales.get("type", 1.0), args.batch, None, neg,
-                                     args.activation))
+                                     args.activation, refit_steps=refit))
             bar.update(b)
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
     return np.concatenate(ws), table

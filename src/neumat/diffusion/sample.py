@@ -26,6 +26,7 @@ import torch
 
 from neumat import nbrdf
 from neumat.diffusion.constraints import RenderConstraint, chain, constraint_for
+from neumat.diffusion.refit import clamp_refit
 from neumat.diffusion.train import Sampler
 
 def guided_multi(model, cond: dict, scales: dict) -> Callable:
@@ -116,7 +117,7 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
            negative_step: float = 30.0, activation: str = "relu", start: np.ndarray | None = None,
            strength: float = 1.0, category: str | None = None,
            category_step: float = 0.0, render_targets: torch.Tensor | None = None,
-           render_step: float = 0.0) -> np.ndarray:
+           render_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies
@@ -125,7 +126,8 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     (n, 675) weight vectors and `strength` < 1: each sample starts from its start vector
     noised to strength (T - 1) (`Diffusion.ddim_sample`'s x0_start), e.g. the retrieved
     training material of an image condition. `render_targets` (n, H, H, 3) metric-view images
-    and `render_step` > 0: render guidance toward each sample's image (`RenderConstraint`)."""
+    and `render_step` > 0: render guidance toward each sample's image (`RenderConstraint`).
+    `refit_steps` > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`)."""
     if not isinstance(sampler, Sampler):
         sampler = Sampler(sampler)
     cond = encode_conditions(sampler, n, conditions or {}, image_encoder)
@@ -155,4 +157,5 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
                                               constrain, render_hook(s, b)),
                                           strength=strength)
         out.append(sampler.norm.decode(z).float().cpu().numpy())
-    return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
+    w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
+    return clamp_refit(w, refit_steps, seed, activation=activation)

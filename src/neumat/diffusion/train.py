@@ -26,6 +26,7 @@ import torch
 from neumat import nbrdf
 from neumat.device import resolve_device, to_device
 from neumat.diffusion.constraints import constraint_for
+from neumat.diffusion.refit import clamp_refit
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
 from neumat.io import modelfile
@@ -269,12 +270,13 @@ class Sampler:
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
-               category_step: float = 0.0) -> np.ndarray:
+               category_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
         (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`); `category` and
-        `category_step` > 0: category guidance after it (`CategoryConstraint`)."""
+        `category_step` > 0: category guidance after it (`CategoryConstraint`); `refit_steps`
+        > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`)."""
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
@@ -288,4 +290,5 @@ class Sampler:
                                            (b, nbrdf.N_PARAMS), steps, eta, gen, self.device,
                                            clip=clip, constrain=constrain)
             out.append(self.norm.decode(z).float().cpu().numpy())
-        return np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
+        w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
+        return clamp_refit(w, refit_steps, seed, activation=activation)
