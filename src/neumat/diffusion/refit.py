@@ -26,24 +26,26 @@ from neumat.seeds import seed_for
 
 FLOOR = 0.002  # log space: ~0.2 % of a unit BRDF; 0.01 brought back the dark samples' lift
 REFIT_DIRECTIONS = 4096  # valid MERL bins the refit fits at (those of the clamp-aware step's kind)
-BLOCK = 32  # samples per Adam run: the activations of 32 x 4096 bins stay small
+BLOCK = 32  # samples per Adam run on the CPU: the activations of 32 x 4096 bins stay small
 
 
 def clamp_refit(weights: np.ndarray, steps: int, seed: int, floor: float = FLOOR,
                 below: float = 10.0, lr: float = 3e-3, activation: str = "relu",
-                n_directions: int = REFIT_DIRECTIONS) -> np.ndarray:
+                n_directions: int = REFIT_DIRECTIONS, device="cpu") -> np.ndarray:
     """(n, 675) weights refitted to their own clamped log-space output, raised to `floor`
-    (module docstring); `steps` = 0 returns them unchanged. Deterministic given `seed`."""
+    (module docstring), on `device` (the sampler's); `steps` = 0 returns them unchanged.
+    Deterministic given `seed` (on a GPU, to its float rounding)."""
     if steps < 0 or floor < 0 or below < 1:
         raise ValueError(f"clamp refit needs steps >= 0, floor >= 0 and below >= 1; got "
                          f"{steps}, {floor}, {below} (diffusion.sample.refit_steps)")
     weights = np.asarray(weights, dtype=np.float32)
     if steps == 0 or len(weights) == 0:
         return weights
-    x = constraint_directions(seed_for(seed, "clamp_refit"), n_directions)
-    out = [_refit_block(torch.from_numpy(weights[s:s + BLOCK]), x, steps, floor, below, lr,
-                        activation) for s in range(0, len(weights), BLOCK)]
-    return torch.cat(out).numpy()
+    x = constraint_directions(seed_for(seed, "clamp_refit"), n_directions).to(device)
+    block = BLOCK if torch.device(device).type == "cpu" else len(weights)
+    out = [_refit_block(torch.from_numpy(weights[s:s + block]).to(device), x, steps, floor,
+                        below, lr, activation) for s in range(0, len(weights), block)]
+    return torch.cat(out).cpu().numpy()
 
 
 def _refit_block(w0: torch.Tensor, x: torch.Tensor, steps: int, floor: float, below: float,

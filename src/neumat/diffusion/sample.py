@@ -158,4 +158,4 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
                                           strength=strength)
         out.append(sampler.norm.decode(z).float().cpu().numpy())
     w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
-    return clamp_refit(w, refit_steps, seed, activation=activation)
+    return clamp_refit(w, refit_steps, seed, activation=activation, device=sampler.device)

@@ -291,4 +291,4 @@ class Sampler:
                                            clip=clip, constrain=constrain)
             out.append(self.norm.decode(z).float().cpu().numpy())
         w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
-        return clamp_refit(w, refit_steps, seed, activation=activation)
+        return clamp_refit(w, refit_steps, seed, activation=activation, device=self.device)
