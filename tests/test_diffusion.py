@@ -598,14 +598,15 @@ def test_clamp_refit_lifts_negative_bins_and_keeps_the_clamped_output():
     kw = dict(seed=4, n_directions=1024)  # the default 4096 costs 4x: the same behaviour
     x = constraint_directions(99, 2000)  # not the refit's own directions
     raw = lambda v: nbrdf.forward_raw(torch.as_tensor(v), x)  # noqa: E731
-    r = clamp_refit(w, 100, **kw)
+    r = clamp_refit(w, 60, **kw)
     before, after = raw(w), raw(r)
     assert (before < -0.01).float().mean() > 0.25
     assert (after < -0.01).float().mean() < 0.005, (after < -0.01).float().mean()
     moved = (after.clamp_min(0) - before.clamp_min(0)).abs()
     assert moved.mean() < 0.01 and torch.quantile(moved.flatten(), 0.99) < 0.05, moved.max()
-    assert np.array_equal(clamp_refit(w, 100, **kw), r)
-    assert np.abs(clamp_refit(w[11:], 100, **kw) - r[11:]).max() < 1e-5
+    part = clamp_refit(w[11:], 60, **kw)
+    assert np.array_equal(clamp_refit(w[11:], 60, **kw), part)  # deterministic
+    assert np.abs(part - r[11:]).max() < 1e-5
     assert np.array_equal(clamp_refit(w, 0, **kw), w)
     with pytest.raises(ValueError, match="refit_steps"):
         clamp_refit(w, -1, **kw)
@@ -614,6 +615,26 @@ def test_clamp_refit_lifts_negative_bins_and_keeps_the_clamped_output():
     plain = s.sample(8, 5, steps=5, guidance=1.0, negative_step=0.0)
     assert np.array_equal(s.sample(8, 5, steps=5, guidance=1.0, negative_step=0.0, refit_steps=20),
                           clamp_refit(plain, 20, seed=5))
+
+
+def test_clamp_refit_adam_is_torch_adam_to_the_bit():
+    """The refit's own Adam step (torch.optim imports torch._dynamo: 1.1 CPU-s a process) is
+    torch.optim.Adam's CPU path, bit for bit."""
+    from neumat.diffusion.constraints import constraint_directions
+    from neumat.diffusion.refit import _refit_block
+    w0 = nbrdf.init_weights(4, torch.Generator().manual_seed(1))
+    x = constraint_directions(3, 256)
+    ours = _refit_block(w0, x, 10, 0.002, 10.0, 3e-3, "relu")
+    target = nbrdf.forward_raw(w0, x).clamp_min(0.002)
+    w = w0.clone().requires_grad_(True)
+    opt = torch.optim.Adam([w], lr=3e-3)
+    for _ in range(10):
+        e = nbrdf.forward_raw(w, x) - target
+        loss = (e * e * torch.where(e < 0, 10.0, 1.0)).flatten(1).mean(1).sum()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+    assert torch.equal(ours, w.detach())
 
 
 def test_render_guidance_pulls_each_sample_toward_its_own_image():
