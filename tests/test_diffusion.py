@@ -618,7 +618,7 @@ def test_clamp_refit_lifts_negative_bins_and_keeps_the_clamped_output():
 
 
 def test_clamp_refit_adam_is_torch_adam_to_the_bit():
-    """The refit's own Adam step (torch.optim imports torch._dynamo: 1.1 CPU-s a process) is
+    """The refit's own Adam step (torch.optim's first optimizer imports torch._dynamo) is
     torch.optim.Adam's CPU path, bit for bit."""
     from neumat.diffusion.constraints import constraint_directions
     from neumat.diffusion.refit import _refit_block

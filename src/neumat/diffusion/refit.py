@@ -68,8 +68,8 @@ def _refit_block(w0: torch.Tensor, x: torch.Tensor, steps: int, floor: float, be
 def _adam_step(w, g, m, v, step: int, lr: float, betas=(0.9, 0.999), eps=1e-8) -> None:
     """One Adam step in place, the operations of torch.optim.Adam's single-tensor path (its
     CPU default), so the two agree to the bit (tests/test_diffusion.py). Not torch.optim itself:
-    constructing its first optimizer imports torch._dynamo, 1.1 CPU-s in every sampling process,
-    more than a small run's refit costs (e.g. 64 samples x 5 steps: 0.6 CPU-s)."""
+    constructing its first optimizer imports torch._dynamo in every sampling process, which
+    cost the test suite more CPU than the refits themselves (README, "pytest")."""
     b1, b2 = betas
     m.lerp_(g, 1 - b1)
     v.mul_(b2).addcmul_(g, g, value=1 - b2)
