@@ -590,7 +590,7 @@ def test_constrained_sampling_fewer_negative_bins_and_off_is_unchanged():
 def test_clamp_refit_lifts_negative_bins_and_keeps_the_clamped_output():
     """Random NBRDFs (about half their log-space outputs below 0): the refit leaves almost no
     bin below -0.01 at directions it never saw, while the output the renderer sees, max(x, 0),
-    moves far less than the per-step constraint's lift; deterministic; whole or in parts the
+    moves by under 0.01 on average; deterministic; whole or in parts the
     same to float rounding; 0 steps returns the input; bad settings are refused by key."""
     from neumat.diffusion.constraints import constraint_directions
     from neumat.diffusion.refit import clamp_refit
