@@ -24,7 +24,7 @@ from neumat import nbrdf
 from neumat.diffusion.constraints import constraint_directions
 from neumat.seeds import seed_for
 
-FLOOR = 0.002  # log space: ~0.2 % of a unit BRDF; 0.01 brought back the dark samples' lift
+FLOOR = 0.002  # log space (~0.2 % of a unit BRDF): the most a clamped bin is lifted
 REFIT_DIRECTIONS = 4096  # valid MERL bins the refit fits at (those of the clamp-aware step's kind)
 BLOCK = 32  # samples per Adam run on the CPU: the activations of 32 x 4096 bins stay small
 
