@@ -127,6 +127,14 @@ def grid_inputs() -> np.ndarray:
     return _frozen(half_diff_cartesian(*grid_angles()).astype(np.float32))
 
 
+@functools.cache
+def valid_grid_inputs_t() -> np.ndarray:
+    """grid_inputs at the valid bins (valid_mask), in file order, transposed: (6, valid bins)
+    float32, read-only. The only bins whose values a field decides (the others are -1 in every
+    file), channel-major for nbrdf.forward_channels."""
+    return _frozen(np.ascontiguousarray(grid_inputs()[valid_mask()].T))
+
+
 # Negative above-horizon bins: AugMERL drops such a bin from every material. Real MERL tables
 # store -1 below the horizon only; measured on the 100 published NBRDF fits decoded to MERL
 # (benchmarks/merl_negative_bins.py), each has 45 of 1,096,216 (0.0041 %): bins whose centre is
