@@ -132,7 +132,8 @@ def valid_grid_inputs_t() -> np.ndarray:
     """grid_inputs at the valid bins (valid_mask), in file order, transposed: (6, valid bins)
     float32, read-only. The only bins whose values a field decides (the others are -1 in every
     file), channel-major for nbrdf.forward_channels."""
-    return _frozen(np.ascontiguousarray(grid_inputs()[valid_mask()].T))
+    angles = (a[valid_mask()] for a in grid_angles())  # elementwise: grid_inputs' values
+    return _frozen(np.ascontiguousarray(half_diff_cartesian(*angles).astype(np.float32).T))
 
 
 # Negative above-horizon bins: AugMERL drops such a bin from every material. Real MERL tables
