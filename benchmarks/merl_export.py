@@ -1,12 +1,12 @@
 """Exporting NBRDF fields to MERL .binary tables (`neumat sample`, rules `export_samples` and
 `neumerl_export`): `nbrdf.evaluate_grid` (channel-major layers, valid bins only, since
-2026-11-26) against the version before it in the same run (`row_major_grid`: `nbrdf.forward`'s
-row-major layers at every bin, the invalid ones then overwritten), for one table and a batch of
-8; and `merl.write_merl` against writing the same bytes with one `ndarray.tofile` (the bound).
-Prints the best wall time, CPU seconds split user/system, the minor page faults, the ratios,
-and the evaluation's rate (the matmuls of the bins it evaluates) as a fraction of this
-machine's fp32 sgemm rate, with the ISA and the CPU model. The two give the same tables to
-float32 rounding (checked here).
+2026-11-26) against the version before it in the same run (`row_major_grid`: row-major
+layers, `nbrdf_layout.row_major`, at every bin, the invalid ones then overwritten), for one
+table and a batch of 8; and `merl.write_merl` against writing the same bytes with one
+`ndarray.tofile` (the bound). Prints the best wall time, CPU seconds split user/system, the
+minor page faults, the ratios, and the evaluation's rate (the matmuls of the bins it
+evaluates) as a fraction of this machine's fp32 sgemm rate, with the ISA and the CPU model.
+The two give the same tables to float32 rounding (checked here).
 
     OMP_NUM_THREADS=1 python benchmarks/merl_export.py [--repeat 5]
 """
@@ -24,6 +24,7 @@ import torch
 
 from neumat import machine, nbrdf
 from neumat.io import merl
+from nbrdf_layout import row_major  # this directory: the row-major layers of the baseline
 
 
 def measure(fn, repeat):
@@ -41,15 +42,15 @@ def measure(fn, repeat):
 
 
 def row_major_grid(w: torch.Tensor) -> np.ndarray:
-    """The baseline: evaluate_grid before 2026-11-26, every bin through nbrdf.forward (rows of
-    (bins, features)), 2^15 / B bins a chunk, the invalid bins overwritten with -1/scale."""
+    """The baseline: evaluate_grid before 2026-11-26, every bin through row-major layers
+    (nbrdf.forward then), 2^15 / B bins a chunk, the invalid bins overwritten with -1/scale."""
     grid = merl.grid_inputs()
     chunk = 1 << max(10, ((1 << 15) // max(1, w.shape[0])).bit_length() - 1)
     out = np.empty((w.shape[0], 3, merl.N_BINS), dtype=np.float64)
     with torch.no_grad():
         for s in range(0, merl.N_BINS, chunk):
             x = torch.from_numpy(grid[s:s + chunk].copy())
-            out[:, :, s:s + chunk] = nbrdf.forward(w, x).numpy().transpose(0, 2, 1)
+            out[:, :, s:s + chunk] = torch.relu(torch.expm1(row_major(w, x))).numpy().transpose(0, 2, 1)
     out[:, :, ~merl.valid_mask()] = -1.0 * merl.SCALE[None, :, None]
     return out.reshape(w.shape[0], *merl.SHAPE)
 

@@ -51,15 +51,29 @@ def _act(x, activation):
 
 
 def forward_raw(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch.Tensor:
-    """Pre-output-activation value. w (B, 675), x (B, N, 6) or (N, 6) -> (B, N, 3)."""
-    W1, b1, W2, b2, W3, b3 = unflatten(w)
+    """Pre-output-activation value. w (B, 675), x (B, N, 6) or (N, 6) -> (B, N, 3); for
+    shared inputs (N, 6) computed channel-major (`forward_raw_channels`) and returned as a
+    transposed view."""
     if x.dim() == 2:  # shared inputs for all materials
-        h = torch.einsum("nk,bok->bno", x, W1)
-    else:
-        h = torch.bmm(x, W1.transpose(1, 2))
-    h = _act(h + b1[:, None], activation)
+        return forward_raw_channels(w, x.t(), activation).transpose(1, 2)
+    W1, b1, W2, b2, W3, b3 = unflatten(w)
+    h = _act(torch.bmm(x, W1.transpose(1, 2)) + b1[:, None], activation)
     h = _act(torch.baddbmm(b2[:, None], h, W2.transpose(1, 2)), activation)
     return torch.baddbmm(b3[:, None], h, W3.transpose(1, 2))
+
+
+def forward_raw_channels(w: torch.Tensor, xt: torch.Tensor, activation: str = "relu") -> torch.Tensor:
+    """`forward_raw` channel-major: w (B, 675), xt (6, N) shared inputs -> (B, 3, N). Each
+    layer is W @ H, (out, in) x (in, N), the long dimension last, where the matmul kernels run
+    faster than on (N, in) x (in, out): a forward pass 1.65x (1 field x 2^15 inputs) and 1.85x
+    (8 x 2^12), the clamp-aware step's penalty gradient (32 fields x 4096 directions, forward
+    and backward) 1.31x on one thread; 1.23x, 1.64x and 1.44x on two; with MKL, oneDNN and
+    ATen held to AVX2 1.70x, 1.70x and 1.34x (benchmarks/nbrdf_layout.py, AMD EPYC AVX-512,
+    2026-11-26). The same values as row-major to float32 rounding."""
+    W1, b1, W2, b2, W3, b3 = unflatten(w)
+    h = _act(torch.matmul(W1, xt) + b1[..., None], activation)
+    h = _act(torch.baddbmm(b2[..., None], W2, h), activation)
+    return torch.baddbmm(b3[..., None], W3, h)
 
 
 def forward(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch.Tensor:
@@ -68,15 +82,9 @@ def forward(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> torch
 
 
 def forward_channels(w: torch.Tensor, xt: torch.Tensor, activation: str = "relu") -> torch.Tensor:
-    """`forward` in channel-major layout: w (B, 675), xt (6, N) shared inputs -> (B, 3, N)
-    physical BRDF values, the layout of a MERL file. Each layer is W @ H, (out, in) x (in, N):
-    the long dimension last, where the matmul kernels run at about twice the rate of
-    `forward`'s (N, in) x (in, out) (one thread, 2^15 inputs, 1 or 8 fields: 36 against 18
-    GFLOPS; AMD EPYC AVX-512, 2026-11-26). The same values to float32 rounding."""
-    W1, b1, W2, b2, W3, b3 = unflatten(w)
-    h = _act(torch.matmul(W1, xt) + b1[..., None], activation)
-    h = _act(torch.baddbmm(b2[..., None], W2, h), activation)
-    return torch.relu(torch.expm1(torch.baddbmm(b3[..., None], W3, h)))
+    """`forward` channel-major: w (B, 675), xt (6, N) shared inputs -> (B, 3, N) physical BRDF
+    values, the layout of a MERL file (`evaluate_grid`)."""
+    return torch.relu(torch.expm1(forward_raw_channels(w, xt, activation)))
 
 
 def init_weights(n: int, generator: torch.Generator | None = None) -> torch.Tensor:
@@ -103,8 +111,9 @@ def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int | None =
 
     Only the valid (above-horizon) bins are evaluated (1,096,216 of 1,458,000), by
     `forward_channels`; the others are -1/scale like measured MERL files (negative = invalid).
-    Against `forward` at every bin: 1.83x for one table, 2.04x for 8 (one thread; 2 threads
-    1.35x and 1.19x; benchmarks/merl_export.py, AMD EPYC AVX-512, 2026-11-26).
+    Against row-major layers at every bin (the version before): 2.04x for one table, 2.20x
+    for 8 (one thread; 2 threads 1.44x and 1.71x; benchmarks/merl_export.py, AMD EPYC
+    AVX-512, 2026-11-26).
     `chunk` bins at a time; on the CPU by default 2^15 / B rounded down to a power of two (at
     least 1024), so a chunk's activations stay in cache and the allocator reuses them. With
     2^18 bins each chunk mapped and zeroed fresh pages: one table took 1.10-1.25x and a batch
