@@ -95,6 +95,21 @@ def test_evaluate_grid_is_the_field_at_every_bin_whatever_the_chunk():
     assert np.array_equal(nbrdf.evaluate_grid(w[1:2], act)[0], t[1])  # batch-independent
 
 
+def test_channel_major_layers_are_the_row_major_field():
+    """Shared inputs go through the layers channel-major (nbrdf.forward_raw_channels, for
+    speed); per-field inputs through row-major bmm: the same field to float32 rounding, and
+    forward_channels is forward transposed, bit for bit."""
+    w = nbrdf.init_weights(5, torch.Generator().manual_seed(3)) * 2
+    x = torch.from_numpy(merl.valid_grid_inputs_t()[:, ::97].T.copy())
+    for act in nbrdf.ACTIVATIONS:
+        shared = nbrdf.forward_raw(w, x, act)
+        per_field = nbrdf.forward_raw(w, x.expand(len(w), *x.shape).contiguous(), act)
+        assert shared.shape == per_field.shape == (5, len(x), 3)
+        torch.testing.assert_close(shared, per_field, rtol=1e-5, atol=1e-5)
+        assert torch.equal(nbrdf.forward_channels(w, x.t(), act),
+                           nbrdf.forward(w, x, act).transpose(1, 2))
+
+
 def test_round_trip_of_arbitrary_table_within_one_ulp(tmp_path):
     x = rng.lognormal(-3, 3, merl.SHAPE)
     merl.write_merl(tmp_path / "c.binary", x)
