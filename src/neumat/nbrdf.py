@@ -117,8 +117,9 @@ def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int | None =
     `chunk` bins at a time; on the CPU by default 2^15 / B rounded down to a power of two (at
     least 1024), so a chunk's activations stay in cache and the allocator reuses them. With
     2^18 bins each chunk mapped and zeroed fresh pages: one table took 1.10-1.25x and a batch
-    of 8 3.9-4.2x as long (row-major layers then; same benchmark, 2026-11-26). The values do
-    not depend on the chunk size (power-of-two chunks, on this machine: tests/test_merl_io.py)."""
+    of 8 3.9-4.2x as long (row-major layers then; merl_export.py before 52ebb93, 2026-11-26).
+    The values do not depend on the chunk size (power-of-two chunks, on this machine:
+    tests/test_merl_io.py)."""
     from neumat.io import merl
 
     grid = merl.valid_grid_inputs_t()
@@ -129,13 +130,13 @@ def evaluate_grid(w: torch.Tensor, activation: str = "relu", chunk: int | None =
         # 2^10 to 2^18 gave the same bits (tests/test_merl_io.py)
         per = (1 << 15) // max(1, w.shape[0])
         chunk = 1 << 18 if w.device.type != "cpu" else 1 << max(10, per.bit_length() - 1)
-    # channel-major as the file, so the reshape below copies nothing
     valid = np.empty((w.shape[0], 3, grid.shape[1]), dtype=np.float32)
     with torch.no_grad():
         for s in range(0, grid.shape[1], chunk):
             # a writable copy of the chunk (torch warns on the shared read-only array)
             x = torch.from_numpy(grid[:, s:s + chunk].copy()).to(device)
             valid[:, :, s:s + chunk] = forward_channels(w, x, activation).cpu().numpy()
+    # channel-major as the file, so the reshape below copies nothing
     out = np.empty((w.shape[0], 3, merl.N_BINS), dtype=np.float64)
     for table, values in zip(out, valid):
         for row, v, scale in zip(table, values, merl.SCALE):
