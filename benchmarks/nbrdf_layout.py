@@ -13,10 +13,10 @@ machine's fp32 sgemm rate (2048^3, measured in the same run), with the ISA and t
 from __future__ import annotations
 
 import argparse
-import time
 
 import torch
 
+from constraint_step import best_ms  # this directory
 from neumat import machine, nbrdf
 from neumat.diffusion import constraints
 
@@ -29,16 +29,6 @@ def row_major(w: torch.Tensor, x: torch.Tensor, activation: str = "relu") -> tor
     h = nbrdf._act(torch.einsum("nk,bok->bno", x, W1) + b1[:, None], activation)
     h = nbrdf._act(torch.baddbmm(b2[:, None], h, W2.transpose(1, 2)), activation)
     return torch.baddbmm(b3[:, None], h, W3.transpose(1, 2))
-
-
-def best_ms(fn, repeat: int) -> float:
-    fn()
-    best = float("inf")
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best * 1e3
 
 
 def forward_only(f, w, x):
