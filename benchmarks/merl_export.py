@@ -50,7 +50,8 @@ def row_major_grid(w: torch.Tensor) -> np.ndarray:
     with torch.no_grad():
         for s in range(0, merl.N_BINS, chunk):
             x = torch.from_numpy(grid[s:s + chunk].copy())
-            out[:, :, s:s + chunk] = torch.relu(torch.expm1(row_major(w, x))).numpy().transpose(0, 2, 1)
+            f = torch.relu(torch.expm1(row_major(w, x)))
+            out[:, :, s:s + chunk] = f.numpy().transpose(0, 2, 1)
     out[:, :, ~merl.valid_mask()] = -1.0 * merl.SCALE[None, :, None]
     return out.reshape(w.shape[0], *merl.SHAPE)
 

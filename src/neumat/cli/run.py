@@ -122,7 +122,7 @@ class Run:
 
     def config(self) -> dict | None:
         """The run's config (defaults filled in), as recorded in report/index.md by `report`;
-        read once per Run (`neumat sample` asks for several keys: five parses were 0.2 s)."""
+        parsed once per Run (`neumat sample` asks it for several keys)."""
         if not hasattr(self, "_config"):
             self._config = self._read_config()
         return self._config
@@ -133,7 +133,9 @@ class Run:
         if not md.exists():
             return None
         m = re.search(r"## Configuration of this run.*?```yaml\n(.*?)```", md.read_text(), re.S)
-        return yaml.load(m.group(1), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)) if m else None
+        if not m:
+            return None
+        return yaml.load(m.group(1), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
     def activation(self) -> str:
         cfg = self.config() or {}
