@@ -20,6 +20,12 @@ constraint (diffusion.sample.negative_step) does: cheap measurements on a traine
            material (diffusion_nearest: same bins and seed), next to the real fits' figures
            (--real). Setting keys: steps, eta, clip, negative_step, and gauss_below (the
            Gaussian MMSE denoiser replaces the model below that t: an experiment).
+  kinds  : where Table 2's image rows are won and lost: for every column of a finished run
+           (its samples/<column>/ files, cut into the run's draws) the terms of MMD and COV
+           under render RMSE, i.e. each reference's distance to its nearest sample and whether
+           it is some sample's nearest reference, averaged per kind of reference (the AugMERL
+           operation that made it: original, permutation, interpolation), mean and std over
+           draws. The references' renders come from the run's metrics/reference.pt; no model.
 
 The model is a workflow model.pt or a train_diffusion checkpoint.pt (its EMA weights; the
 normaliser is refitted on the training rows, exactly as train() does).
@@ -28,9 +34,11 @@ normaliser is refitted on the training rows, exactly as train() does).
   python benchmarks/diffusion_diagnose.py roundtrip --model M --results R --n 256
   python benchmarks/diffusion_diagnose.py sample --model M --results R --n 128 --seeds 0 1 \
       --grid steps=100,eta=0,negative_step=0 --grid steps=100,eta=0,negative_step=1
+  python benchmarks/diffusion_diagnose.py kinds --results R --draws 3
 """
 
 import argparse
+import os
 import time
 
 import numpy as np
@@ -41,7 +49,7 @@ from neumat import machine, nbrdf
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, dataset, plausibility
 from neumat.diffusion.model import Normalizer
 from neumat.io import modelfile
-from neumat.metrics import distances
+from neumat.metrics import distances, evaluate, materials
 from neumat.seeds import seed_for
 
 T_GRID = [0, 25, 50, 100, 200, 300, 400, 500, 600, 700, 800, 900, 999]
@@ -302,10 +310,52 @@ def cmd_sample(a):
     print(f"[{machine.describe()}]")
 
 
+COLUMNS = ["training", "pca_a", "pca_n", "vae_a", "vae_n", "merl100", "ours"]
+
+
+def cmd_kinds(a):
+    ref = evaluate.load_reference(f"{a.results}/metrics/reference.pt")
+    ri = ref["images"]
+    man = pd.read_csv(f"{a.results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
+    ids = pd.read_csv(f"{a.results}/samples/reference/samples.tsv", sep="\t")["id"]
+    kind = man.set_index("id").loc[ids, "operation"].to_numpy()
+    if len(kind) != len(ri):
+        raise SystemExit(f"{len(kind)} reference ids for {len(ri)} prepared renders: "
+                         "metrics/reference.pt is not this run's reference set")
+    out = []
+    for col in COLUMNS:
+        path = next((f"{a.results}/samples/{col}/{f}" for f in ("weights.npy", "tables.npz")
+                     if os.path.exists(f"{a.results}/samples/{col}/{f}")), None)
+        if path is None:
+            print(f"{col}: no samples, skipped")
+            continue
+        s = materials.load(path)
+        n = len(s) // a.draws
+        for d in range(a.draws):
+            si = materials.renders(materials.rows(s, slice(d * n, (d + 1) * n)), ri.shape[1],
+                                   a.activation)
+            rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](ri, si))
+            nearest = rs.min(1).values.numpy()
+            covered = np.zeros(len(ri), bool)
+            covered[rs.argmin(0).unique().numpy()] = True
+            for k in [*np.unique(kind), "all"]:
+                m = kind == k if k != "all" else np.ones(len(kind), bool)
+                out.append({"kind": f"{k} ({m.sum()})", "column": col, "draw": d,
+                            "MMD RMSE x10^2": 100 * nearest[m].mean(),
+                            "COV RMSE %": 100 * covered[m].mean()})
+        print(f"{col}: {a.draws} draws of {n}", flush=True)
+    t = pd.DataFrame(out).groupby(["kind", "column"], sort=False)[
+        ["MMD RMSE x10^2", "COV RMSE %"]].agg(["mean", "std"])
+    pd.set_option("display.width", 160)
+    print(t.to_string(float_format="%.2f"))
+    print(f"[{machine.describe()}]")
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("command", choices=["loss", "roundtrip", "sample"])
-    p.add_argument("--model", required=True, help="model.pt or checkpoint.pt of train_diffusion")
+    p.add_argument("command", choices=["loss", "roundtrip", "sample", "kinds"])
+    p.add_argument("--model", help="model.pt or checkpoint.pt of train_diffusion (not for kinds)")
+    p.add_argument("--draws", type=int, default=3, help="kinds: the run's metrics.draws")
     p.add_argument("--results", required=True, help="results/<run> directory (neumerl/ inside)")
     p.add_argument("--which", default="ours", choices=dataset.MODELS)
     p.add_argument("--seed", type=int, default=0, help="config seed (named streams)")
@@ -322,7 +372,11 @@ def main():
                    help="coordinates with a training std at most this are 'frozen'")
     a = p.parse_args()
     torch.set_num_threads(1)
-    if a.command == "loss":
+    if a.command != "kinds" and not a.model:
+        p.error(f"{a.command} needs --model")
+    if a.command == "kinds":
+        cmd_kinds(a)
+    elif a.command == "loss":
         cmd_loss(a)
     elif a.command == "roundtrip":
         cmd_roundtrip(a)
