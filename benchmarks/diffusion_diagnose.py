@@ -313,15 +313,30 @@ def cmd_sample(a):
 COLUMNS = ["training", "pca_a", "pca_n", "vae_a", "vae_n", "merl100", "ours"]
 
 
-def cmd_kinds(a):
-    ref = evaluate.load_reference(f"{a.results}/metrics/reference.pt")
-    ri = ref["images"]
-    man = pd.read_csv(f"{a.results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
-    ids = pd.read_csv(f"{a.results}/samples/reference/samples.tsv", sep="\t")["id"]
+def reference_kinds(results, n):
+    """The AugMERL operation (original, permutation, interpolation) of each reference."""
+    man = pd.read_csv(f"{results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
+    ids = pd.read_csv(f"{results}/samples/reference/samples.tsv", sep="\t")["id"]
     kind = man.set_index("id").loc[ids, "operation"].to_numpy()
-    if len(kind) != len(ri):
-        raise SystemExit(f"{len(kind)} reference ids for {len(ri)} prepared renders: "
+    if len(kind) != n:
+        raise SystemExit(f"{len(kind)} reference ids for {n} prepared renders: "
                          "metrics/reference.pt is not this run's reference set")
+    return kind
+
+
+def nearest_terms(ri, smp, activation):
+    """Per reference: render RMSE to its nearest sample (MMD's terms) and whether it is some
+    sample's nearest reference (COV's)."""
+    rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](
+        ri, materials.renders(smp, ri.shape[1], activation)))
+    covered = np.zeros(len(ri), bool)
+    covered[rs.argmin(0).unique().numpy()] = True
+    return rs.min(1).values.numpy(), covered
+
+
+def cmd_kinds(a):
+    ri = evaluate.load_reference(f"{a.results}/metrics/reference.pt")["images"]
+    kind = reference_kinds(a.results, len(ri))
     out = []
     for col in COLUMNS:
         path = next((f"{a.results}/samples/{col}/{f}" for f in ("weights.npy", "tables.npz")
@@ -332,12 +347,8 @@ def cmd_kinds(a):
         s = materials.load(path)
         n = len(s) // a.draws
         for d in range(a.draws):
-            si = materials.renders(materials.rows(s, slice(d * n, (d + 1) * n)), ri.shape[1],
-                                   a.activation)
-            rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](ri, si))
-            nearest = rs.min(1).values.numpy()
-            covered = np.zeros(len(ri), bool)
-            covered[rs.argmin(0).unique().numpy()] = True
+            nearest, covered = nearest_terms(ri, materials.rows(s, slice(d * n, (d + 1) * n)),
+                                             a.activation)
             for k in [*np.unique(kind), "all"]:
                 m = kind == k if k != "all" else np.ones(len(kind), bool)
                 out.append({"kind": f"{k} ({m.sum()})", "column": col, "draw": d,
