@@ -16,11 +16,14 @@ reference, metrics/reference.pt). It is set beside the run's other generative co
   columns': the step lifts the NBRDF's output, and dark renders go missing first.
 
 The baseline is the run's own `ours` (metrics/ours.csv) at the run's lambda. A line checks that
-lambda's resampled draws reproduce that file.
+lambda's resampled draws reproduce that file. `--model M` samples another model.pt (e.g. one
+trained on the run's rows in another way) in `ours`' place, with the same settings and seeds;
+the check is then skipped.
 
     OMP_NUM_THREADS=2 python benchmarks/clamp_step_table2.py --results results/default --steps 0 10 30
         [--refit 0 300]   # per lambda: without the refit, and with 300 steps of it
         [--config C]   # settings: the run's recorded config (report/index.md), else the schema
+        [--model M]    # another model.pt in ours' place
 """
 from __future__ import annotations
 
@@ -80,8 +83,11 @@ def main():
                     help="clamp-aware refit steps (diffusion.sample.refit_steps) per lambda; 0 = none")
     ap.add_argument("--config", help="a config whose keys override the run's recorded config "
                                      "(default: that, or the schema's defaults)")
+    ap.add_argument("--model", help="a model.pt to sample in ours' place (default: the run's "
+                                    "diffusion/ours/model.pt)")
     a = ap.parse_args()
     run = Path(a.results)
+    model = Path(a.model) if a.model else run / "diffusion/ours/model.pt"
     # the run's config as `report` recorded it, else the schema defaults; --config's keys first
     setting = cli.Run(run, yaml.safe_load(Path(a.config).read_text()) if a.config else None).setting
 
@@ -100,11 +106,11 @@ def main():
     man = dataset.read_manifest(run / "neumerl/manifest.tsv")
     n_ref = len(dataset.reference_rows(man))
     draw_seeds = [seeds.seed_for(seed, "sample", "ours", d) for d in range(draws)]
-    sampler = Sampler(str(run / "diffusion/ours/model.pt"), "cpu")
+    sampler = Sampler(str(model), "cpu")
     others = {m: stats(pd.read_csv(run / f"metrics/{m}.csv")) for m in OTHERS}
     baseline = pd.read_csv(run / "metrics/ours.csv")
     print(f"machine: {machine.describe()}; {run}: {draws} draws x {n_ref} samples, "
-          f"{len(ref)} references, run's lambda {s['negative_step']}")
+          f"{len(ref)} references, run's lambda {s['negative_step']}; ours sampled from {model}")
     print("render brightness, median [10th, 90th percentile] of the mean sRGB per material, first "
           "draw: reference " + brightness(ref, kw["resolution"], activation) + "; " + "; ".join(
               f"{m} " + brightness(materials.rows(materials.load(run / SAMPLES.get(
@@ -130,7 +136,7 @@ def main():
               f"samples clamping a negative bin {clamp[lam]:.3f} (mean clamped share "
               f"{summary['mean_negative_share']:.4f}); render brightness "
               f"{brightness(w[:n_ref], kw['resolution'], activation)}")
-        if lam == name(*run_variant):
+        if lam == name(*run_variant) and not a.model:
             got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
             rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
             print(f"  check against the run's metrics/ours.csv: {len(got)} values, max relative "
