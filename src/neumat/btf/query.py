@@ -99,7 +99,8 @@ def _wrapped(t: torch.Tensor) -> torch.Tensor:
 
 def hex_planes(hexs) -> tuple[torch.Tensor, torch.Tensor]:
     """Hex-tiling's plane (H, W, C + 1) as the kernel reads it: the features (H + 1, W + 1, C)
-    and the luminance (H + 1, W + 1), float32, each wrapped by one row and column, so a
+    in float16 (which holds them exactly: hextile._rounded rounds them) and the luminance
+    (H + 1, W + 1) in float32, each wrapped by one row and column, so a
     vertex's bilinear footprint is one texel offset into both (struct hpb). Cached on the
     synthesis object, as hpb_plane."""
     pl = hexs.plane_lum
@@ -107,7 +108,7 @@ def hex_planes(hexs) -> tuple[torch.Tensor, torch.Tensor]:
     if cached is not None and cached[0] is pl:
         return cached[1]
     p = _wrapped(pl.detach().float())
-    planes = (p[..., :-1].contiguous(), p[..., -1].contiguous())
+    planes = (p[..., :-1].to(torch.float16).contiguous(), p[..., -1].contiguous())
     hexs._kernel_planes = (pl, planes)
     return planes
 

@@ -19,7 +19,8 @@
  * hpb_features: those features
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
  * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
- * same grid, hash and taps (struct hpb with `hex` set), blended in hex_fill_c.
+ * same grid, hash and taps (struct hpb with `hex` set; its features in float16 as HPB's plane,
+ * which hextile._rounded rounds them to), blended in hex_fill_c.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
@@ -205,8 +206,6 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *gauss;     /* hex-tiling: (H + 1, W + 1, C) f_U, wrapped by one row and column
-                               (neumat.btf.query.hex_planes) */
     const float *lum;       /* hex-tiling: (H + 1, W + 1) its luminance, wrapped the same way */
     int H, W;
     const float *lut;       /* (C, L, 2) inverse LUT (HPB only) as (value, slope) pairs: entry
@@ -224,7 +223,14 @@ struct hpb {
                                the three vertices are read from L2/L3 at random; HPB's overhead
                                over the plain query, float32 -> float16 (one thread, CPU time,
                                best of 15; AMD EPYC): +12.5 -> +11.6 % (AVX-512 build), +24.3
-                               -> +20.3 % (AVX2 build) */
+                               -> +20.3 % (AVX2 build). Hex-tiling: its features f_U (H + 1,
+                               W + 1, C), wrapped the same way (neumat.btf.query.hex_planes;
+                               hextile._rounded rounds them to float16), which took
+                               hex-tiling's overhead from +25.4, +24.9 to +21.2, +19.9 %
+                               (AVX-512 build) and from +33.6, +34.3 to +31.5, +31.7 % (AVX2
+                               build; btf_synthesis.py --methods hpb hextile --no-torch
+                               --repeat 9, one thread, two alternating rounds; AMD EPYC,
+                               2026-11-26) */
 };
 
 /* A float16 value (IEEE binary16 bits) as float, exactly: F16C where the target has it, else
@@ -419,7 +425,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     const long pitch = (long)C * (s->W + 1);
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {
-            const float *a = s->gauss + (long)p->off[v][q] * C;
+            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * C;
             __builtin_prefetch(a, 0, 1);
             __builtin_prefetch(a + 2 * C - 1, 0, 1);
             __builtin_prefetch(a + pitch, 0, 1);
@@ -441,23 +447,21 @@ hex_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p)
 
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
 static inline __attribute__((always_inline)) IEEE __m256
-tap8(__m256 acc, const void *x, int f16, float w)  /* acc + w x[0:8], x float16 or float */
+tap8(__m256 acc, const uint16_t *x, float w)  /* acc + w x[0:8], x float16 */
 {
-    __m256 v = f16 ? _mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)x))
-                   : _mm256_loadu_ps((const float *)x);
+    __m256 v = _mm256_cvtph_ps(_mm_loadu_si128((const __m128i *)x));
     return _mm256_fmadd_ps(v, _mm256_set1_ps(w), acc);
 }
 #endif
 
 /* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at texel off[v] * scale
- * (elements) of `plane` (float16 when f16), weighted by tw (the blend weights folded into the
- * bilinear ones), for a tile. Shared by HPB (float16, scale 1) and hex-tiling (float, scale
- * C); C, f16 and scale are constants after inlining. */
+ * (elements) of the float16 `plane`, weighted by tw (the blend weights folded into the
+ * bilinear ones), for a tile. Shared by HPB (scale 1) and hex-tiling (scale C); C and scale
+ * are constants after inlining. */
 static inline __attribute__((always_inline)) IEEE void
-blend_taps(int C, const void *plane, int f16, long scale, long pitch,
+blend_taps(int C, const uint16_t *plane, long scale, long pitch,
            const int32_t (*restrict off)[T], const float (*restrict tw)[T], float *restrict X)
 {
-    const size_t es = f16 ? 2 : 4;
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
     if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
                       into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
@@ -467,12 +471,11 @@ blend_taps(int C, const void *plane, int f16, long scale, long pitch,
                 int q = q0 + k;
                 __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
                 for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
-                    const char *a = (const char *)plane + es * (off[v][q] * scale),
-                               *d = a + es * pitch;
-                    acc0 = tap8(acc0, a, f16, tw[4 * v][q]);
-                    acc1 = tap8(acc1, d, f16, tw[4 * v + 2][q]);
-                    acc0 = tap8(acc0, a + 8 * es, f16, tw[4 * v + 1][q]);
-                    acc1 = tap8(acc1, d + 8 * es, f16, tw[4 * v + 3][q]);
+                    const uint16_t *a = plane + off[v][q] * scale, *d = a + pitch;
+                    acc0 = tap8(acc0, a, tw[4 * v][q]);
+                    acc1 = tap8(acc1, d, tw[4 * v + 2][q]);
+                    acc0 = tap8(acc0, a + 8, tw[4 * v + 1][q]);
+                    acc1 = tap8(acc1, d + 8, tw[4 * v + 3][q]);
                 }
                 r[k] = _mm256_add_ps(acc0, acc1);
             }
@@ -506,7 +509,7 @@ blend_taps(int C, const void *plane, int f16, long scale, long pitch,
             long o = off[v][q] * scale;
             float t0 = tw[4 * v][q], t1 = tw[4 * v + 1][q], t2 = tw[4 * v + 2][q],
                   t3 = tw[4 * v + 3][q];
-#define AT(k) (f16 ? h2f(((const uint16_t *)plane)[k]) : ((const float *)plane)[k])
+#define AT(k) h2f(plane[k])
             for (int c = 0; c < C; c++)  /* two short chains: more in flight */
                 acc[c] += (t0 * AT(o + c) + t1 * AT(o + C + c)) +
                           (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + C + c));
@@ -555,7 +558,7 @@ lut_fetch(const pair_t *restrict row, const int *restrict is, pair_t *restrict o
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    blend_taps(C, s->gauss16, 1, 1, (long)C * (s->W + 1), p->off, p->tw, X);
+    blend_taps(C, s->gauss16, 1, (long)C * (s->W + 1), p->off, p->tw, X);
     const int L = s->L;
 #if defined(__AVX512F__)
     if (s->planar) {  /* the 128-entry LUT of a channel in 16 registers (8 of values, 8 of
@@ -738,7 +741,7 @@ hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
     for (int k = 0; k < 12; k++)
         for (int q = 0; q < T; q++)
             tw[k][q] = wt[k / 4][q] * p->tw[k][q];
-    blend_taps(C, s->gauss, 0, C, (long)C * W1, p->off, tw, X);
+    blend_taps(C, s->gauss16, C, (long)C * W1, p->off, tw, X);
 }
 
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
@@ -880,7 +883,7 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, NULL, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
     s.planar = lut_planar(&s, Cu, planar);
@@ -891,13 +894,14 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
 /* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) and lum (H + 1, W + 1):
  * neumat.btf.query.hex_planes). */
 void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
-                          const float *plane, const float *lum, int H, int W, int Cu, uint32_t seed,
+                          const uint16_t *plane, const float *lum, int H, int W, int Cu, uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, plane, lum, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
+    struct hpb s = {u, lum, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
                     gain};
+    s.gauss16 = plane;
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
@@ -907,7 +911,7 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
                   const float *lut, int Lut, uint32_t seed, const float *mean,
                   const float *basis, float *out)
 {
-    struct hpb s = {u, NULL, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);

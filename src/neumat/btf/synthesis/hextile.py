@@ -9,6 +9,8 @@ the integer vertex hash instead of |vx vy| + |vx + vy| + pi (that product of two
 vertices is not representable in the shader's float32 at u = 1e5); (2) feature planes have no
 colour, so `luminance` is the decoded BTF's luminance at the texel, head-on light and view,
 scaled to [0, 1] (`luminance` below), stored as one extra channel fetched with the taps.
+The features are rounded to float16 (`_rounded`), as HPB's Gaussianised plane is: the CPU kernel
+then reads half the bytes per tap, and the torch, Triton and C paths read the same values.
 
 `__call__` is the torch path: the reference. `Synthesized` queries on the CPU run the same
 synthesis inside the fused C query (`btf_triple_plane_hex` in neumat/btf/query_kernel.c,
@@ -58,27 +60,36 @@ def _power(x: torch.Tensor, e: float) -> torch.Tensor:
     return x ** e
 
 
+def _rounded(plane_lum: torch.Tensor) -> torch.Tensor:
+    """(H, W, C + 1) float32 with the C features rounded to float16 (at most 2^-12 relative
+    off), the luminance kept: the C kernel stores the features exactly in float16, half the
+    bytes of its random taps (its overhead before and after: struct hpb in
+    neumat/btf/query_kernel.c)."""
+    pl = plane_lum.detach().float().clone()
+    pl[..., :-1] = pl[..., :-1].to(torch.float16).float()
+    return pl.contiguous()
+
+
 class HexTile:
     method, dynamic = "hextile", True
 
     def __init__(self, seed, plane_lum, settings=None):
-        self.seed, self.plane_lum = int(seed), plane_lum
+        self.seed, self.plane_lum = int(seed), _rounded(plane_lum)
         self.s = {**DEFAULTS, **(settings or {})}
 
     @classmethod
     def build(cls, plane, seed, settings=None, luminance=None):
         if luminance is None:
             raise ValueError("hex-tiling needs the luminance plane of the decoded BTF")
-        pl = torch.cat([plane.detach().float(), luminance.float()[..., None]], -1).contiguous()
-        return cls(seed, pl, settings)
+        return cls(seed, torch.cat([plane.detach().float(), luminance.float()[..., None]], -1),
+                   settings)
 
     def state(self) -> dict:
         return {"luminance": self.plane_lum[..., -1].contiguous()}
 
     @classmethod
     def from_state(cls, plane, seed, state, settings=None):
-        return cls(seed, torch.cat([plane, state["luminance"][..., None]], -1).contiguous(),
-                   settings)
+        return cls(seed, torch.cat([plane, state["luminance"][..., None]], -1), settings)
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         s = self.s
