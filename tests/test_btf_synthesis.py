@@ -200,6 +200,19 @@ def test_hextile_at_u_1e5_equals_float64_reference():
     assert np.abs(got32[:25] - ref[:25]).max() > 100 * np.abs(got[:25] - ref[:25]).max()
 
 
+def test_hextile_features_are_float16_values_and_its_luminance_is_kept():
+    m = _plane_model()
+    s = syn.build(m, "hextile", 5)
+    f = s.plane_lum[..., :-1]
+    assert torch.equal(f, f.half().float())  # what the C kernel stores in float16, exactly
+    assert (f - m.f_u.detach()).abs().max() <= 2 ** -11 * m.f_u.detach().abs().max()
+    assert torch.equal(s.plane_lum[..., -1], syn.luminance(m).float())  # not rounded
+    again = type(s).from_state(m.f_u.detach(), 5, s.state())
+    assert torch.equal(again.plane_lum, s.plane_lum)
+    with pytest.raises(ValueError, match="float16 ends at 65504"):
+        type(s).from_state(m.f_u.detach() * 1e6, 5, s.state())
+
+
 def test_blend_preserves_mean_and_variance_of_gaussians():
     g = torch.Generator().manual_seed(0)
     n = 400_000

@@ -891,10 +891,11 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
 
-/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) and lum (H + 1, W + 1):
- * neumat.btf.query.hex_planes). */
+/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) float16 and lum
+ * (H + 1, W + 1) float: neumat.btf.query.hex_planes). */
 void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
-                          const uint16_t *plane, const float *lum, int H, int W, int Cu, uint32_t seed,
+                          const uint16_t *plane, const float *lum, int H, int W, int Cu,
+                          uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)

@@ -66,6 +66,10 @@ def _rounded(plane_lum: torch.Tensor) -> torch.Tensor:
     bytes of its random taps (its overhead before and after: struct hpb in
     neumat/btf/query_kernel.c)."""
     pl = plane_lum.detach().float().clone()
+    big = pl[..., :-1].abs().max().item() if pl.numel() else 0.0
+    if not big <= torch.finfo(torch.float16).max:  # NaN too
+        raise ValueError(f"hex-tiling stores the positional plane in float16, but its features "
+                         f"reach {big:g} (float16 ends at 65504): rescale f_U or use hpb")
     pl[..., :-1] = pl[..., :-1].to(torch.float16).float()
     return pl.contiguous()
 
