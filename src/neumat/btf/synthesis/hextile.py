@@ -61,10 +61,10 @@ def _power(x: torch.Tensor, e: float) -> torch.Tensor:
 
 
 def _rounded(plane_lum: torch.Tensor) -> torch.Tensor:
-    """(H, W, C + 1) float32 with the C features rounded to float16 (at most 2^-12 relative
-    off), the luminance kept: the C kernel stores the features exactly in float16, half the
-    bytes of its random taps (its overhead before and after: struct hpb in
-    neumat/btf/query_kernel.c)."""
+    """(H, W, C + 1) float32 with the C features rounded to float16 (at most 2^-11 relative
+    off; 2^-25 absolute below 2^-14), the luminance kept: the C kernel stores the features
+    exactly in float16, half the bytes of its random taps (its overhead before and after:
+    struct hpb in neumat/btf/query_kernel.c)."""
     pl = plane_lum.detach().float().clone()
     big = pl[..., :-1].abs().max().item() if pl.numel() else 0.0
     if not big <= torch.finfo(torch.float16).max:  # NaN too
