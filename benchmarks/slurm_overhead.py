@@ -15,6 +15,13 @@ submit host), the load average and the CPU. Then, per Slurm job, where the time 
     python benchmarks/slurm_overhead.py                       # whole tiny run (report)
     python benchmarks/slurm_overhead.py --until synthetic_merl synthetic_btf   # test subset
     python benchmarks/slurm_overhead.py --order slurm-first --keep /tmp/slurm_bench
+    python benchmarks/slurm_overhead.py --slurm-mode allocation   # Snakemake inside one allocation
+
+`--slurm-mode allocation` runs the Slurm side as the README's one-allocation command does,
+`srun --cpus-per-task N snakemake --cores N ...`: one allocation whose Snakemake runs every job
+locally on its CPUs (no per-job sbatch, so no per-job breakdown). srun, not `sbatch --wait`: the
+latter polls the job's state at growing intervals; in a scratch variant of this script it
+returned 19 s after a 23 s job had ended (AMD EPYC, 2 cores, 2026-11-26).
 
 Outputs of both runs are compared byte for byte (logs and benchmarks aside). Times are wall
 clock on a machine that may be shared: it prints `uptime`'s load next to each run.
@@ -235,6 +242,9 @@ def main():
     ap.add_argument("--keep", type=Path, default=None, help="work in this directory and keep it")
     ap.add_argument("--analyse", type=Path, default=None, metavar="DIR",
                     help="only print the per-job breakdown of a run kept with --keep DIR")
+    ap.add_argument("--slurm-mode", choices=["jobs", "allocation"], default="jobs",
+                    help="jobs: profiles/slurm, one sbatch job per job (default); allocation: "
+                    "the whole run in one allocation, by srun (README, Running on Slurm)")
     ap.add_argument("--slurm-args", default="", help="extra snakemake args for the Slurm run, "
                     "e.g. '--slurm-array-jobs=all'")
     args = ap.parse_args()
@@ -255,7 +265,7 @@ def main():
         env = {**env, "OMP_NUM_THREADS": env.get("OMP_NUM_THREADS", "1")}
         for kind in order:
             wd = test_slurm._copy_workflow(work / kind)
-            if kind == "local":
+            if kind == "local" or args.slurm_mode == "allocation":
                 cmd = [*base, "--cores", str(args.cores)]
             else:
                 cmd = [*base, "--profile", "profiles/slurm", "--cores", str(args.cores),
@@ -263,17 +273,21 @@ def main():
             cmd += ["--configfile", args.configfile, "--config", f"run={runs[kind]}"]
             before = load()
             print(f"\n[{kind}] {' '.join(cmd[2:])}\n[{kind}] before: {before}", flush=True)
+            if kind == "slurm" and args.slurm_mode == "allocation":
+                cmd = ["srun", "--cpus-per-task", str(args.cores), *cmd]
             wall, lines = run_snakemake(cmd, wd, env, work / f"{kind}.log")
             jobs, local = outer_events(lines)
             done = sum(1 for j in jobs.values() if "detected" in j)
             n_sbatch = sum(1 for j in jobs.values() if "slurm" in j)
             results[kind] = dict(wall=wall, wd=wd, jobs=jobs, local=local, done=done,
                                  sbatch=n_sbatch, load=(before, load()))
-            print(f"[{kind}] wall {wall:.1f} s, {done} jobs ({n_sbatch} via sbatch, "
-                  f"{len(local) if kind == 'slurm' else done} on the submit host); "
+            where = ("in one srun allocation" if kind == "slurm" and args.slurm_mode == "allocation"
+                     else f"{n_sbatch} via sbatch, "
+                     f"{len(local) if kind == 'slurm' else done} on the submit host")
+            print(f"[{kind}] wall {wall:.1f} s, {done} jobs ({where}); "
                   f"after: {results[kind]['load'][1]}", flush=True)
         ctld_log = work / "slurmctld.log"
-        if "slurm" in results:
+        if "slurm" in results and args.slurm_mode == "jobs":
             rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log, work / "slurmd.log"),
                              results["slurm"]["wd"])
             print_breakdown(rows)
@@ -291,8 +305,12 @@ def main():
         print(f"outputs: {n} files compared, {len(missing)} missing via Slurm, {len(differ)} "
               "differ" + (f": {' '.join(map(str, missing + differ))}" if missing or differ else ""))
         print(f"local: {lo['wall']:.1f} s, {lo['done']} jobs ({lo['load'][0]} before)")
-        print(f"slurm: {sl['wall']:.1f} s, {sl['done']} jobs: {sl['sbatch']} via sbatch, "
-              f"{len(sl['local'])} local rules ({sl['load'][0]} before)")
+        if args.slurm_mode == "allocation":
+            print(f"slurm: {sl['wall']:.1f} s, {sl['done']} jobs in one srun allocation of "
+                  f"{args.cores} CPUs ({sl['load'][0]} before)")
+        else:
+            print(f"slurm: {sl['wall']:.1f} s, {sl['done']} jobs: {sl['sbatch']} via sbatch, "
+                  f"{len(sl['local'])} local rules ({sl['load'][0]} before)")
         print(f"ratio slurm/local: {sl['wall'] / lo['wall']:.2f}x")
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)

@@ -1,5 +1,7 @@
 """profiles/slurm on a real single-node Slurm without accounting (no slurmdbd): a subset of the
-tiny DAG runs through sbatch with retries 0, and its outputs equal a local run's.
+tiny DAG runs through sbatch with retries 0, and its outputs equal a local run's; and the
+README's one-allocation commands (`srun ... snakemake ...`, `sbatch ... --wrap "snakemake ..."`)
+run as written, with --dry-run added.
 
 Runs where it can set Slurm up: as root with apt (Debian packages munge, slurmctld, slurmd,
 slurm-client, --no-install-recommends) or with those already installed. The daemons run from a
@@ -198,6 +200,41 @@ def test_profile_runs_jobs_through_sbatch_without_accounting(slurm, tmp_path):
     # not asserted: on a shared 2-core machine the ratio swings with the load
     print(f"{n_done} jobs in {len(submitted)} sbatch jobs: via Slurm {slurm_s:.0f} s, "
           f"local {local_s:.0f} s ({slurm_s / local_s:.2f}x), load {os.getloadavg()[0]:.1f}")
+
+
+def readme_allocation_commands() -> list[str]:
+    """`srun ...` and `sbatch ...` lines of the README's bash blocks: Snakemake in one allocation."""
+    blocks = re.findall(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
+    return [ln.strip() for b in blocks for ln in b.splitlines()
+            if ln.strip().startswith(("srun ", "sbatch "))]
+
+
+def test_readme_has_allocation_commands():
+    cmds = readme_allocation_commands()
+    assert {c.split()[0] for c in cmds} == {"srun", "sbatch"}, cmds
+    assert all("snakemake --cores" in c for c in cmds), cmds
+
+
+@pytest.mark.parametrize("cmd", readme_allocation_commands())
+def test_readme_allocation_command_runs_in_slurm(slurm, tmp_path, cmd):
+    """Each command as written, with --dry-run added to the Snakemake it runs (and, for sbatch,
+    --wait and --output, to read the batch job's output): Snakemake plans the whole DAG for the
+    local executor inside the allocation."""
+    import shlex
+    wd = _copy_workflow(tmp_path / "wf")
+    args = shlex.split(cmd)
+    if args[0] == "sbatch":
+        i = args.index("--wrap") + 1
+        args[i] += " --dry-run"
+        args += ["--wait", "--output", "allocation.out"]
+    else:
+        args.append("--dry-run")
+    res = subprocess.run(args, cwd=wd, env=slurm, capture_output=True, text=True, timeout=600)
+    out = (wd / "allocation.out").read_text() if args[0] == "sbatch" else res.stdout + res.stderr
+    assert res.returncode == 0, res.stdout + res.stderr + out[-3000:]
+    if args[0] == "sbatch":
+        assert re.match(r"Submitted batch job \d+", res.stdout), res.stdout
+    assert re.search(r"^report\s+1$", out, re.M) and "This was a dry-run" in out, out[-3000:]
 
 
 def test_overhead_benchmark_work_dir(tmp_path):
