@@ -24,7 +24,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ["munge", "slurmctld", "slurmd", "slurm-client"]
-BINARIES = ["munged", "slurmctld", "slurmd", "sbatch", "squeue", "sinfo"]
+BINARIES = ["munged", "slurmctld", "slurmd", "sbatch", "squeue", "sinfo", "srun", "scontrol"]
 # one job of each data rule of the tiny DAG (a MERL table, a BTF): the whole data stage (10 jobs,
 # `benchmarks/slurm_overhead.py --until synthetic_merl synthetic_btf`) added ~25 s of the same
 # checks to the suite
