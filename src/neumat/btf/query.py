@@ -14,7 +14,8 @@ runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetche
 Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
 is folded into the first layer (`neumat.btf.fold.fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
-plane and its luminance plane (`hex_planes`), and hex-tiling's blend).
+plane, each texel's luminance stored after its features (`hex_planes`), and hex-tiling's
+blend).
 
 On a CUDA GPU the plain query of a Triple Plane, and its query with an HPB or hex-tiling
 synthesis as `features_u`, run as one Triton kernel each (`neumat.btf.query_triton`) where
@@ -61,7 +62,7 @@ def _library(march: str = "native"):
                                          p, i]
     lib.btf_triple_plane_hpb.restype = None
     d, f = ctypes.c_double, ctypes.c_float
-    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
+    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
                                          p, p, p, i]
     lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
@@ -97,20 +98,22 @@ def _wrapped(t: torch.Tensor) -> torch.Tensor:
     return torch.cat([t, t[:1]], 0).contiguous()
 
 
-def hex_planes(hexs) -> tuple[torch.Tensor, torch.Tensor]:
-    """Hex-tiling's plane (H, W, C + 1) as the kernel reads it: the features (H + 1, W + 1, C)
-    in float16 (which holds them exactly: hextile._rounded rounds them) and the luminance
-    (H + 1, W + 1) in float32, each wrapped by one row and column, so a
-    vertex's bilinear footprint is one texel offset into both (struct hpb). Cached on the
-    synthesis object, as hpb_plane."""
+def hex_planes(hexs) -> torch.Tensor:
+    """Hex-tiling's plane (H, W, C + 1) as the kernel reads it: (H + 1, W + 1, C + 2) 16-bit
+    slots, wrapped by one row and column so a vertex's bilinear footprint is one texel offset
+    (struct hpb). Per texel the C features in float16 (which holds them exactly:
+    hextile._rounded rounds them), then the float32 luminance's bits in two slots, so the
+    luminance taps read the features' cache lines. Cached on the synthesis object, as
+    hpb_plane."""
     pl = hexs.plane_lum
     cached = getattr(hexs, "_kernel_planes", None)
     if cached is not None and cached[0] is pl:
         return cached[1]
     p = _wrapped(pl.detach().float())
-    planes = (p[..., :-1].to(torch.float16).contiguous(), p[..., -1].contiguous())
-    hexs._kernel_planes = (pl, planes)
-    return planes
+    lum = p[..., -1:].contiguous().view(torch.int16)  # (H + 1, W + 1, 2), native byte order
+    plane = torch.cat([p[..., :-1].to(torch.float16).view(torch.int16), lum], -1).contiguous()
+    hexs._kernel_planes = (pl, plane)
+    return plane
 
 
 def available(march: str = "native") -> bool:
@@ -201,13 +204,14 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
         if hpb.plane_lum.shape[-1] != cu + 1:
             raise ValueError(f"hex-tiling plane has {hpb.plane_lum.shape[-1] - 1} channels, "
                              f"the model {cu}")
-        plane, lum = hex_planes(hpb)
+        plane = hex_planes(hpb)
         H, W = hpb.plane_lum.shape[:2]
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hex(
                 n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
-                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), lum.data_ptr(), H, W, cu, hpb.seed & 0xFFFFFFFF, float(st["rotation"]), float(st["contrast"]),
+                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), H, W, cu, hpb.seed & 0xFFFFFFFF,
+                float(st["rotation"]), float(st["contrast"]),
                 float(st["exponent"]), float(st["gain"]), fh.data_ptr(), fd.data_ptr(),
                 fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
                 out_ptr, int(raw))

@@ -206,7 +206,6 @@ static inline void half_diff(const float *wi, const float *wo, float *hxy, float
  * is one vector lane of a fixed-size tile, whatever the tile or the thread. */
 struct hpb {
     const double *u;        /* (N, 2) */
-    const float *lum;       /* hex-tiling: (H + 1, W + 1) its luminance, wrapped the same way */
     int H, W;
     const float *lut;       /* (C, L, 2) inverse LUT (HPB only) as (value, slope) pairs: entry
                                k = (lut[k], lut[k + 1] - lut[k]), built by neumat.btf.query.
@@ -224,12 +223,21 @@ struct hpb {
                                over the plain query, float32 -> float16 (one thread, CPU time,
                                best of 15; AMD EPYC): +12.5 -> +11.6 % (AVX-512 build), +24.3
                                -> +20.3 % (AVX2 build). Hex-tiling: its features f_U (H + 1,
-                               W + 1, C), wrapped the same way (neumat.btf.query.hex_planes;
-                               hextile._rounded rounds them to float16), which took
+                               W + 1, C), wrapped the same way (hextile._rounded rounds them to
+                               float16), which took
                                hex-tiling's overhead from +25.4, +24.9 to +21.2, +19.9 %
                                (AVX-512 build) and from +33.6, +34.3 to +31.5, +31.7 % (AVX2
                                build; btf_synthesis.py --methods hpb hextile --no-torch
                                --repeat 9, one thread, two alternating rounds; AMD EPYC,
+                               2026-11-26). Each texel's float32 luminance follows its C
+                               features, as two float16 slots (neumat.btf.query.hex_planes:
+                               texels of C + 2), so the luminance taps read the lines the
+                               feature taps read: in a plane of its own, the luminance's lines
+                               were a further 2 per vertex, fetched at random, and its taps
+                               stalled on them (`perf`: 18 % of the fill's samples on one
+                               load). With hex_fill8, the whole hex-tiling query 262.2 -> 257.7
+                               ms a frame (AVX-512 build), 275.0 -> 267.6 ms (AVX2 build; one
+                               thread, best of 6, three alternating rounds; AMD EPYC,
                                2026-11-26) */
 };
 
@@ -255,8 +263,7 @@ static inline float h2f(uint16_t h)
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
     int32_t off[3][T];      /* off[v]: the first texel of vertex v's 2 x 2 (the planes are
                                wrapped by one row and column: the others are 1, W + 1 and W + 2
-                               texels on); HPB: in elements, hex-tiling: in texels (they index
-                               the feature and the luminance planes) */
+                               texels on); HPB: in elements, hex-tiling: in texels */
     float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
     float w[3][T];          /* blend weights */
     float inv[T];           /* 1 / sqrt(sum of their squares) */
@@ -420,16 +427,16 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             }
         return;
     }
-    /* hex-tiling: the features' rows as HPB's (prefetching the luminance plane's too, 0.64 MB
-       at 400 x 400, changed nothing measurable at any locality) */
-    const long pitch = (long)C * (s->W + 1);
+    /* hex-tiling: the rows as HPB's, of texels of S = C + 2 slots (features and luminance) */
+    const int S = C + 2;
+    const long pitch = (long)S * (s->W + 1);
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {
-            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * C;
+            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S;
             __builtin_prefetch(a, 0, 1);
-            __builtin_prefetch(a + 2 * C - 1, 0, 1);
+            __builtin_prefetch(a + 2 * S - 1, 0, 1);
             __builtin_prefetch(a + pitch, 0, 1);
-            __builtin_prefetch(a + pitch + 2 * C - 1, 0, 1);
+            __builtin_prefetch(a + pitch + 2 * S - 1, 0, 1);
         }
 }
 
@@ -454,12 +461,35 @@ tap8(__m256 acc, const uint16_t *x, float w)  /* acc + w x[0:8], x float16 */
 }
 #endif
 
-/* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at texel off[v] * scale
- * (elements) of the float16 `plane`, weighted by tw (the blend weights folded into the
- * bilinear ones), for a tile. Shared by HPB (scale 1) and hex-tiling (scale C); C and scale
- * are constants after inlining. */
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+/* r[k]: the 8 channels of query q0 + k -> X[c * T + q0 + k] (X at column q0): 3 x 8 shuffles,
+ * not 64 scalar stores. */
+static inline __attribute__((always_inline)) IEEE void store8x8(const __m256 r[8], float *X)
+{
+    __m256 t[8], u[8];
+    for (int k = 0; k < 8; k += 2)
+        t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]), t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
+    for (int k = 0; k < 8; k += 4)
+        for (int j = 0; j < 2; j++) {
+            u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
+            u[k + j + 2] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0xEE);
+        }
+    /* u[0..3]: queries 0-3 x channels (0, 4) (2, 6) (1, 5) (3, 7) in 128-bit halves; u[4..7]
+       the same for queries 4-7 */
+    static const int ch[4] = {0, 2, 1, 3};
+    for (int k = 0; k < 4; k++) {
+        _mm256_storeu_ps(X + ch[k] * T, _mm256_permute2f128_ps(u[k], u[k + 4], 0x20));
+        _mm256_storeu_ps(X + (ch[k] + 4) * T, _mm256_permute2f128_ps(u[k], u[k + 4], 0x31));
+    }
+}
+#endif
+
+/* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at element off[v] * scale
+ * of the float16 `plane` (texels of S slots, the first C the features), weighted by tw (the
+ * blend weights folded into the bilinear ones), for a tile. Shared by HPB (scale 1, S = C) and
+ * hex-tiling (scale S = C + 2); C, S and scale are constants after inlining. */
 static inline __attribute__((always_inline)) IEEE void
-blend_taps(int C, const uint16_t *plane, long scale, long pitch,
+blend_taps(int C, int S, const uint16_t *plane, long scale, long pitch,
            const int32_t (*restrict off)[T], const float (*restrict tw)[T], float *restrict X)
 {
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
@@ -474,29 +504,12 @@ blend_taps(int C, const uint16_t *plane, long scale, long pitch,
                     const uint16_t *a = plane + off[v][q] * scale, *d = a + pitch;
                     acc0 = tap8(acc0, a, tw[4 * v][q]);
                     acc1 = tap8(acc1, d, tw[4 * v + 2][q]);
-                    acc0 = tap8(acc0, a + 8, tw[4 * v + 1][q]);
-                    acc1 = tap8(acc1, d + 8, tw[4 * v + 3][q]);
+                    acc0 = tap8(acc0, a + S, tw[4 * v + 1][q]);
+                    acc1 = tap8(acc1, d + S, tw[4 * v + 3][q]);
                 }
                 r[k] = _mm256_add_ps(acc0, acc1);
             }
-            __m256 t[8], u[8];
-            for (int k = 0; k < 8; k += 2)
-                t[k] = _mm256_unpacklo_ps(r[k], r[k + 1]),
-                t[k + 1] = _mm256_unpackhi_ps(r[k], r[k + 1]);
-            for (int k = 0; k < 8; k += 4)
-                for (int j = 0; j < 2; j++) {
-                    u[k + j] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0x44);
-                    u[k + j + 2] = _mm256_shuffle_ps(t[k + j], t[k + j + 2], 0xEE);
-                }
-            /* u[0..3]: queries 0-3 x channels (0, 4) (2, 6) (1, 5) (3, 7) in 128-bit halves;
-               u[4..7] the same for queries 4-7 */
-            static const int ch[4] = {0, 2, 1, 3};
-            for (int k = 0; k < 4; k++) {
-                __m256 lo = _mm256_permute2f128_ps(u[k], u[k + 4], 0x20),
-                       hi = _mm256_permute2f128_ps(u[k], u[k + 4], 0x31);
-                _mm256_storeu_ps(X + ch[k] * T + q0, lo);
-                _mm256_storeu_ps(X + (ch[k] + 4) * T + q0, hi);
-            }
+            store8x8(r, X + q0);
         }
         return;
     }
@@ -511,8 +524,8 @@ blend_taps(int C, const uint16_t *plane, long scale, long pitch,
                   t3 = tw[4 * v + 3][q];
 #define AT(k) h2f(plane[k])
             for (int c = 0; c < C; c++)  /* two short chains: more in flight */
-                acc[c] += (t0 * AT(o + c) + t1 * AT(o + C + c)) +
-                          (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + C + c));
+                acc[c] += (t0 * AT(o + c) + t1 * AT(o + S + c)) +
+                          (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + S + c));
 #undef AT
         }
         for (int c = 0; c < C; c++)
@@ -558,7 +571,7 @@ lut_fetch(const pair_t *restrict row, const int *restrict is, pair_t *restrict o
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    blend_taps(C, s->gauss16, 1, (long)C * (s->W + 1), p->off, p->tw, X);
+    blend_taps(C, C, s->gauss16, 1, (long)C * (s->W + 1), p->off, p->tw, X);
     const int L = s->L;
 #if defined(__AVX512F__)
     if (s->planar) {  /* the 128-entry LUT of a channel in 16 registers (8 of values, 8 of
@@ -723,29 +736,85 @@ hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restric
     }
 }
 
+/* The float32 whose bits are the two float16 slots at a (little-endian: low half first). */
+static inline __attribute__((always_inline)) IEEE float f32at(const uint16_t *a)
+{
+    float f;
+    memcpy(&f, a, 4);
+    return f;
+}
+
 /* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
  * luminance, the weights W_v (hex_weights), then sum W_v c_v with W_v folded into the bilinear
  * weights, as HPB's blend (blend_taps). */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    const long W1 = s->W + 1;
+    const int S = C + 2;
+    const long pitch = (long)S * (s->W + 1);
     float lum[3][T], wt[3][T], tw[12][T];
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {  /* the luminance plane is in L2 (grid_prepare's prefetch) */
-            const float *l = s->lum + p->off[v][q];
-            lum[v][q] = fmaf(p->tw[4 * v + 1][q], l[1], p->tw[4 * v][q] * l[0]) +
-                        fmaf(p->tw[4 * v + 3][q], l[W1 + 1], p->tw[4 * v + 2][q] * l[W1]);
+        for (int q = 0; q < T; q++) {  /* each texel's luminance after its features, in lines
+                                          in L2 (grid_prepare's prefetch) */
+            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S + C;
+            lum[v][q] = fmaf(p->tw[4 * v + 1][q], f32at(a + S), p->tw[4 * v][q] * f32at(a)) +
+                        fmaf(p->tw[4 * v + 3][q], f32at(a + pitch + S),
+                             p->tw[4 * v + 2][q] * f32at(a + pitch));
         }
     hex_weights(s, lum, p->w, wt);
     for (int k = 0; k < 12; k++)
         for (int q = 0; q < T; q++)
             tw[k][q] = wt[k / 4][q] * p->tw[k][q];
-    blend_taps(C, s->gauss16, C, (long)C * W1, p->off, tw, X);
+    blend_taps(C, S, s->gauss16, S, pitch, p->off, tw, X);
 }
+
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+/* hex_fill_c for C = 8 in two passes over the tile's queries: each vertex's bilinear features
+ * (one register) and luminance from the same texels, then, with the weights, their blend
+ * (sum_v W_v c_v, in hextile's order). One pass over the taps, not a scalar pass for the
+ * luminance and another for the features with the weights folded in (struct hpb has the
+ * figures). */
+static inline __attribute__((always_inline)) IEEE void
+hex_fill8(const struct hpb *s, const struct hpb_taps *p, float *restrict X)
+{
+    enum { C = 8, S = C + 2 };
+    const long pitch = (long)S * (s->W + 1);
+    float lum[3][T], wt[3][T];
+    float r[T][3][8] __attribute__((aligned(32)));
+    for (int q = 0; q < T; q++)
+        for (int v = 0; v < 3; v++) {
+            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S, *d = a + pitch;
+            const float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q],
+                        t2 = p->tw[4 * v + 2][q], t3 = p->tw[4 * v + 3][q];
+            __m256 acc0 = tap8(_mm256_setzero_ps(), a, t0), acc1 = tap8(_mm256_setzero_ps(), d, t2);
+            acc0 = tap8(acc0, a + S, t1);
+            acc1 = tap8(acc1, d + S, t3);
+            _mm256_store_ps(r[q][v], _mm256_add_ps(acc0, acc1));
+            lum[v][q] = fmaf(t1, f32at(a + S + C), t0 * f32at(a + C)) +
+                        fmaf(t3, f32at(d + S + C), t2 * f32at(d + C));
+        }
+    hex_weights(s, lum, p->w, wt);
+    for (int q0 = 0; q0 < T; q0 += 8) {
+        __m256 b[8];
+        for (int k = 0; k < 8; k++) {
+            const int q = q0 + k;
+            __m256 acc = _mm256_mul_ps(_mm256_set1_ps(wt[0][q]), _mm256_load_ps(r[q][0]));
+            acc = _mm256_fmadd_ps(_mm256_set1_ps(wt[1][q]), _mm256_load_ps(r[q][1]), acc);
+            b[k] = _mm256_fmadd_ps(_mm256_set1_ps(wt[2][q]), _mm256_load_ps(r[q][2]), acc);
+        }
+        store8x8(b, X + q0);
+    }
+}
+#endif
 
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
 {
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+    if (s->hex && C == 8) {
+        hex_fill8(s, p, X);
+        return;
+    }
+#endif
     if (s->hex && C == 8)
         hex_fill_c(8, s, p, X);
     else if (s->hex)
@@ -883,7 +952,7 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
                           uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
     s.planar = lut_planar(&s, Cu, planar);
@@ -891,16 +960,16 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
 
-/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) float16 and lum
- * (H + 1, W + 1) float: neumat.btf.query.hex_planes). */
+/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu + 2): per texel Cu
+ * float16 features, then the float32 luminance in two slots; neumat.btf.query.hex_planes). */
 void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
-                          const uint16_t *plane, const float *lum, int H, int W, int Cu,
+                          const uint16_t *plane, int H, int W, int Cu,
                           uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
                           const int *dims, const float *params, float *out, int raw)
 {
-    struct hpb s = {u, lum, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
+    struct hpb s = {u, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
                     gain};
     s.gauss16 = plane;
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
@@ -912,7 +981,7 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
                   const float *lut, int Lut, uint32_t seed, const float *mean,
                   const float *basis, float *out)
 {
-    struct hpb s = {u, NULL, H, W, lut, Lut, seed};
+    struct hpb s = {u, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);
