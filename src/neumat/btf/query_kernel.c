@@ -354,13 +354,40 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         fxi[q] = low32((ux[q] - floor(ux[q])) * 4294967296.0);
         fyi[q] = low32((uy[q] - floor(uy[q])) * 4294967296.0);
     }
+    /* Three loops over the vertices' lanes, not one: the hash, hex-tiling's rotation, then the
+       coordinates and taps. In one loop GCC spilled vector registers to the stack (16 on
+       AVX2); split, the whole query took, AVX-512 / AVX2 build: HPB 232.0 / 239.9 -> 230.7 /
+       237.9 ms a frame (the hash apart), hex-tiling 258.5 / 267.2 -> 254.6 / 258.7 ms (the
+       hash apart), then 260.6 -> 256.6 ms on AVX2 with the rotation apart too (AVX-512 level);
+       one thread, best of 6, three alternating rounds each; AMD EPYC, 2026-11-26 */
+    uint32_t hxa[3][T], h0a[3][T], ha[3][T];
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {  /* grid.vertex_hash, grid.wrap_fetch_coords, taps */
+        for (int q = 0; q < T; q++) {  /* grid.vertex_hash */
             uint32_t h = mix(vy[v][q] ^ mix(vx[v][q] ^ hs));
             h = mix(h ^ 0x9E3779B1u);
-            uint32_t hx = h;
+            hxa[v][q] = h;
             h = mix(h ^ 0x9E3779B2u);
-            const uint32_t h0 = h;
+            h0a[v][q] = h;
+            if (hex)
+                ha[v][q] = mix(h ^ 0x9E3779B3u);
+        }
+    uint32_t rxa[3][T], rya[3][T];  /* hex-tiling: R d - d in 32-bit fixed point (below) */
+    for (int v = 0; v < 3 && hex; v++)
+        for (int q = 0; q < T; q++) {  /* hextile.HexTile: the patch rotated about its vertex */
+            float a = (6.2831855f * ((float)(ha[v][q] >> 8) * 0x1p-24f) - 3.1415927f) * s->rotation;
+            int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
+                o1 = v == 0 ? !up : v == 1 ? up : !up;
+            float e0 = ef0[q] - o0, e1 = ef1[q] - o1;
+            float dx = (e0 + 0.5f * e1) * (float)(1 / K), dy = e1 * (float)(S3 / 2 / K);
+            float cs, sn;
+            sincos_polyf(a, &sn, &cs);
+            float zx = (cs - 1) * dx - sn * dy, zy = sn * dx + (cs - 1) * dy;
+            rxa[v][q] = 2u * (uint32_t)(int32_t)(zx * 0x1p31f);
+            rya[v][q] = 2u * (uint32_t)(int32_t)(zy * 0x1p31f);
+        }
+    for (int v = 0; v < 3; v++)
+        for (int q = 0; q < T; q++) {  /* grid.wrap_fetch_coords, taps */
+            const uint32_t hx = hxa[v][q], h0 = h0a[v][q];
             float x, y;
             if (!hex) {  /* grid.wrap_fetch_coords: one rounding to float of the coordinate,
                             exact to 2^-32 (vcvtudq2ps; on AVX2 GCC's two exact halves). In
@@ -369,24 +396,15 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
                             +20.6 -> +18.7 % (AVX2 build; btf_synthesis.py, one thread, best
                             of 15, AMD EPYC, 2026-11-25) */
                 x = (float)(hx + fxi[q]) * 0x1p-32f;
-                y = (float)(h + fyi[q]) * 0x1p-32f;
+                y = (float)(h0 + fyi[q]) * 0x1p-32f;
             } else {  /* hextile.HexTile: the patch rotated about its vertex c. With d = u - c,
                          frac(c) = frac(frac(u) - d), so the fetch coordinate frac(offset + R d +
                          frac(c)) is frac(offset + frac(u) + (R d - d)): the hash and frac(u) in
                          fixed point as HPB's, and only R d - d (|.| < 0.6) in float. d comes
                          from the skewed fractions (f0, f1) less the vertex's corner, unskewed
                          (grid.vertex_uv), so no float64 is needed past the grid */
-                h = mix(h ^ 0x9E3779B3u);
-                float a = (6.2831855f * ((float)(h >> 8) * 0x1p-24f) - 3.1415927f) * s->rotation;
-                int up = upq[q], o0 = v == 0 ? !up : v == 1 ? !up : up,
-                    o1 = v == 0 ? !up : v == 1 ? up : !up;
-                float e0 = ef0[q] - o0, e1 = ef1[q] - o1;
-                float dx = (e0 + 0.5f * e1) * (float)(1 / K), dy = e1 * (float)(S3 / 2 / K);
-                float cs, sn;
-                sincos_polyf(a, &sn, &cs);
-                float zx = (cs - 1) * dx - sn * dy, zy = sn * dx + (cs - 1) * dy;
-                x = (float)(hx + fxi[q] + 2u * (uint32_t)(int32_t)(zx * 0x1p31f)) * 0x1p-32f;
-                y = (float)(h0 + fyi[q] + 2u * (uint32_t)(int32_t)(zy * 0x1p31f)) * 0x1p-32f;
+                x = (float)(hx + fxi[q] + rxa[v][q]) * 0x1p-32f;
+                y = (float)(h0 + fyi[q] + rya[v][q]) * 0x1p-32f;
             }
             x = x > top ? top : x;
             y = y > top ? top : y;
