@@ -20,7 +20,8 @@
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
  * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
  * same grid, hash and taps (struct hpb with `hex` set; its features in float16 as HPB's plane,
- * which hextile._rounded rounds them to), blended in hex_fill_c.
+ * which hextile._rounded rounds them to, each texel's float32 luminance after them), blended in
+ * hex_fill8 (8 channels) or hex_fill_c.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
