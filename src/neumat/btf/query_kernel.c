@@ -235,11 +235,9 @@ struct hpb {
                                texels of C + 2), so the luminance taps read the lines the
                                feature taps read: in a plane of its own, the luminance's lines
                                were a further 2 per vertex, fetched at random, and its taps
-                               stalled on them (`perf`: 18 % of the fill's samples on one
-                               load). With hex_fill8, the whole hex-tiling query 262.2 -> 257.7
-                               ms a frame (AVX-512 build), 275.0 -> 267.6 ms (AVX2 build; one
-                               thread, best of 6, three alternating rounds; AMD EPYC,
-                               2026-11-26) */
+                               stalled on them (`perf`; figures before and after this and the
+                               loop split in grid_prepare: README, "BTF synthesis on the
+                               positional plane") */
 };
 
 /* A float16 value (IEEE binary16 bits) as float, exactly: F16C where the target has it, else
@@ -356,11 +354,9 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         fyi[q] = low32((uy[q] - floor(uy[q])) * 4294967296.0);
     }
     /* Three loops over the vertices' lanes, not one: the hash, hex-tiling's rotation, then the
-       coordinates and taps. In one loop GCC spilled vector registers to the stack (16 on
-       AVX2); split, the whole query took, AVX-512 / AVX2 build: HPB 232.0 / 239.9 -> 230.7 /
-       237.9 ms a frame (the hash apart), hex-tiling 258.5 / 267.2 -> 254.6 / 258.7 ms (the
-       hash apart), then 260.6 -> 256.6 ms on AVX2 with the rotation apart too (AVX-512 level);
-       one thread, best of 6, three alternating rounds each; AMD EPYC, 2026-11-26 */
+       coordinates and taps. In one loop GCC spilled vector registers to the stack (16 on AVX2);
+       split, it keeps them in registers, most on AVX2 (README, "BTF synthesis on the
+       positional plane") */
     uint32_t hxa[3][T], h0a[3][T], ha[3][T];
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {  /* grid.vertex_hash */
@@ -828,14 +824,12 @@ hex_fill8(const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 
 static IEEE void hpb_fill(int C, const struct hpb *s, const struct hpb_taps *p, float *X)
 {
-#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
-    if (s->hex && C == 8) {
-        hex_fill8(s, p, X);
-        return;
-    }
-#endif
     if (s->hex && C == 8)
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+        hex_fill8(s, p, X);
+#else
         hex_fill_c(8, s, p, X);
+#endif
     else if (s->hex)
         hex_fill_c(C, s, p, X);
     else if (C == 8)
