@@ -45,11 +45,15 @@ class GaussianPCA:
         self.explained = evals[order].clip(0).sum() / max(evals.clip(0).sum(), 1e-300)
         return self
 
+    # encode and decode too: PCA-A's tables moved by 3e-8 between baselines.threads 1 and 2
+    # (OpenBLAS splits a product over the table's bins by threads; tests/test_threads.py)
     def encode(self, X) -> np.ndarray:
-        return (np.asarray(X, dtype=np.float64) - self.mean) @ self.components.T
+        with one_blas_thread():
+            return (np.asarray(X, dtype=np.float64) - self.mean) @ self.components.T
 
     def decode(self, C) -> np.ndarray:
-        return np.asarray(C, dtype=np.float64) @ self.components + self.mean
+        with one_blas_thread():
+            return np.asarray(C, dtype=np.float64) @ self.components + self.mean
 
 
 class CoefficientGaussian:
@@ -64,9 +68,10 @@ class CoefficientGaussian:
     def sample(self, n: int, seed) -> np.ndarray:
         rng = np.random.default_rng(seed)
         # eigh, not Cholesky: with fewer materials than dimensions the covariance is singular
-        evals, vecs = np.linalg.eigh(self.cov)
-        z = rng.standard_normal((n, len(self.mean)))
-        return self.mean + (z * np.sqrt(evals.clip(0))) @ vecs.T
+        with one_blas_thread():
+            evals, vecs = np.linalg.eigh(self.cov)
+            z = rng.standard_normal((n, len(self.mean)))
+            return self.mean + (z * np.sqrt(evals.clip(0))) @ vecs.T
 
 
 # ----------------------------------------------------------------------------- Nielsen mapping
