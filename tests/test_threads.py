@@ -1,5 +1,5 @@
-"""Thread counts are speed keys (config/speed_keys.yaml): where a key claims the same bits on any
-thread count, the library path behind it gives them. Each test computes one step on 1 and on 2
+"""Thread counts are speed keys (config/speed_keys.yaml): where a key claims the same bits on 1
+and 2 threads, the library path behind it gives them. Each test computes one step on 1 and on 2
 threads (torch intra-op threads, or OpenBLAS's for numpy) and compares bit for bit."""
 
 
@@ -34,7 +34,7 @@ def _plane_model_grads(method: str) -> dict:
 
 
 @pytest.mark.parametrize("method", ["triple_plane", "neumip"])
-def test_btf_plane_gradients_are_the_same_on_any_thread_count(torch_threads, method):
+def test_btf_plane_gradients_are_the_same_on_one_and_two_threads(torch_threads, method):
     """btf.threads: the planes' gradients (bilinear taps summed back into the plane) were
     thread-dependent, and differed between two runs on 2 threads, with plane[idx]."""
     torch_threads(1)
@@ -52,7 +52,7 @@ def _tables(n=48, bins=10731, seed=0):  # the tiny run's PCA-A shapes
     return base * rng.lognormal(0, 0.5, (n, 3, 1)) * rng.lognormal(0, 0.1, (n, 3, bins))
 
 
-def test_pca_baselines_sample_the_same_on_any_blas_thread_count():
+def test_pca_baselines_sample_the_same_on_one_and_two_blas_threads():
     """baselines.threads: PCA-A's tables moved by 3e-8 between 1 and 2 OpenBLAS threads when its
     encode/decode products ran on the job's threads (tiny config)."""
     tables = _tables()
