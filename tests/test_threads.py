@@ -36,7 +36,7 @@ def _plane_model_grads(method: str) -> dict:
 @pytest.mark.parametrize("method", ["triple_plane", "neumip"])
 def test_btf_plane_gradients_are_the_same_on_one_and_two_threads(torch_threads, method):
     """btf.threads: the planes' gradients (bilinear taps summed back into the plane) were
-    thread-dependent, and differed between two runs on 2 threads, with plane[idx]."""
+    thread-dependent with plane[idx] (this test failed on them)."""
     torch_threads(1)
     one = _plane_model_grads(method)
     torch_threads(2)
