@@ -51,7 +51,19 @@ def pytest_runtest_protocol(item, nextitem):  # the plugin: one JSON line per te
             f.write(json.dumps(row) + "\n")
 
 
-def report(rows: list[dict], wall: float, cpu: float, top: int) -> None:
+@pytest.hookimpl(hookwrapper=True)
+def pytest_fixture_setup(fixturedef, request):  # how long a worker waited for the tiny run
+    t0 = time.time()
+    yield
+    out = os.environ.get(ENV)
+    if out and fixturedef.argname == "tiny_run":
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(Path(out) / f"{worker}.wait", "w") as f:
+            json.dump({"start": t0, "wall": time.time() - t0}, f)
+
+
+def report(rows: list[dict], waits: dict, launched: float, wall: float, cpu: float,
+           top: int) -> None:
     from neumat import machine
     n = os.cpu_count() or 1
     print(f"machine: {machine.describe()}")
@@ -66,6 +78,17 @@ def report(rows: list[dict], wall: float, cpu: float, top: int) -> None:
         first = min(r["start"] for r in tiny) - t0
         print(f"tests reading the tiny run: first started {first:.1f} s in; the suite ended "
               f"{wall - first:.1f} s later")
+    print(f"start-up (pytest, workers, collection): the first test started {t0 - launched:.1f} s "
+          f"after launch")
+    for worker in sorted({r["worker"] for r in rows}):
+        mine = [r for r in rows if r["worker"] == worker]
+        end = max(r["start"] + r["wall"] for r in mine) - launched
+        print(f"  {worker}: {sum(r['tiny'] for r in mine)} of its {len(mine)} tests read the tiny "
+              f"run; its last test ended {end:.1f} s after launch, {wall - end:.1f} s before the end")
+        if worker in waits:
+            w = waits[worker]
+            print(f"  {worker}: waited {w['wall']:.1f} s for the tiny run to finish, from "
+                  f"{w['start'] - launched:.1f} s after launch")
     print(f"\n{'CPU-s':>7} {'wall s':>7}  test (top {top} by CPU)")
     for r in sorted(rows, key=lambda r: -r["cpu"])[:top]:
         print(f"{r['cpu']:7.1f} {r['wall']:7.1f}  {r['id']}")
@@ -86,15 +109,18 @@ def main() -> int:
         env = dict(os.environ, **{ENV: d})
         env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "benchmarks"), env.get("PYTHONPATH", "")])
         c0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+        launched = time.time()  # the tests' start times are wall-clock
         rc = subprocess.call([sys.executable, "-m", "pytest", "-p", "suite_profile",
                               *a.pytest_args], cwd=ROOT, env=env)
         wall, c1 = time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_CHILDREN)
         cpu = (c1.ru_utime - c0.ru_utime) + (c1.ru_stime - c0.ru_stime)
-        rows = [json.loads(line) for f in Path(d).glob("*.jsonl") for line in f.open()]
+        rows = [dict(json.loads(line), worker=f.stem) for f in Path(d).glob("*.jsonl")
+                for line in f.open()]
+        waits = {f.stem: json.loads(f.read_text()) for f in Path(d).glob("*.wait")}
     if not rows:
         print(f"pytest exited with {rc} and ran no test", file=sys.stderr)
         return rc or 1
-    report(rows, wall, cpu, a.top)
+    report(rows, waits, launched, wall, cpu, a.top)
     return rc
 
 

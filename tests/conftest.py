@@ -9,7 +9,6 @@ import time
 from pathlib import Path
 
 import pytest
-import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -50,6 +49,10 @@ def pytest_report_header(config):
 _USER_ENV = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_")}
 
 if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker: the cores are shared out between workers
+    # torch here and in `one_thread`, not at the top: the xdist controller runs no test, and
+    # would import it before it starts the workers, while one core idles
+    import torch
+
     _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", 1))
     _threads = max(1, (os.cpu_count() or 1) // _workers)
     torch.set_num_threads(_threads)
@@ -62,6 +65,8 @@ if os.environ.get("PYTEST_XDIST_WORKER"):  # a worker: the cores are shared out 
 @pytest.fixture
 def one_thread():
     """Tiny models: one thread is fastest, and avoids spin-waiting on a shared 2-core box."""
+    import torch
+
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
