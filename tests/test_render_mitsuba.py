@@ -95,6 +95,27 @@ def test_white_furnace():
     assert abs(img[6:10, 6:10].mean() - 1) < 0.02
 
 
+@pytest.mark.skipif(not JIT, reason="no traced kernels in scalar mode")
+def test_new_material_reuses_the_compiled_kernel():
+    """Weights and lobe are kernel inputs, not literals: a second new material launches only
+    kernels already compiled for the first (with literals, each material compiled its own)."""
+    import drjit as dr
+    w = nbrdf.init_weights(2, torch.Generator().manual_seed(1234)).numpy()
+    env = scenes.sky_envmap(8)
+    render = [lambda i=i: scenes.render(scenes.sphere_scene(
+        mb.Material(f"reuse-{i}", weights=w[i]), 8, 1, env)) for i in range(2)]
+    render[0]()
+    dr.kernel_history()  # clears it
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        img = render[1]()
+        hist = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert np.isfinite(img).all() and hist
+    assert all(k["cache_hit"] for k in hist), [k["hash"] for k in hist if not k["cache_hit"]]
+
+
 def test_exr_png_round_trip(tmp_path):
     img = np.random.default_rng(0).uniform(0, 5, (5, 7, 3)).astype(np.float32)
     images.write_exr(tmp_path / "a.exr", img)

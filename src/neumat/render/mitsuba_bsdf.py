@@ -10,7 +10,7 @@ literals: the kernel is then the same for every material of a scene layout, and 
 it once and caches it in ~/.drjit. With literals every new material - every sample - was a new
 LLVM compile: 0.25 s a material at 48 px and 4 spp against 0.01 s for the render once the
 kernel exists (`benchmarks/mitsuba_materials.py`, AMD EPYC AVX-512, 2 cores; the compile of the
-one kernel is 0.7-1.1 s, paid once per cache).
+one kernel took 1.07 s there, once per cache).
 
 Sampling: a mixture of a cosine lobe and a GGX lobe (half-vector sampling of D(h) cos theta_h,
 reflected about h). The lobe is fitted once per material from the BRDF along theta_d = 0:
