@@ -114,6 +114,12 @@ def test_new_material_reuses_the_compiled_kernel():
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     assert np.isfinite(img).all() and hist
     assert all(k["cache_hit"] for k in hist), [k["hash"] for k in hist if not k["cache_hit"]]
+    # a large render bakes the material in (INLINE_SAMPLES): the same image
+    assert not mb.bsdf_dict(mb.Material("reuse-1", weights=w[1]), 8 * 8)["inline"]
+    assert mb.bsdf_dict(mb.Material("reuse-1", weights=w[1]), mb.INLINE_SAMPLES)["inline"]
+    scene = scenes.sphere_scene(mb.Material("reuse-1", weights=w[1]), 8, 1, env)
+    scene["object"]["bsdf"]["inline"] = True
+    np.testing.assert_allclose(scenes.render(scene), img, rtol=1e-5, atol=1e-6)
 
 
 def test_exr_png_round_trip(tmp_path):

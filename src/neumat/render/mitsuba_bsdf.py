@@ -5,12 +5,11 @@ Evaluation: wi, wo (local frame) -> Rusinkiewicz (theta_h, theta_d, phi_d) in Dr
 field runs its 6 -> 21 -> 21 -> 3 MLP, a MERL table is read at its nearest bin
 (`neumat.io.merl` binning) with one gather per channel.
 
-A material's numbers (its weights, its lobe) enter the traced kernel as opaque inputs, not as
-literals: the kernel is then the same for every material of a scene layout, and Dr.Jit compiles
-it once and caches it in ~/.drjit. With literals every new material - every sample - was a new
-LLVM compile: 0.25 s a material at 48 px and 4 spp against 0.01 s for the render once the
-kernel exists (`benchmarks/mitsuba_materials.py`, AMD EPYC AVX-512, 2 cores; the compile of the
-one kernel took 1.07 s there, once per cache).
+A material's numbers (its weights, its lobe) enter the traced kernel as opaque inputs for small
+renders: the kernel is then the same for every material of a scene layout, and Dr.Jit compiles
+it once and caches it in ~/.drjit. As literals, every new material - every sample - is a new
+LLVM compile, 0.25 s at 48 px and 4 spp where the render takes 0.01 s; but a large render runs
+faster with literals (`INLINE_SAMPLES`; `benchmarks/mitsuba_materials.py` measures both).
 
 Sampling: a mixture of a cosine lobe and a GGX lobe (half-vector sampling of D(h) cos theta_h,
 reflected about h). The lobe is fitted once per material from the BRDF along theta_d = 0:
@@ -176,10 +175,19 @@ def fit_lobe(material: Material) -> tuple[float, float]:
 _MATERIALS: dict[str, Material] = {}
 
 
-def bsdf_dict(material: Material) -> dict:
-    """Scene-dictionary entry of the plugin for `material` (registers it under its name)."""
+# From this many camera samples (resolution^2 x spp) a render bakes the material into its kernel:
+# its compile (0.23-0.24 s) then pays for itself in faster samples, 97-104 against 190-224 ns a
+# sample at 256 px and 64 spp, from 2.0-2.5 M samples (`benchmarks/mitsuba_materials.py`, two
+# runs, AMD EPYC AVX-512, 2 cores)
+INLINE_SAMPLES = 1 << 21
+
+
+def bsdf_dict(material: Material, samples: int = 0) -> dict:
+    """Scene-dictionary entry of the plugin for `material` (registers it under its name), for a
+    render of `samples` camera samples: at INLINE_SAMPLES or more the material's numbers are
+    literals of the kernel, else its inputs (one kernel for every material)."""
     _MATERIALS[material.name] = material
-    return {"type": PLUGIN, "material": material.name}
+    return {"type": PLUGIN, "material": material.name, "inline": samples >= INLINE_SAMPLES}
 
 
 def _material_key(path, index: int) -> str:
@@ -240,15 +248,17 @@ def register():
             self.material = m = _MATERIALS[name]
             self.alpha, self.p_spec = fit_lobe(m)
             self.scalar = mi.variant().startswith("scalar")
-            # the kernel's copies: opaque, so that the kernel does not depend on the material
-            self.lobe = (self.alpha, self.p_spec) if self.scalar else \
-                tuple(dr.opaque(mi.Float, v) for v in (self.alpha, self.p_spec))
+            # the kernel's copies: literals, or opaque so that the kernel does not depend on the
+            # material (bsdf_dict)
+            inline = (props["inline"] if "inline" in props else False) or self.scalar
+            value = float if inline else (lambda v: dr.opaque(mi.Float, float(v)))
+            self.lobe = (value(self.alpha), value(self.p_spec))
             if self.scalar:
                 pass  # evaluated per call by Material.evaluate
             elif m.table is not None:
                 self.table = mi.Float(np.maximum(m.table, 0).astype(np.float32).ravel())
             else:
-                self.params = [[[dr.opaque(mi.Float, v) for v in row] for row in np.atleast_2d(p)]
+                self.params = [[[value(v) for v in row] for row in np.atleast_2d(p)]
                                for p in (q[0].numpy().astype(np.float64) for q in
                                          nbrdf.unflatten(torch.as_tensor(m.weights)[None]))]
             self.m_components = [flags]

@@ -79,7 +79,7 @@ def _base(mi, resolution, spp, env, origin, target, fov=30):
 def sphere_scene(material: mb.Material, resolution: int, spp: int, env: np.ndarray) -> dict:
     import mitsuba as mi
     s = _base(mi, resolution, spp, env, [0, 0.6, 4.2], [0, 0, 0])
-    s["object"] = {"type": "sphere", "bsdf": mb.bsdf_dict(material)}
+    s["object"] = {"type": "sphere", "bsdf": mb.bsdf_dict(material, resolution ** 2 * spp)}
     return s
 
 
@@ -91,7 +91,8 @@ def mixed_plane_scene(a: mb.Material, b: mb.Material, resolution: int, spp: int,
         "type": "rectangle",
         "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(1.3),
         "bsdf": {"type": "blendbsdf", "weight": _bitmap(mi, mask),
-                 "a": mb.bsdf_dict(a), "b": mb.bsdf_dict(b)},
+                 "a": mb.bsdf_dict(a, resolution ** 2 * spp),
+                 "b": mb.bsdf_dict(b, resolution ** 2 * spp)},
     }
     return s
 
@@ -102,7 +103,7 @@ def normal_mapped_scene(material: mb.Material, resolution: int, spp: int, env: n
     s = _base(mi, resolution, spp, env, [0, 0.6, 4.2], [0, 0, 0])
     s["object"] = {"type": "sphere",
                    "bsdf": {"type": "normalmap", "normalmap": _bitmap(mi, normals),
-                            "bsdf": mb.bsdf_dict(material)}}
+                            "bsdf": mb.bsdf_dict(material, resolution ** 2 * spp)}}
     return s
 
 
