@@ -453,3 +453,20 @@ def test_start_draws_the_workflows_text_starts_and_refines_them(tiny_run, tmp_pa
 def test_start_errors_name_what_to_do(run, tmp_path, capsys, args, says):
     assert main("sample", "--run", run, *args, "-n", 2, "--out", tmp_path / "x") == 2
     assert says in capsys.readouterr().err
+
+
+def test_large_xml_renders_bake_the_materials_in():
+    """`neumat render`: at mitsuba_bsdf.INLINE_SAMPLES camera samples or more, every neumat_brdf
+    of the scene is baked into the kernel (as the workflow's scenes are); below, and in a file
+    that says `inline` itself, nothing changes."""
+    from neumat.cli.render import inline_if_large
+    xml = ('<film><integer name="width" value="64"/><integer name="height" value="32"/></film>'
+           '<sampler><integer name="sample_count" value="{spp}"/></sampler>'
+           '<bsdf type="neumat_brdf"><integer name="index" value="0"/></bsdf>'
+           '<bsdf type="neumat_brdf"><integer name="index" value="1"/></bsdf>')
+    small, large = xml.format(spp=1023), xml.format(spp=1024)
+    assert inline_if_large(small, 64 * 32 * 1024) == small
+    baked = inline_if_large(large, 64 * 32 * 1024)
+    assert baked.count('<bsdf type="neumat_brdf"><boolean name="inline" value="true"/>') == 2
+    own = large.replace('<integer name="index" value="1"/>', '<boolean name="inline" value="false"/>')
+    assert inline_if_large(own, 64 * 32 * 1024) == own

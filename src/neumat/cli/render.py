@@ -51,6 +51,18 @@ def _write_scene(out: Path, n: int, activation: str, resolution: int = 512, spp:
     return path
 
 
+def inline_if_large(text: str, threshold: int) -> str:
+    """The scene XML with its `neumat_brdf` materials baked into the kernel (their `inline`
+    property) when the render has `threshold` camera samples or more, as the workflow's scenes do
+    (`mitsuba_bsdf.INLINE_SAMPLES`); a file that sets `inline` itself is left as it is."""
+    def first(name):
+        m = re.search(rf'name="{name}" value="(\d+)"', text)
+        return int(m.group(1)) if m else 0
+    if 'name="inline"' in text or first("width") * first("height") * first("sample_count") < threshold:
+        return text
+    return re.sub(r'(<bsdf type="neumat_brdf"\s*>)', r'\1<boolean name="inline" value="true"/>', text)
+
+
 def _render_scene(xml: Path, png: Path, variant: str, resolution: int | None, spp: int | None):
     from neumat.render import mitsuba_bsdf as mb  # before mitsuba: it points Dr.Jit at libLLVM
     from neumat.render import scenes
@@ -62,7 +74,7 @@ def _render_scene(xml: Path, png: Path, variant: str, resolution: int | None, sp
     if spp:
         text = re.sub(r'(name="sample_count" value=")\d+', rf"\g<1>{spp}", text)
     tmp = xml.with_name(f".{xml.stem}.render.xml")  # beside it: relative file names resolve
-    tmp.write_text(text)
+    tmp.write_text(inline_if_large(text, mb.INLINE_SAMPLES))
     try:
         scene = mi.load_file(str(tmp))
     except Exception as e:

@@ -22,6 +22,8 @@ much of their mass below the horizon, and the cosine lobe covers such materials)
 Scene XML: `<bsdf type="neumat_brdf"><string name="filename" value="x.binary|w.npy"/>
 <integer name="index" value="0"/></bsdf>` loads a MERL table or one row of a weights file
 (relative to the scene's folder); `select_variant()` registers the plugin before `load_file`.
+`<boolean name="inline" value="true"/>` bakes the material into the kernel (default false;
+`neumat render` sets it for large renders).
 
 Variant: `select_variant()`, the one place Mitsuba is first imported, picks `llvm_ad_rgb` when a
 libLLVM >= 16 is found (Dr.Jit's LLVM backend crashes with 14/15): the system's, else the PyPI
