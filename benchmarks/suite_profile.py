@@ -4,8 +4,10 @@ children it waited for: the snakemake, neumat and python processes tests start).
 
 Prints the suite's wall and CPU time against its bound on this machine, CPU-s / CPUs (the
 suite is CPU-bound when wall is near it: then only less CPU work shortens it), the tests with
-the most CPU, the CPU per module, and when the tests that read the finished tiny run started
-(conftest.py runs the tiny run in the background; those tests are the suite's tail).
+the most CPU, the CPU per module, when the tests that read the finished tiny run started
+(conftest.py runs the tiny run in the background; those tests are the suite's tail), how long
+start-up took before the first test, and per worker when its last test ended and how long it
+waited for the tiny run (idle cores, where the suite is not CPU-bound).
 
     python benchmarks/suite_profile.py                  # the whole suite, as the README runs it
     python benchmarks/suite_profile.py --top 30 -- -m "not slow"   # arguments after -- go to pytest
