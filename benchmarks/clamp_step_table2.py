@@ -1,7 +1,10 @@
 """Table 2 against the clamp step (`diffusion.sample.negative_step`, lambda), on a finished run.
 
 With `--refit N ...`, each lambda is also sampled with the clamp-aware refit of N Adam steps
-(`diffusion.sample.refit_steps`, neumat.diffusion.refit) as its own column.
+(`diffusion.sample.refit_steps`, neumat.diffusion.refit) as its own column. With
+`--rgb-permute`, each variant's samples are scored a second time, each in a random RGB channel
+order drawn as rule sample_uncond draws it (`diffusion.sample.rgb_permute`,
+neumat.diffusion.symmetry): a column "+ rgb" of the same draws.
 
 `ours` is sampled again at each lambda with the run's model, sampling settings and draw seeds
 (what rule sample_uncond does), and scored as rule metrics scores it (the run's prepared
@@ -24,6 +27,7 @@ the check is then skipped.
         [--refit 0 300]   # per lambda: without the refit, and with 300 steps of it
         [--config C]   # settings: the run's recorded config (report/index.md), else the schema
         [--model M]    # another model.pt in ours' place
+        [--rgb-permute]  # each variant also with its samples in random channel orders
 """
 from __future__ import annotations
 
@@ -36,7 +40,7 @@ import pandas as pd
 import yaml
 
 from neumat import cli, machine, seeds
-from neumat.diffusion import Sampler, dataset, plausibility
+from neumat.diffusion import Sampler, dataset, plausibility, symmetry
 from neumat.metrics import distances, evaluate, inception, materials
 
 ROWS = ["FID", "MMD", "COV", "1-NNA"]
@@ -85,6 +89,9 @@ def main():
                                      "(default: that, or the schema's defaults)")
     ap.add_argument("--model", help="a model.pt to sample in ours' place (default: the run's "
                                     "diffusion/ours/model.pt)")
+    ap.add_argument("--rgb-permute", action="store_true",
+                    help="score each variant also with its samples in random RGB channel orders "
+                         "(diffusion.sample.rgb_permute)")
     a = ap.parse_args()
     run = Path(a.results)
     model = Path(a.model) if a.model else run / "diffusion/ours/model.pt"
@@ -97,6 +104,7 @@ def main():
     activation = setting("fit", "activation")
     run_variant = (s["negative_step"], setting("diffusion", "sample", "refit_steps"))
     variants = [(lam, r) for lam in a.steps for r in a.refit]
+    run_rgb = bool(setting("diffusion", "sample", "rgb_permute"))
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
                                          seeds.seed_for(seed, "metrics")),
@@ -107,40 +115,53 @@ def main():
     n_ref = len(dataset.reference_rows(man))
     draw_seeds = [seeds.seed_for(seed, "sample", "ours", d) for d in range(draws)]
     sampler = Sampler(str(model), "cpu")
-    others = {m: stats(pd.read_csv(run / f"metrics/{m}.csv")) for m in OTHERS}
-    baseline = pd.read_csv(run / "metrics/ours.csv")
+    # columns the run has not scored yet are left out of the comparison, and named
+    others = {m: stats(pd.read_csv(run / f"metrics/{m}.csv")) for m in OTHERS
+              if (run / f"metrics/{m}.csv").exists()}
+    missing = [m for m in OTHERS if m not in others]
+    baseline = pd.read_csv(run / "metrics/ours.csv") if (run / "metrics/ours.csv").exists() else None
     print(f"machine: {machine.describe()}; {run}: {draws} draws x {n_ref} samples, "
           f"{len(ref)} references, run's lambda {s['negative_step']}; ours sampled from {model}")
     print("render brightness, median [10th, 90th percentile] of the mean sRGB per material, first "
           "draw: reference " + brightness(ref, kw["resolution"], activation) + "; " + "; ".join(
               f"{m} " + brightness(materials.rows(materials.load(run / SAMPLES.get(
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
-              for m in ["training_set", *OTHERS]))
+              for m in ["training_set", *others]))
     cols, clamp = {}, {}
     for lam, r in variants:
         t0 = time.perf_counter()
-        w = np.concatenate([sampler.sample(n_ref, d, None, s["steps"], s["eta"], 1.0, s["batch_size"],
-                                           s["clip"], lam, activation, refit_steps=r)
-                      for d in draw_seeds])
-        lam = name(lam, r)
-        t1 = time.perf_counter()
-        table = evaluate.evaluate_draws(ref, [w[i * n_ref:(i + 1) * n_ref] for i in range(draws)],
-                                        **kw, reference=prepared)
-        pl = plausibility.plausibility(w, n_angles=setting("diffusion", "plausibility_angles"),
-                                       seed=seeds.seed_for(seed, "diffusion_plausibility"),
-                                       activation=activation)
-        summary = plausibility.summarize(pl)
-        clamp[lam] = summary["share_any_negative"]
-        cols[lam] = stats(table)
-        print(f"lambda {lam}: sampled in {t1 - t0:.0f} s, scored in {time.perf_counter() - t1:.0f} s; "
-              f"samples clamping a negative bin {clamp[lam]:.3f} (mean clamped share "
-              f"{summary['mean_negative_share']:.4f}); render brightness "
-              f"{brightness(w[:n_ref], kw['resolution'], activation)}")
-        if lam == name(*run_variant) and not a.model:
-            got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
-            rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
-            print(f"  check against the run's metrics/ours.csv: {len(got)} values, max relative "
-                  f"difference {rel.max():.2g}")
+        drawn = [sampler.sample(n_ref, d, None, s["steps"], s["eta"], 1.0, s["batch_size"],
+                                s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
+        lam0, sampled = name(lam, r), time.perf_counter() - t0
+        for rgb in [False, True] if a.rgb_permute else [run_rgb]:
+            # as rule sample_uncond: each draw's samples in channel orders from its own stream
+            w = np.concatenate([symmetry.random_channels(x, seeds.seed_for(d, "rgb_permute"))
+                                if rgb else x for x, d in zip(drawn, draw_seeds)])
+            lam = lam0 + (" + rgb" if rgb else "")
+            t1 = time.perf_counter()
+            table = evaluate.evaluate_draws(ref, [w[i * n_ref:(i + 1) * n_ref] for i in range(draws)],
+                                            **kw, reference=prepared)
+            pl = plausibility.plausibility(w, n_angles=setting("diffusion", "plausibility_angles"),
+                                           seed=seeds.seed_for(seed, "diffusion_plausibility"),
+                                           activation=activation)
+            summary = plausibility.summarize(pl)
+            clamp[lam] = summary["share_any_negative"]
+            cols[lam] = stats(table)
+            print(f"lambda {lam}: sampled in {sampled:.0f} s, scored in {time.perf_counter() - t1:.0f} s; "
+                  f"samples clamping a negative bin {clamp[lam]:.3f} (mean clamped share "
+                  f"{summary['mean_negative_share']:.4f}); render brightness "
+                  f"{brightness(w[:n_ref], kw['resolution'], activation)}")
+            if lam0 == name(*run_variant) and rgb == run_rgb and not a.model and baseline is not None:
+                got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
+                rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
+                print(f"  check against the run's metrics/ours.csv: {len(got)} values, max relative "
+                      f"difference {rel.max():.2g}")
+    if missing:
+        print(f"not scored in this run, left out of the comparison: {', '.join(missing)}")
+    if not others:
+        for lam, c in cols.items():
+            print(f"lambda {lam}:\n{c.to_string()}")
+        return
     wins = pd.DataFrame({lam: best_or_tied(c, others) for lam, c in cols.items()})
     rows = []
     for row in next(iter(cols.values())).index:

@@ -292,6 +292,31 @@ def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
     assert "the run's embedding" not in capsys.readouterr().err
 
 
+def test_unconditional_draws_follow_the_runs_rgb_permute(run, tmp_path):
+    """A run with diffusion.sample.rgb_permute: unconditional `sample` draws of ours come in
+    random channel orders (the same draws otherwise, recorded in samples.tsv); a --type draw,
+    conditioned, is left as drawn."""
+    import shutil
+
+    from neumat.diffusion import symmetry
+    from neumat.seeds import seed_for
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "diffusion:\n  sample: {rgb_permute: true}\n```\n")
+    common = ["-n", 4, "--steps", 3, "--no-binary"]
+    for r, out in ((run, "plain"), (rec, "perm")):
+        assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
+        assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
+    plain, perm = (np.load(tmp_path / x / "weights.npy") for x in ("plain", "perm"))
+    np.testing.assert_array_equal(perm, symmetry.random_channels(plain, seed_for(0, "cli_rgb_permute")))
+    assert not np.array_equal(perm, plain)
+    assert set(pd.read_csv(tmp_path / "perm/samples.tsv", sep="\t")["rgb_permute"]) == {True}
+    np.testing.assert_array_equal(np.load(tmp_path / "perm_t/weights.npy"),
+                                  np.load(tmp_path / "plain_t/weights.npy"))
+
+
 def test_seeds_do_not_shift_into_each_other(run, tmp_path):
     """Each batch has its own named stream: --seed 2 does not redraw the second batch of
     --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""

@@ -693,3 +693,28 @@ def test_category_guidance_composes_after_the_clamp_step():
     from neumat.diffusion.sample import sample
     assert np.array_equal(sample(s, 16, 5, steps=10, negative_step=20.0, category="metallic",
                                  category_step=5.0), guided)
+
+
+def test_channel_permutation_permutes_the_fields_output():
+    """diffusion.sample.rgb_permute: output channel c of a permuted field is channel perm[c] of
+    the original at every input (to float32 rounding: the batched matmul may sum a row in
+    another order), as augment.permute orders a table's channels; the draw is a
+    pure function of the seed, and every order occurs."""
+    from neumat.augment import PERMS, permute
+    from neumat.diffusion import symmetry
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(6, nbrdf.N_PARAMS)).astype(np.float32)
+    x = torch.as_tensor(rng.normal(size=(50, 6)), dtype=torch.float32)
+    perms = symmetry.PERMUTATIONS
+    got = nbrdf.forward_raw(torch.as_tensor(symmetry.permute_channels(w, perms)), x)
+    want = nbrdf.forward_raw(torch.as_tensor(w), x)
+    for i, p in enumerate(PERMS):  # the same order as augment's names, identity first
+        assert list(perms[i]) == ["rgb".index(ch) for ch in p]
+        np.testing.assert_allclose(got[i].T.numpy(), permute(want[i].T.numpy(), p), rtol=1e-6)
+    a, b = symmetry.random_channels(w, 11), symmetry.random_channels(w, 11)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a[:, :609], w[:, :609])  # only W3 and b3 move
+    many = symmetry.random_channels(np.repeat(w[:1], 600, 0), 5)[:, -3:]
+    assert len(np.unique(many.round(6), axis=0)) == 6
+    with pytest.raises(ValueError, match=r"\(6, 3\)"):
+        symmetry.permute_channels(w, perms[:2])

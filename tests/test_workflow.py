@@ -369,6 +369,30 @@ def test_clamp_keys_rerun_only_sampling(tiny_run, key, value):
 
 
 @pytest.mark.slow
+def test_rgb_permute_reruns_only_ours_unconditional_sampling(tiny_run):
+    """diffusion.sample.rgb_permute (neutral false; the tiny config sets true) is a param of the
+    unconditional draws of `ours` (and `ours_plain`, drawn with the same seeds) alone: off,
+    merl100's, the type-conditioned, the conditioned and the constrained samples stay, and
+    nothing retrains."""
+    import re
+    import yaml
+    log = (tiny_run / "results/tiny/logs/sample_uncond/ours.log").read_text()
+    assert "random RGB channel order" in log
+    assert "random RGB channel order" not in (
+        tiny_run / "results/tiny/logs/sample_uncond/merl100.log").read_text()
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "diffusion.sample.rgb_permute", False)
+    (tiny_run / "config/rgb_off.yaml").write_text(yaml.safe_dump(cfg))
+    res = _snakemake(tiny_run, "report", "--dry-run", "--quiet", "rules", "--configfile",
+                     "config/rgb_off.yaml")
+    jobs = dict(re.findall(r"^(\w+)\s+(\d+)$", res.stdout + res.stderr, re.M))
+    assert jobs.get("sample_uncond") == "1" and jobs.get("sample_plain") == "1", jobs
+    assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_type", "sample_text",
+                                                          "sample_image", "sample_m",
+                                                          "sample_constrained"))], jobs
+
+
+@pytest.mark.slow
 def test_bf16_training_is_a_param_and_fp32_reruns_nothing(tiny_run):
     """diffusion.train.precision (config/speed_keys.yaml `neutral`): bf16 retrains the diffusion
     models (the tiny config's refiner too); fp32, set explicitly, is the arithmetic the run was

@@ -58,7 +58,10 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        cfg={"sample": settings("diffusion.sample", drop=["guidance"])},  # unguided
+        # unguided; diffusion.sample.rgb_permute for `ours` only (merl100's rows are not
+        # closed under channel permutation)
+        cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
+            [] if wc.model == "ours" else ["rgb_permute"]))},
         mode="uncond",
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
         activation=DIFF_ACTIVATION,  # decodes x0 for the clamp constraint (negative_step)
@@ -114,7 +117,8 @@ rule sample_type:
         table=out("samples/ours_type/samples.tsv"),
         timing=out("samples/ours_type/timing.tsv"),
     params:
-        cfg=settings("diffusion", ["sample", "types", "per_type"]),
+        cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
+                   "sample": settings("diffusion.sample", drop=["rgb_permute"])}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,

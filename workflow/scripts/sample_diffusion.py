@@ -3,15 +3,18 @@ reference set per seed in `seeds`, draw-major, for Table 2's mean ± std) or typ
 (`per_type` for each requested type, classifier-free guidance). diffusion.sample.negative_step
 turns on the clamp-aware constraint (neumat.diffusion.constraints.NegativeConstraint) and
 diffusion.sample.refit_steps the clamp-aware refit (neumat.diffusion.refit); rule sample_plain
-drops those keys: the same draws without them."""
+drops those keys: the same draws without them. diffusion.sample.rgb_permute (unconditional
+draws of `ours` and `ours_plain`) gives each sample a random channel order from its draw's
+stream "rgb_permute" (neumat.diffusion.symmetry)."""
 import time
 
 import numpy as np
 import pandas as pd
 
-from neumat.diffusion import Sampler, dataset
+from neumat.diffusion import Sampler, dataset, symmetry
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
+from neumat.seeds import seed_for
 
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
@@ -35,10 +38,16 @@ with script_logging(snakemake) as log:
                            s["clip"], s["negative_step"], p.activation,
                            refit_steps=s["refit_steps"])
     else:
-        w = np.concatenate([sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance,
-                                           s["batch_size"], s["clip"], s["negative_step"],
-                                           p.activation, refit_steps=s["refit_steps"])
-                            for seed in p.seeds])
+        def one_draw(seed):
+            w = sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance, s["batch_size"],
+                               s["clip"], s["negative_step"], p.activation,
+                               refit_steps=s["refit_steps"])
+            if s.get("rgb_permute"):  # neutral false: absent from params
+                w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
+            return w
+        w = np.concatenate([one_draw(seed) for seed in p.seeds])
+        if s.get("rgb_permute"):
+            log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})

@@ -268,8 +268,15 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
                                      0.0, scales.get("type", 1.0), args.batch, None, neg,
                                      args.activation, refit_steps=refit))
             bar.update(b)
+    w = np.concatenate(ws)
+    if (not types and not fixed and info["model"] == "ours"
+            and run.setting("diffusion", "sample", "rgb_permute")):
+        # unconditional draws of ours in random channel orders, as the run's sample_uncond
+        from neumat.diffusion import symmetry
+        w = symmetry.random_channels(w, seed_for(args.seed, "cli_rgb_permute"))
+        info["rgb_permute"] = True
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
-    return np.concatenate(ws), table
+    return w, table
 
 
 def _draw_category(args, run: Run, sampler, cfg):
