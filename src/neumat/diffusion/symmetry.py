@@ -20,7 +20,6 @@ import numpy as np
 from neumat import nbrdf
 
 PERMUTATIONS = np.array(list(itertools.permutations(range(3))))  # identity first, as augment.PERMS
-_W3 = sum(int(np.prod(s)) for s in nbrdf.PARAM_SHAPES[:4])  # offset of W3 (3 x 21), then b3
 
 
 def permute_channels(weights: np.ndarray, perms: np.ndarray) -> np.ndarray:
@@ -30,11 +29,9 @@ def permute_channels(weights: np.ndarray, perms: np.ndarray) -> np.ndarray:
     perms = np.asarray(perms)
     if perms.shape != (len(w), 3):
         raise ValueError(f"{perms.shape} channel orders for {len(w)} fields; need ({len(w)}, 3)")
-    hidden = nbrdf.PARAM_SHAPES[4][1]
-    w3 = w[:, _W3:_W3 + 3 * hidden].reshape(-1, 3, hidden)
-    b3 = w[:, _W3 + 3 * hidden:]
-    w[:, _W3:_W3 + 3 * hidden] = np.take_along_axis(w3, perms[:, :, None], 1).reshape(len(w), -1)
-    w[:, _W3 + 3 * hidden:] = np.take_along_axis(b3, perms, 1)
+    *_, W3, b3 = nbrdf.unflatten(w)  # views into w: (N, 3, 21) and (N, 3)
+    W3[:] = np.take_along_axis(W3, perms[:, :, None], 1)
+    b3[:] = np.take_along_axis(b3, perms, 1)
     return w
 
 
