@@ -151,11 +151,15 @@ def main():
                   f"samples clamping a negative bin {clamp[lam]:.3f} (mean clamped share "
                   f"{summary['mean_negative_share']:.4f}); render brightness "
                   f"{brightness(w[:n_ref], kw['resolution'], activation)}")
-            if lam0 == name(*run_variant) and rgb == run_rgb and not a.model and baseline is not None:
+            # at the run's lambda, both orders with --rgb-permute: a --config may say other than
+            # the run was built with, and the order that matches says which it was
+            if lam0 == name(*run_variant) and not a.model and baseline is not None \
+                    and (a.rgb_permute or rgb == run_rgb):
                 got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
                 rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))
-                print(f"  check against the run's metrics/ours.csv: {len(got)} values, max relative "
-                      f"difference {rel.max():.2g}")
+                print(f"  check of lambda {lam} against the run's metrics/ours.csv: {len(got)} "
+                      f"values, max relative difference {rel.max():.2g}"
+                      + ("" if rgb == run_rgb else " (not the setting the config gives)"))
     if missing:
         print(f"not scored in this run, left out of the comparison: {', '.join(missing)}")
     if not others:
