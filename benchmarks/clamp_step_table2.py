@@ -19,9 +19,10 @@ reference, metrics/reference.pt). It is set beside the run's other generative co
   columns': the step lifts the NBRDF's output, and dark renders go missing first.
 
 The baseline is the run's own `ours` (metrics/ours.csv) at the run's lambda. A line checks that
-lambda's resampled draws reproduce that file. `--model M` samples another model.pt (e.g. one
-trained on the run's rows in another way) in `ours`' place, with the same settings and seeds;
-the check is then skipped.
+lambda's resampled draws reproduce that file (with `--rgb-permute`, a line per channel order:
+the one that matches is the run's setting, whatever `--config` says). `--model M` samples
+another model.pt (e.g. one trained on the run's rows in another way) in `ours`' place, with the
+same settings and seeds; the check is then skipped.
 
     OMP_NUM_THREADS=2 python benchmarks/clamp_step_table2.py --results results/default --steps 0 10 30
         [--refit 0 300]   # per lambda: without the refit, and with 300 steps of it
