@@ -13,13 +13,13 @@ only), nor for conditioned samples, whose colour a condition may name.
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
 from neumat import nbrdf
+from neumat.augment import PERMS
 
-PERMUTATIONS = np.array(list(itertools.permutations(range(3))))  # identity first, as augment.PERMS
+# AugMERL's six orders as channel indices, in its order (identity first)
+PERMUTATIONS = np.array([["rgb".index(ch) for ch in p] for p in PERMS])
 
 
 def permute_channels(weights: np.ndarray, perms: np.ndarray) -> np.ndarray:
