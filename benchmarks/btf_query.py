@@ -92,8 +92,8 @@ def main():
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--march", default="native", help="-march of the fused C query")
     ap.add_argument("--sweep", action="store_true",
-                    help="GPU: time the Triton query, plain and with HPB, for each queries-per-"
-                         "program and warps-per-program launch shape")
+                    help="GPU: time the Triton query, plain, with HPB and with hex-tiling, for "
+                         "each queries-per-program and warps-per-program launch shape")
     a = ap.parse_args()
     dev = torch.device(a.device)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)
@@ -175,37 +175,44 @@ SHAPES = ((32, 1), (32, 4), (64, 2), (64, 4), (128, 4), (128, 8), (256, 8))
 
 @torch.no_grad()
 def sweep(m, u, wi, wo, sync, rounds=10):
-    """ms/frame of the plain and the HPB Triton query per launch shape (query_triton.LAUNCH:
-    queries and warps per program), best of `rounds` rounds that each time every shape once, so a
-    slow spell of the shared GPU host hits all shapes alike."""
+    """ms/frame of the plain, the HPB and the hex-tiling Triton query (the syntheses reading
+    their planes as float16, the default, and as float32) per launch shape (queries and warps
+    per program; query_triton.LAUNCH holds each kernel's default), best of `rounds` rounds that
+    each time every variant once, so a slow spell of the shared GPU host hits all alike."""
     from neumat.btf import synthesis as syn
-    h = syn.build(m, "hpb", 1, {})
+    h, x = syn.build(m, "hpb", 1, {}), syn.build(m, "hextile", 1, {})
+    variants = {"plain": (None, query_triton.packed(m)),
+                "HPB": (h, query_triton._pack(m, h)),
+                "HPB fp32": (h, query_triton._pack(m, h, half=False)),
+                "hex-tiling": (x, query_triton._pack(m, x)),
+                "hex-tiling fp32": (x, query_triton._pack(m, x, half=False))}
     u64 = (u.double() - 0.5) * 2e3
-    keep = dict(query_triton.LAUNCH)
     runs = {}
     for block, warps in SHAPES:
-        for hpb, uu in ((None, u), (h, u64)):
-            p = query_triton.packed(m, hpb)
-            def f(uu=uu, p=p, hpb=hpb, shape=dict(BLOCK=block, num_warps=warps)):
-                query_triton.LAUNCH.update(shape)
-                return query_triton.query(m, uu, wi, wo, packed=p, synth=hpb)
+        for name, (s, p) in variants.items():
+            def f(uu=u if s is None else u64, p=p, s=s, shape=dict(BLOCK=block, num_warps=warps)):
+                return query_triton.query(m, uu, wi, wo, packed=p, synth=s, launch=shape)
             f()  # compile
-            runs[block, warps, hpb is not None] = f
+            runs[block, warps, name] = f
     best = {k: float("inf") for k in runs}
     for _ in range(rounds):
         for k, f in runs.items():
             best[k] = min(best[k], timed(f, repeat=1, sync=sync)[0] * 1e3)
-    print(f"sweep, ms/frame (best of {rounds} interleaved rounds), default {keep}:")
+    print(f"sweep, ms/frame (best of {rounds} interleaved rounds; overhead against plain at the "
+          f"same shape), defaults {query_triton.LAUNCH}:")
     for block, warps in SHAPES:
-        pl, hp = best[block, warps, False], best[block, warps, True]
-        print(f"  BLOCK {block:4d} warps {warps}: plain {pl:7.3f}  HPB {hp:7.3f} "
-              f"({100 * (hp / pl - 1):+5.1f} %)")
-    bp = min((v, k) for k, v in best.items() if not k[2])
-    bh = min((v, k) for k, v in best.items() if k[2])
-    print(f"fastest plain {bp[0]:.3f} ms at {bp[1][:2]}, fastest HPB {bh[0]:.3f} ms at "
-          f"{bh[1][:2]}: HPB overhead {100 * (bh[0] / bp[0] - 1):+.1f} % (goal <= 10 %)")
-    query_triton.LAUNCH.clear()
-    query_triton.LAUNCH.update(keep)
+        pl = best[block, warps, "plain"]
+        print(f"  BLOCK {block:4d} warps {warps}: plain {pl:.3f}" + "".join(
+            f"; {n} {best[block, warps, n]:.3f} ({100 * (best[block, warps, n] / pl - 1):+.1f} %)"
+            for n in variants if n != "plain"))
+    fastest = {n: min((v, k[:2]) for k, v in best.items() if k[2] == n) for n in variants}
+    for n in variants:
+        v, shape = fastest[n]
+        line = f"fastest {n} {v:.3f} ms at {shape}"
+        if n != "plain":
+            line += (f": overhead {100 * (v / fastest['plain'][0] - 1):+.1f} % against the "
+                     f"fastest plain (goal <= 10 %)")
+        print(line)
 
 
 if __name__ == "__main__":

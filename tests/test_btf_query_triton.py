@@ -105,8 +105,20 @@ def test_hpb_kernel_equals_the_torch_synthesis(kernel_device, kw):
                                    rtol=2e-5, atol=3e-5)
         torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, synth=h).cpu(), raw,
                                    rtol=2e-5, atol=3e-5)
+    _float16_plane_is_exact(m, u, wi, wo, h)
     assert not torch.allclose(query_triton.query(m, u, wi, wo, synth=other),
                               query_triton.query(m, u, wi, wo, synth=h))
+
+
+def _float16_plane_is_exact(m, u, wi, wo, synth):
+    """The kernel reads the synthesised plane as float16 (its default packing): the very
+    results of the same kernel reading it as float32, since the synthesis rounded it so."""
+    half = query_triton._pack(m, synth)
+    full = query_triton._pack(m, synth, half=False)
+    key = "gauss" if synth.method == "hpb" else "plane"
+    assert half[key].dtype == torch.float16 and full[key].dtype == torch.float32
+    assert torch.equal(query_triton.query(m, u, wi, wo, packed=half, synth=synth),
+                       query_triton.query(m, u, wi, wo, packed=full, synth=synth))
 
 
 @pytest.mark.parametrize("kw, settings", [
@@ -141,6 +153,7 @@ def test_hextile_kernel_equals_the_torch_synthesis(kernel_device, kw, settings):
                                    rtol=1e-4, atol=3e-5 * out.abs().max().item())
         torch.testing.assert_close(query_triton.query(m, u, wi, wo, raw=True, synth=h).cpu(),
                                    raw, rtol=1e-4, atol=3e-5 * raw.abs().max().item())
+    _float16_plane_is_exact(m, u, wi, wo, h)
     assert not torch.allclose(query_triton.query(m, u, wi, wo, synth=other),
                               query_triton.query(m, u, wi, wo, synth=h))
 
@@ -173,6 +186,20 @@ def test_packing_is_kept_until_a_parameter_changes(interpreter):
     second = query_triton.packed(m)
     assert second is not first
     torch.testing.assert_close(second["w1u"][:8, :32], m.net[0].weight[:, :8].T)
+
+
+def test_each_synthesis_keeps_its_packing(interpreter):
+    """Plain and synthesised queries in turn (paper Fig. 9) reuse their packings instead of
+    repacking on every call; another seed is another packing."""
+    m = models.TriplePlane(8, 8).eval()
+    m.requires_grad_(False)
+    h, x = syn.build(m, "hpb", 1, {}), syn.build(m, "hextile", 1, {})
+    first = [query_triton.packed(m, s) for s in (None, h, x)]
+    assert [query_triton.packed(m, s) for s in (None, h, x)] == first
+    assert all(a is b for a, b in zip(first, [query_triton.packed(m, s) for s in (None, h, x)]))
+    other = syn.build(m, "hpb", 2, {})
+    assert query_triton.packed(m, other)["hs"] != first[1]["hs"]
+    assert query_triton.packed(m, h) is first[1]
 
 
 def test_not_supported_where_it_cannot_run(monkeypatch):

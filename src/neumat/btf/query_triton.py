@@ -17,8 +17,8 @@ False and the torch path runs. If a kernel fails on a GPU, `try_query` logs the 
 names NEUMAT_TRITON=0, and the process keeps to the torch path, so a render does not die on it.
 
 Tested on the CPU through Triton's interpreter (TRITON_INTERPRET=1; tests/test_btf_query_triton.py)
-against the torch path to float tolerance, and compiled where a GPU is visible (the plain and
-HPB kernels passed on an H200; the hex-tiling kernel has not yet run on a GPU). The
+against the torch path to float tolerance, and compiled where a GPU is visible (all three
+passed on an H200, the hex-tiling kernel first on 2026-11-28). The
 interpreter checks the arithmetic, not the GPU compile or its speed: the ms per frame comes
 from `benchmarks/btf_query.py` and `btf_synthesis.py --device cuda` on a GPU.
 """
@@ -37,10 +37,12 @@ from neumat.btf.fold import fold_pca
 log = logging.getLogger(__name__)
 _failed: list[str] = []  # the first kernel failure of this process, if any
 
-# queries and warps per program: speed only (each query's arithmetic is the same). 64 and 2 were
-# the fastest of 7 shapes for both the plain and the HPB query on an H200, in two sweeps
-# (benchmarks/btf_query.py --device cuda --sweep)
-LAUNCH = {"BLOCK": 64, "num_warps": 2}
+# queries and warps per program, per kernel (None: the plain query): speed only, each query's
+# arithmetic is the same. The fastest of 7 shapes for each kernel in two sweeps on an H200
+# (benchmarks/btf_query.py --device cuda --sweep, 2026-11-28): plain 128 x 8 (level with 64 x 2,
+# 0.890 and 0.969 ms/frame against 0.897 and 0.980), HPB 64 x 4, hex-tiling 128 x 8
+LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 4},
+          "hextile": {"BLOCK": 128, "num_warps": 8}}
 
 
 @cache
@@ -133,16 +135,26 @@ def _kernel(method: str | None = None):
 def packed(model, synth=None) -> dict:
     """`pack(model)` (with a synthesis: its tables on the model's device, and for HPB its
     folded layer 1), kept on the model until a parameter or the synthesis changes (a frame's
-    queries come in chunks: repacking would launch a dozen small kernels per chunk)."""
-    key = (tuple((p.data_ptr(), p._version) for p in model.parameters()), id(synth),
-           None if synth is None else tuple((t.data_ptr(), t._version)
-                                            for t in _synth_tensors(synth)))
-    cached = getattr(model, "_triton_pack", None)
+    queries come in chunks: repacking would launch a dozen small kernels per chunk). One packing
+    per synthesis object (up to PACKS), so queries that alternate between syntheses, or between
+    plain and synthesised (paper Fig. 9), do not repack on every call: with one slot,
+    alternating plain and HPB queries cost 0.8 ms more per 1920 x 1080 frame than the kernels
+    (H200, benchmarks/btf_synthesis.py --device cuda, 2026-11-28)."""
+    key = (tuple((p.data_ptr(), p._version) for p in model.parameters()),
+           None if synth is None else (synth.seed, repr(getattr(synth, "s", None)),
+                                       tuple((t.data_ptr(), t._version)
+                                             for t in _synth_tensors(synth))))
+    packs = model.__dict__.setdefault("_triton_packs", {})
+    slot = None if synth is None else id(synth)
+    cached = packs.get(slot)
     if cached is None or cached[0] != key:
-        cached = (key, _pack(model, synth))
-        model._triton_pack = cached
+        if len(packs) >= PACKS:
+            packs.clear()
+        cached = packs[slot] = (key, _pack(model, synth))
     return cached[1]
 
+
+PACKS = 8
 
 def _synth_tensors(synth):
     if synth.method == "hextile":
@@ -150,10 +162,13 @@ def _synth_tensors(synth):
     return synth.mean, synth.basis, synth.gauss, synth.lut
 
 
-def _pack(model, synth) -> dict:
+def _pack(model, synth, half: bool = True) -> dict:
+    """`half`: the synthesised planes as float16 (the default; the same values as float32,
+    which only `benchmarks/btf_synthesis.py --device cuda` asks for, as its baseline)."""
     if synth is None:
         return pack(model)
-    return _pack_hpb(model, synth) if synth.method == "hpb" else _pack_hex(model, synth)
+    pack_synth = _pack_hpb if synth.method == "hpb" else _pack_hex
+    return pack_synth(model, synth, torch.float16 if half else torch.float32)
 
 
 def _seed_hash(seed: int) -> int:
@@ -164,23 +179,27 @@ def _seed_hash(seed: int) -> int:
     return hs - (1 << 32) if hs >= 1 << 31 else hs
 
 
-def _pack_hpb(model, hpb) -> dict:
+def _pack_hpb(model, hpb, dtype) -> dict:
+    """pack(model) with HPB's folded layer 1, its LUT and its Gaussianised plane as `dtype`:
+    float16 holds it exactly (hpb.gaussianise rounds it so), at half the bytes per tap."""
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)
     dev = model.f_u.device
     p = pack(model, (w1, b1))
-    p["gauss"] = hpb.gauss.detach().float().to(dev).contiguous()
+    p["gauss"] = hpb.gauss.detach().to(dev, dtype).contiguous()
     p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
     p["hs"] = _seed_hash(hpb.seed)
     return p
 
 
-def _pack_hex(model, hexs) -> dict:
-    """pack(model) with the plane (H, W, C + 1) (the luminance channel last) and hex-tiling's
+def _pack_hex(model, hexs, dtype) -> dict:
+    """pack(model) with the feature plane (H, W, C) as `dtype` (float16 holds it exactly:
+    hextile rounds the features so), the luminance plane (H, W) float32, and hex-tiling's
     settings as the kernel takes them."""
     dev = model.f_u.device
     p, s = pack(model), hexs.s
-    p.update(plane=hexs.plane_lum.detach().float().to(dev).contiguous(),
+    pl = hexs.plane_lum.detach().to(dev)
+    p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum=pl[..., -1].float().contiguous(),
              hs=_seed_hash(hexs.seed),
              # float64 as in HexTile.__call__: a Python float argument would reach the kernel
              # as float32
@@ -193,12 +212,13 @@ def _pack_hex(model, hexs) -> dict:
 
 
 def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
-          synth=None) -> torch.Tensor:
+          synth=None, launch: dict | None = None) -> torch.Tensor:
     """RGB (N, 3) of a Triple Plane `model` at u (N, 2), wi, wo (N, 3), all on the GPU (or on
     the CPU under TRITON_INTERPRET=1); raw=True: log(1 + RGB). `synth`: an HPB or hex-tiling
     synthesis (neumat.btf.synthesis.hpb, .hextile; `method` in METHODS) in place of the f_U
     fetch, u then float64 and unbounded. `packed`: `packed(model, synth)`, to reuse across
-    calls. Callers check `supported` first."""
+    calls. `launch`: BLOCK and num_warps in place of LAUNCH's for this kernel (the benchmark's
+    sweep). Callers check `supported` first."""
     p = packed or _pack(model, synth)
     f32 = lambda t: t.detach().to(torch.float32).contiguous()
     wi, wo = f32(wi), f32(wo)
@@ -208,11 +228,12 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
     if n == 0:
         return out
     triton, _ = _triton()
-    grid = (triton.cdiv(n, LAUNCH["BLOCK"]),)
+    method = None if synth is None else synth.method
+    launch = launch or LAUNCH[method]
+    grid = (triton.cdiv(n, launch["BLOCK"]),)
     mlp = (p["w1u"], p["w1h"], p["w1d"], p["b1"], p["wh"], p["bh"], p["wl"], p["bl"], out, n)
     shapes = dict(CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"],
-                  RAW=bool(raw), **LAUNCH)
-    method = None if synth is None else synth.method
+                  RAW=bool(raw), **launch)
     if method is None:
         fu = f32(model.f_u)
         _kernel()[grid](f32(u), wi, wo, fu, fh, fd, *mlp, fu.shape[0], fu.shape[1],
@@ -224,10 +245,10 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
                              p["hs"], **shapes)
     else:
         pl = p["plane"]
-        _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, fh, fd, *mlp,
-                                 pl.shape[0], pl.shape[1], fh.shape[0], p["hs"], p["rotation"],
-                                 p["contrast"], p["exponent"], p["gain_k"], IE=p["ie"],
-                                 GAIN=p["gain"], **shapes)
+        _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, p["lum"], fh, fd,
+                                 *mlp, pl.shape[0], pl.shape[1], fh.shape[0], p["hs"],
+                                 p["rotation"], p["contrast"], p["exponent"], p["gain_k"],
+                                 IE=p["ie"], GAIN=p["gain"], **shapes)
     return out
 
 

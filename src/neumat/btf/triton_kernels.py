@@ -37,14 +37,14 @@ def texels(px, py, H, W, WRAP: tl.constexpr):
 
 @triton.jit
 def interp(ptr, i00, i01, i10, i11, fx, fy, S, C: tl.constexpr, P: tl.constexpr, m):
-    """(BLOCK, P): channels 0 ... C - 1 of texels of S floats, bilinearly weighted; the rest
-    zero."""
+    """(BLOCK, P) float32: channels 0 ... C - 1 of texels of S values (float32, or float16
+    widened exactly), bilinearly weighted; the rest zero."""
     c = tl.arange(0, P)
     mc = m[:, None] & (c < C)[None, :]
-    a = tl.load(ptr + i00[:, None] * S + c[None, :], mask=mc, other=0.0)
-    b = tl.load(ptr + i01[:, None] * S + c[None, :], mask=mc, other=0.0)
-    d = tl.load(ptr + i10[:, None] * S + c[None, :], mask=mc, other=0.0)
-    e = tl.load(ptr + i11[:, None] * S + c[None, :], mask=mc, other=0.0)
+    a = tl.load(ptr + i00[:, None] * S + c[None, :], mask=mc, other=0.0).to(tl.float32)
+    b = tl.load(ptr + i01[:, None] * S + c[None, :], mask=mc, other=0.0).to(tl.float32)
+    d = tl.load(ptr + i10[:, None] * S + c[None, :], mask=mc, other=0.0).to(tl.float32)
+    e = tl.load(ptr + i11[:, None] * S + c[None, :], mask=mc, other=0.0).to(tl.float32)
     return (((1 - fx) * (1 - fy))[:, None] * a + (fx * (1 - fy))[:, None] * b
             + ((1 - fx) * fy)[:, None] * d + (fx * fy)[:, None] * e)
 
@@ -252,12 +252,13 @@ def sincos(a):
 
 
 @triton.jit
-def hex_tap(plane_ptr, ux, uy, bx, by, hs, rotation, H, W, C: tl.constexpr, P: tl.constexpr,
-            m):
+def hex_tap(plane_ptr, lum_ptr, ux, uy, bx, by, hs, rotation, H, W, C: tl.constexpr,
+            P: tl.constexpr, m):
     """One triangle vertex (bx, by) (int64) of hex-tiling: its hashed offset and angle
     (grid.vertex_hash, k = 3), the patch rotated about the vertex centre (grid.vertex_uv) in
-    float64, then float32 fetch coordinates and the bilinear fetch of the plane (H, W, C + 1):
-    the features (BLOCK, P), channels >= C zero, and the luminance (channel C, BLOCK)."""
+    float64, then float32 fetch coordinates and the bilinear fetches of the feature plane
+    (H, W, C) and of the luminance plane (H, W): the features (BLOCK, P), channels >= C zero,
+    and the luminance (BLOCK)."""
     h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
     h = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
     ox = h.to(tl.float64) * (1.0 / 4294967296.0)
@@ -282,11 +283,11 @@ def hex_tap(plane_ptr, ux, uy, bx, by, hs, rotation, H, W, C: tl.constexpr, P: t
     x = tl.minimum(px.to(tl.float32), top)
     y = tl.minimum(py.to(tl.float32), top)
     i00, i01, i10, i11, fx, fy = texels(x, y, H, W, True)
-    feat = interp(plane_ptr, i00, i01, i10, i11, fx, fy, C + 1, C, P, m)
-    a = tl.load(plane_ptr + i00 * (C + 1) + C, mask=m, other=0.0)
-    b = tl.load(plane_ptr + i01 * (C + 1) + C, mask=m, other=0.0)
-    d = tl.load(plane_ptr + i10 * (C + 1) + C, mask=m, other=0.0)
-    e = tl.load(plane_ptr + i11 * (C + 1) + C, mask=m, other=0.0)
+    feat = interp(plane_ptr, i00, i01, i10, i11, fx, fy, C, C, P, m)
+    a = tl.load(lum_ptr + i00, mask=m, other=0.0)
+    b = tl.load(lum_ptr + i01, mask=m, other=0.0)
+    d = tl.load(lum_ptr + i10, mask=m, other=0.0)
+    e = tl.load(lum_ptr + i11, mask=m, other=0.0)
     lum = ((1 - fx) * (1 - fy)) * a + (fx * (1 - fy)) * b + ((1 - fx) * fy) * d + (fx * fy) * e
     return feat, lum
 
@@ -313,7 +314,7 @@ def gain3(x, k):
 
 
 @triton.jit
-def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
+def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
                      w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
                      hs_bits, rot_ptr, contrast, exponent, gain_k,
                      CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
@@ -321,8 +322,8 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, fh_ptr, fd_ptr, w1u_ptr, 
                      RAW: tl.constexpr, BLOCK: tl.constexpr):
     """The query with f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile, its torch
     path `HexTile.__call__`): u float64, the triangle grid in float64, per vertex the integer
-    hash, rotation and bilinear fetch of the (H, W, CU + 1) plane (luminance last), then the
-    luminance-weighted, contrast-sharpened blend."""
+    hash, rotation and bilinear fetches of the (H, W, CU) feature plane and the (H, W)
+    luminance plane, then the luminance-weighted, contrast-sharpened blend."""
     q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     m = q < N
     ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
@@ -331,9 +332,12 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, fh_ptr, fd_ptr, w1u_ptr, 
     hs = hs_bits.to(tl.uint32, bitcast=True)
     rotation = tl.load(rot_ptr)  # float64 (a Python float argument would be float32)
     dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
-    c0, l0 = hex_tap(plane_ptr, ux, uy, i0 + dn, i1 + dn, hs, rotation, HP_, WP_, CU, PU, m)
-    c1, l1 = hex_tap(plane_ptr, ux, uy, i0 + dn, i1 + 1 - dn, hs, rotation, HP_, WP_, CU, PU, m)
-    c2, l2 = hex_tap(plane_ptr, ux, uy, i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, CU, PU, m)
+    c0, l0 = hex_tap(plane_ptr, lum_ptr, ux, uy, i0 + dn, i1 + dn, hs, rotation, HP_, WP_, CU, PU,
+                     m)
+    c1, l1 = hex_tap(plane_ptr, lum_ptr, ux, uy, i0 + dn, i1 + 1 - dn, hs, rotation, HP_, WP_,
+                     CU, PU, m)
+    c2, l2 = hex_tap(plane_ptr, lum_ptr, ux, uy, i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_,
+                     CU, PU, m)
     # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
     v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
     v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
