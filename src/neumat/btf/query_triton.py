@@ -3,8 +3,9 @@ half/difference frame, the three bilinear plane fetches and the whole MLP (`tl.d
 no TF32), with the activations in registers. The torch path runs these as separate kernels, its
 fetches as gathers and its layers as batched gemv; it stays the path everywhere else (CPU: the
 fused C query, `neumat.btf.query`). Two more kernels synthesise f_U in place of its fetch:
-histogram-preserving blending (neumat.btf.synthesis.hpb: the triangle grid and fetch
-coordinates in float64, the integer hash, blend and LUT; the inverse PCA folded into layer 1)
+histogram-preserving blending (neumat.btf.synthesis.hpb: the triangle grid in float64, the
+integer hash, the fetch coordinates in 32-bit fixed point, blend and LUT; the inverse PCA folded
+into layer 1)
 and hex-tiling (neumat.btf.synthesis.hextile: the same grid and hash, the rotated patches and
 the luminance-weighted blend).
 
@@ -201,9 +202,7 @@ def _pack_hex(model, hexs, dtype) -> dict:
     pl = hexs.plane_lum.detach().to(dev)
     p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum=pl[..., -1].float().contiguous(),
              hs=_seed_hash(hexs.seed),
-             # float64 as in HexTile.__call__: a Python float argument would reach the kernel
-             # as float32
-             rotation=torch.tensor([float(s["rotation"])], dtype=torch.float64, device=dev),
+             rotation=float(s["rotation"]),  # float32 in the kernel, as the C kernel's
              contrast=float(s["contrast"]), exponent=float(s["exponent"]),
              gain_k=math.log(1 - s["gain"]) / math.log(0.5), gain=s["gain"] != 0.5)
     e = float(s["exponent"])
