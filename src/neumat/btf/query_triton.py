@@ -44,6 +44,7 @@ _failed: list[str] = []  # the first kernel failure of this process, if any
 # 0.890 and 0.969 ms/frame against 0.897 and 0.980), HPB 64 x 4, hex-tiling 128 x 8
 LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 4},
           "hextile": {"BLOCK": 128, "num_warps": 8}}
+PACKS = 8  # packings kept per model (`packed`): a synthesis each
 
 
 @cache
@@ -139,8 +140,9 @@ def packed(model, synth=None) -> dict:
     queries come in chunks: repacking would launch a dozen small kernels per chunk). One packing
     per synthesis object (up to PACKS), so queries that alternate between syntheses, or between
     plain and synthesised (paper Fig. 9), do not repack on every call: with one slot,
-    alternating plain and HPB queries cost 0.8 ms more per 1920 x 1080 frame than the kernels
-    (H200, benchmarks/btf_synthesis.py --device cuda, 2026-11-28)."""
+    alternating plain, HPB and hex-tiling queries cost 0.5 to 1.2 ms more per 1920 x 1080
+    frame than the kernels, with one per synthesis 0.1 to 0.5 ms (H200,
+    benchmarks/btf_synthesis.py --device cuda, 2026-11-28)."""
     key = (tuple((p.data_ptr(), p._version) for p in model.parameters()),
            None if synth is None else (synth.seed, repr(getattr(synth, "s", None)),
                                        tuple((t.data_ptr(), t._version)
@@ -154,8 +156,6 @@ def packed(model, synth=None) -> dict:
         cached = packs[slot] = (key, _pack(model, synth))
     return cached[1]
 
-
-PACKS = 8
 
 def _synth_tensors(synth):
     if synth.method == "hextile":
