@@ -41,7 +41,8 @@ _failed: list[str] = []  # the first kernel failure of this process, if any
 # queries and warps per program, per kernel (None: the plain query): speed only, each query's
 # arithmetic is the same. The fastest of 7 shapes for each kernel in two sweeps on an H200
 # (benchmarks/btf_query.py --device cuda --sweep, 2026-11-28): plain 128 x 8 (level with 64 x 2,
-# 0.890 and 0.969 ms/frame against 0.897 and 0.980), HPB 64 x 4, hex-tiling 128 x 8
+# 0.890 and 0.969 ms/frame against 0.897 and 0.980), HPB 64 x 4, hex-tiling 128 x 8 (swept with
+# its rotation still in float64; not re-swept since)
 LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 4},
           "hextile": {"BLOCK": 128, "num_warps": 8}}
 PACKS = 8  # packings kept per model (`packed`): a synthesis each
