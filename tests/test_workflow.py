@@ -6,6 +6,7 @@ test never touches results/ of the checkout."""
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -55,18 +56,33 @@ def _job_processes(wd: Path, names=("",)) -> list[int]:
 
 
 def _interrupt_during_fit(wd: Path, sig: int, *args):
-    """Start snakemake towards NeuMERL, send `sig` once a fit job runs; return after it exits."""
+    """Start snakemake towards NeuMERL, send `sig` once a fit job runs; return after it exits.
+    SIGINT goes to the process group, as Ctrl-C in a terminal sends it (sent to snakemake alone,
+    it lets its running jobs finish). Snakemake starts with SIGINT's default action: a process
+    started with SIGINT ignored (pytest run as a background job of a script, or under nohup)
+    passes that on, Python then installs no KeyboardInterrupt handler, and the run went on to
+    its end ("no fit job started" in the SIGKILL case). SIGKILL goes to snakemake alone: its
+    jobs must die with it (`neumat.logs.die_with_parent`)."""
     import time
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", NEUMERL, *args,
+    default_sigint = ("import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+                      "os.execv(sys.executable, [sys.executable, *sys.argv[1:]])")
+    cmd = [sys.executable, "-c", default_sigint, "-m", "snakemake", "--cores", "2", NEUMERL, *args,
            "--configfile", "config/tiny.yaml"]
-    smk = subprocess.Popen(cmd, cwd=wd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    log = wd / f"interrupted.{sig.name}.log"
+    with open(log, "w") as out:
+        smk = subprocess.Popen(cmd, cwd=wd, stdout=out, stderr=subprocess.STDOUT, process_group=0)
     try:
         deadline = time.time() + 600
         while not _job_processes(wd, ("fit_template.py", "fit_shard.py")):
-            assert smk.poll() is None and time.time() < deadline, "no fit job started"
+            assert smk.poll() is None and time.time() < deadline, \
+                f"no fit job started (snakemake ended {smk.poll()}):\n" + "\n".join(
+                    f"--- {f.name}\n{f.read_text()[-3000:]}" for f in sorted(wd.glob("interrupted.*.log")))
             time.sleep(0.2)
         time.sleep(1.0)  # inside the fit
-        smk.send_signal(sig)
+        if sig == signal.SIGINT:
+            os.killpg(smk.pid, sig)
+        else:
+            smk.send_signal(sig)
         smk.wait(timeout=120)
     finally:
         if smk.poll() is None:
@@ -86,7 +102,6 @@ def test_interrupted_run_leaves_no_jobs_and_resumes_identically(tiny_run, tmp_pa
     resume commands ("When a run is interrupted") give the uninterrupted run's bytes. The SIGINT
     case is resumed with `--rerun-incomplete` and killed again in its fit, so one resume to the
     end serves both cases (the fits are most of this test's CPU)."""
-    import signal
     wd = _copy_workflow(tmp_path)
     # the tiny run's MERL tables and AugMERL shards, linked (their mtimes kept): only the fits
     # and what follows them run here
