@@ -13,13 +13,20 @@ waited for the tiny run (idle cores, where the suite is not CPU-bound).
     python benchmarks/suite_profile.py --top 30 -- -m "not slow"   # arguments after -- go to pytest
 
 The tiny run's own CPU is not attributed to a test (it runs in the background); it is in the
-suite's total.
+suite's total. --processes also logs every Python process the suite starts (a `sitecustomize`
+on PYTHONPATH writes its own CPU time, wall time, argv and whether it imported torch or
+sentence-transformers when it exits) and prints their CPU by kind: workflow jobs (per script),
+Snakemake starts, `neumat` CLI runs, the pytest processes. A process killed by a signal writes
+nothing, and CPU outside Python (sbatch, the Slurm daemons) is not in it.
+
+    python benchmarks/suite_profile.py --processes      # + CPU per kind of process
 """
 from __future__ import annotations
 
 import argparse
 import json
 import os
+import re
 import resource
 import subprocess
 import sys
@@ -102,14 +109,81 @@ def report(rows: list[dict], waits: dict, launched: float, wall: float, cpu: flo
         print(f"{c:7.1f}  {mod}")
 
 
+PROC_ENV = "NEUMAT_PROCESS_LOG"
+# the --processes probe: imported by every Python process that finds it on PYTHONPATH
+PROBE = f"""import atexit, os, resource, sys, time
+_t0 = time.time()
+def _log():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    mods = [m for m in ("torch", "sentence_transformers") if m in sys.modules]
+    try:
+        with open(os.path.join(os.environ["{PROC_ENV}"], f"{{os.getpid()}}.json"), "w") as f:
+            f.write(__import__("json").dumps({{"cpu": r.ru_utime + r.ru_stime,
+                    "wall": time.time() - _t0, "argv": sys.argv, "mods": mods}}))
+    except (KeyError, OSError):
+        pass
+atexit.register(_log)
+"""
+
+
+def process_kind(argv: list[str]) -> str:
+    """What a logged process was, from its argv."""
+    job = re.search(r"\.snakemake/scripts/tmp\w+\.(\w+)\.py", " ".join(argv))
+    if job:
+        return f"job: {job.group(1)}.py"
+    first = argv[0] if argv else ""
+    if first.endswith("snakemake/__main__.py") or Path(first).name == "snakemake":
+        return "snakemake start"
+    if first.endswith("neumat/cli/__main__.py") or Path(first).name == "neumat":
+        return "neumat CLI"
+    if first == "-c" or "pytest" in first:  # xdist workers run `python -c ...`
+        return "pytest (controller, workers: the tests run in them)"
+    name = Path(first).name
+    if name == "__main__.py":  # python -m <package>
+        name = f"-m {Path(first).parent.name}"
+    return f"other: {name or 'python'}"
+
+
+def report_processes(procs: list[dict], top: int) -> None:
+    kinds: dict[str, list] = {}
+    for p in procs:
+        kinds.setdefault(process_kind(p["argv"]), []).append(p)
+    jobs = [p for k, ps in kinds.items() if k.startswith("job:") for p in ps]
+    total = sum(p["cpu"] for p in procs)
+    print(f"\n{len(procs)} Python processes logged, {total:.0f} CPU-s "
+          f"({sum('torch' in p['mods'] for p in procs)} imported torch, "
+          f"{sum('sentence_transformers' in p['mods'] for p in procs)} sentence-transformers)")
+    print(f"{'count':>6} {'CPU-s':>7} {'per one':>8}  kind")
+    rows = [(k, ps) for k, ps in kinds.items() if not k.startswith("job:")]
+    rows.append(("workflow jobs, all scripts", jobs))
+    for k, ps in sorted(rows, key=lambda kp: -sum(p["cpu"] for p in kp[1])):
+        c = sum(p["cpu"] for p in ps)
+        print(f"{len(ps):6d} {c:7.1f} {c / max(len(ps), 1):8.2f}  {k}")
+    print(f"\n{'count':>6} {'CPU-s':>7} {'per one':>8}  workflow job script (top {top} by CPU)")
+    per = sorted(((k, ps) for k, ps in kinds.items() if k.startswith("job:")),
+                 key=lambda kp: -sum(p["cpu"] for p in kp[1]))
+    for k, ps in per[:top]:
+        c = sum(p["cpu"] for p in ps)
+        print(f"{len(ps):6d} {c:7.1f} {c / len(ps):8.2f}  {k[5:]}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--top", type=int, default=20, help="tests and modules listed (default 20)")
+    ap.add_argument("--processes", action="store_true",
+                    help="also log every Python process and print CPU per kind of process")
     ap.add_argument("pytest_args", nargs="*", help="after --: arguments for pytest")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as d:
         env = dict(os.environ, **{ENV: d})
-        env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "benchmarks"), env.get("PYTHONPATH", "")])
+        path = [str(ROOT / "benchmarks")]
+        if a.processes:
+            (Path(d) / "probe").mkdir()
+            (Path(d) / "procs").mkdir()
+            (Path(d) / "probe" / "sitecustomize.py").write_text(PROBE)
+            path.insert(0, str(Path(d) / "probe"))
+            env[PROC_ENV] = str(Path(d) / "procs")
+        env["PYTHONPATH"] = os.pathsep.join([*path, env.get("PYTHONPATH", "")])
         c0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
         launched = time.time()  # the tests' start times are wall-clock
         rc = subprocess.call([sys.executable, "-m", "pytest", "-p", "suite_profile",
@@ -119,10 +193,13 @@ def main() -> int:
         rows = [dict(json.loads(line), worker=f.stem) for f in Path(d).glob("*.jsonl")
                 for line in f.open()]
         waits = {f.stem: json.loads(f.read_text()) for f in Path(d).glob("*.wait")}
+        procs = [json.loads(f.read_text()) for f in Path(d).glob("procs/*.json")]
     if not rows:
         print(f"pytest exited with {rc} and ran no test", file=sys.stderr)
         return rc or 1
     report(rows, waits, launched, wall, cpu, a.top)
+    if a.processes:
+        report_processes(procs, a.top)
     return rc
 
 

@@ -70,3 +70,29 @@ def test_workers_group_tests_that_share_a_module_fixture(tmp_path):
     assert sched._split_scope("tests/b.py::test_plain") == "tests/b.py::test_plain"
     # the user's own -n / --dist: xdist's scheduler
     assert conftest.pytest_xdist_make_scheduler(SimpleNamespace(), None) is None
+
+
+def test_suite_profile_logs_each_python_process_and_names_its_kind(tmp_path):
+    """benchmarks/suite_profile.py --processes: the sitecustomize probe writes one record per
+    Python process at exit, and the report sorts them into kinds by argv."""
+    import importlib.util
+    import os
+    import subprocess
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    spec = importlib.util.spec_from_file_location("suite_profile", root / "benchmarks/suite_profile.py")
+    sp = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sp)
+    (tmp_path / "probe").mkdir()
+    (tmp_path / "procs").mkdir()
+    (tmp_path / "probe" / "sitecustomize.py").write_text(sp.PROBE)
+    env = dict(os.environ, PYTHONPATH=str(tmp_path / "probe"), **{sp.PROC_ENV: str(tmp_path / "procs")})
+    subprocess.run([sys.executable, "-c", "sum(range(10 ** 6))", "x"], env=env, check=True)
+    [rec] = [json.loads(f.read_text()) for f in (tmp_path / "procs").glob("*.json")]
+    assert rec["argv"] == ["-c", "x"] and rec["cpu"] > 0 and rec["mods"] == []
+    kinds = {"/w/.snakemake/scripts/tmpab_12.fit_shard.py": "job: fit_shard.py",
+             "/v/site-packages/snakemake/__main__.py": "snakemake start",
+             "/r/src/neumat/cli/__main__.py": "neumat CLI", "/v/bin/neumat": "neumat CLI",
+             "-c": "pytest (controller, workers: the tests run in them)",
+             "/v/lib/python3.11/venv/__main__.py": "other: -m venv"}
+    assert {a: sp.process_kind([a, "--x"]) for a in kinds} == kinds
