@@ -126,6 +126,15 @@ atexit.register(_log)
 """
 
 
+def install_probe(d: Path) -> dict[str, str]:
+    """The probe as `d`/probe/sitecustomize.py, logging into `d`/procs: the environment
+    variables that turn it on for the processes started with them."""
+    (d / "probe").mkdir()
+    (d / "procs").mkdir()
+    (d / "probe" / "sitecustomize.py").write_text(PROBE)
+    return {"PYTHONPATH": str(d / "probe"), PROC_ENV: str(d / "procs")}
+
+
 def process_kind(argv: list[str]) -> str:
     """What a logged process was, from its argv."""
     job = re.search(r"\.snakemake/scripts/tmp\w+\.(\w+)\.py", " ".join(argv))
@@ -178,11 +187,9 @@ def main() -> int:
         env = dict(os.environ, **{ENV: d})
         path = [str(ROOT / "benchmarks")]
         if a.processes:
-            (Path(d) / "probe").mkdir()
-            (Path(d) / "procs").mkdir()
-            (Path(d) / "probe" / "sitecustomize.py").write_text(PROBE)
-            path.insert(0, str(Path(d) / "probe"))
-            env[PROC_ENV] = str(Path(d) / "procs")
+            probe = install_probe(Path(d))
+            path.insert(0, probe.pop("PYTHONPATH"))
+            env.update(probe)
         env["PYTHONPATH"] = os.pathsep.join([*path, env.get("PYTHONPATH", "")])
         c0, t0 = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
         launched = time.time()  # the tests' start times are wall-clock

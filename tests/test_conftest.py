@@ -83,10 +83,7 @@ def test_suite_profile_logs_each_python_process_and_names_its_kind(tmp_path):
     spec = importlib.util.spec_from_file_location("suite_profile", root / "benchmarks/suite_profile.py")
     sp = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(sp)
-    (tmp_path / "probe").mkdir()
-    (tmp_path / "procs").mkdir()
-    (tmp_path / "probe" / "sitecustomize.py").write_text(sp.PROBE)
-    env = dict(os.environ, PYTHONPATH=str(tmp_path / "probe"), **{sp.PROC_ENV: str(tmp_path / "procs")})
+    env = dict(os.environ, **sp.install_probe(tmp_path))
     subprocess.run([sys.executable, "-c", "sum(range(10 ** 6))", "x"], env=env, check=True)
     [rec] = [json.loads(f.read_text()) for f in (tmp_path / "procs").glob("*.json")]
     assert rec["argv"] == ["-c", "x"] and rec["cpu"] > 0 and rec["mods"] == []
