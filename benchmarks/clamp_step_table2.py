@@ -4,7 +4,10 @@ With `--refit N ...`, each lambda is also sampled with the clamp-aware refit of 
 (`diffusion.sample.refit_steps`, neumat.diffusion.refit) as its own column. With
 `--rgb-permute`, each variant's samples are scored a second time, each in a random RGB channel
 order drawn as rule sample_uncond draws it (`diffusion.sample.rgb_permute`,
-neumat.diffusion.symmetry): a column "+ rgb" of the same draws.
+neumat.diffusion.symmetry): a column "+ rgb" of the same draws. With `--type-prior`, each
+variant is also sampled with a type per sample drawn from the training split's types (untyped
+interpolations: the null class) and no guidance (`diffusion.sample.type_prior`,
+neumat.diffusion.dataset.prior_types): a column "+ types", the same seeds.
 
 `ours` is sampled again at each lambda with the run's model, sampling settings and draw seeds
 (what rule sample_uncond does), and scored as rule metrics scores it (the run's prepared
@@ -29,6 +32,7 @@ same settings and seeds; the check is then skipped.
         [--config C]   # settings: the run's recorded config (report/index.md), else the schema
         [--model M]    # another model.pt in ours' place
         [--rgb-permute]  # each variant also with its samples in random channel orders
+        [--type-prior]   # each variant also sampled with types drawn as in training
 """
 from __future__ import annotations
 
@@ -93,6 +97,9 @@ def main():
     ap.add_argument("--rgb-permute", action="store_true",
                     help="score each variant also with its samples in random RGB channel orders "
                          "(diffusion.sample.rgb_permute)")
+    ap.add_argument("--type-prior", action="store_true",
+                    help="sample each variant also with per-sample types drawn as in training, "
+                         "unguided (diffusion.sample.type_prior)")
     a = ap.parse_args()
     run = Path(a.results)
     model = Path(a.model) if a.model else run / "diffusion/ours/model.pt"
@@ -104,7 +111,8 @@ def main():
          for k in ("steps", "eta", "batch_size", "clip", "negative_step")}
     activation = setting("fit", "activation")
     run_variant = (s["negative_step"], setting("diffusion", "sample", "refit_steps"))
-    variants = [(lam, r) for lam in a.steps for r in a.refit]
+    variants = [(lam, r, tp) for lam in a.steps for r in a.refit
+                for tp in ([False, True] if a.type_prior else [False])]
     run_rgb = bool(setting("diffusion", "sample", "rgb_permute"))
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
@@ -129,11 +137,14 @@ def main():
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
               for m in ["training_set", *others]))
     cols, clamp = {}, {}
-    for lam, r in variants:
+    for lam, r, tp in variants:
         t0 = time.perf_counter()
-        drawn = [sampler.sample(n_ref, d, None, s["steps"], s["eta"], 1.0, s["batch_size"],
+        # as rule sample_uncond: each draw's types from its own stream
+        drawn = [sampler.sample(n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(
+                                    d, "type_prior")) if tp else None,
+                                s["steps"], s["eta"], 1.0, s["batch_size"],
                                 s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
-        lam0, sampled = name(lam, r), time.perf_counter() - t0
+        lam0, sampled = name(lam, r) + (" + types" if tp else ""), time.perf_counter() - t0
         for rgb in [False, True] if a.rgb_permute else [run_rgb]:
             # as rule sample_uncond: each draw's samples in channel orders from its own stream
             w = np.concatenate([symmetry.random_channels(x, seeds.seed_for(d, "rgb_permute"))

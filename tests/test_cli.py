@@ -317,6 +317,37 @@ def test_unconditional_draws_follow_the_runs_rgb_permute(run, tmp_path):
                                   np.load(tmp_path / "plain_t/weights.npy"))
 
 
+def test_unconditional_draws_follow_the_runs_type_prior(run, tmp_path, capsys):
+    """A run with diffusion.sample.type_prior: unconditional `sample` draws of ours are drawn
+    each with a type picked from the run's training split (stream "cli_type_prior"), unguided,
+    and record it; without the manifest the error names the file and the rule."""
+    import shutil
+
+    from neumat.diffusion import Sampler, dataset
+    from neumat.seeds import seed_for
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "diffusion:\n  sample: {type_prior: true}\n```\n")
+    common = ["-n", 6, "--steps", 3, "--no-binary", "--out", tmp_path / "tp"]
+    assert main("sample", "--run", rec, *common) != 0
+    err = capsys.readouterr().err
+    assert "diffusion.sample.type_prior needs" in err and "neumerl/manifest.tsv" in err, err
+    (rec / "neumerl").mkdir()
+    man = pd.DataFrame({"id": range(4), "name": list("abcd"), "type": [TYPES[0], "", TYPES[1], ""],
+                        "operation": ["original", "interpolation"] * 2,
+                        "split": ["train", "train", "train", "test"]})
+    man.to_csv(rec / "neumerl/manifest.tsv", sep="\t", index=False)
+    assert main("sample", "--run", rec, *common) == 0
+    prior = dataset.prior_types(man, 6, seed_for(0, "cli_type_prior"))
+    table = pd.read_csv(tmp_path / "tp/samples.tsv", sep="\t", keep_default_na=False)
+    assert table["prior_type"].tolist() == prior and set(prior) == {TYPES[0], TYPES[1], ""}
+    want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
+        6, seed_for(0, "cli_sample", 0), prior, 3, 0.0, 1.0, negative_step=30.0)
+    np.testing.assert_array_equal(np.load(tmp_path / "tp/weights.npy"), want)
+
+
 def test_seeds_do_not_shift_into_each_other(run, tmp_path):
     """Each batch has its own named stream: --seed 2 does not redraw the second batch of
     --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""

@@ -537,6 +537,28 @@ def test_model_rows_labels_and_training_subset():
     assert len(three) == 6 and len(set(three)) == 6 and set(three) <= {0, 1, 3, 4, 5, 6}
 
 
+def test_prior_types_follow_the_training_split_and_untyped_is_the_null_class():
+    """diffusion.sample.type_prior: types drawn as `ours` saw them in training (train rows
+    only, '' for untyped rows), deterministic per seed; '' samples through the null class."""
+    from neumat.diffusion import dataset
+    man = _manifest()  # train-split types: paint metal paint metal '' ''
+    t = dataset.prior_types(man, 6000, seed=1)
+    assert t == dataset.prior_types(man, 6000, seed=1) and t != dataset.prior_types(man, 6000, seed=2)
+    share = {k: t.count(k) / len(t) for k in set(t)}
+    assert set(share) == {"paint", "metal", ""}  # felt lies in the test split only
+    assert all(abs(v - 1 / 3) < 0.03 for v in share.values()), share
+    cfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=2)
+    s = Sampler({"model_cfg": cfg.to_dict(), "sched_cfg": ScheduleConfig(timesteps=50).to_dict(),
+                 "class_names": ["metal", "paint"], "ema": _model(cfg).state_dict(),
+                 "normalizer": Normalizer.fit(torch.randn(32, nbrdf.N_PARAMS)).state_dict()}, "cpu")
+    assert s.labels_of(["paint", "", "metal"]).tolist() == [1, -1, 0]
+    kw = dict(steps=5, guidance=1.0, negative_step=0.0)
+    assert np.array_equal(s.sample(3, 7, ["", "", ""], **kw), s.sample(3, 7, None, **kw))
+    assert not np.array_equal(s.sample(3, 7, ["paint"] * 3, **kw), s.sample(3, 7, None, **kw))
+    with pytest.raises(ValueError, match="unknown material type"):
+        s.labels_of(["wood"])
+
+
 def test_nearest_finds_identical_rows():
     from neumat.diffusion import dataset
     b = torch.randn(20, 30)

@@ -58,10 +58,10 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        # unguided; diffusion.sample.rgb_permute for `ours` only (merl100's rows are not
-        # closed under channel permutation)
+        # unguided; diffusion.sample.rgb_permute and type_prior for `ours` only (merl100's
+        # rows are not closed under channel permutation, and are all typed)
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            [] if wc.model == "ours" else ["rgb_permute"]))},
+            [] if wc.model == "ours" else ["rgb_permute", "type_prior"]))},
         mode="uncond",
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
         activation=DIFF_ACTIVATION,  # decodes x0 for the clamp constraint (negative_step)
@@ -118,7 +118,7 @@ rule sample_type:
         timing=out("samples/ours_type/timing.tsv"),
     params:
         cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
-                   "sample": settings("diffusion.sample", drop=["rgb_permute"])}),
+                   "sample": settings("diffusion.sample", drop=["rgb_permute", "type_prior"])}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,

@@ -5,7 +5,9 @@ turns on the clamp-aware constraint (neumat.diffusion.constraints.NegativeConstr
 diffusion.sample.refit_steps the clamp-aware refit (neumat.diffusion.refit); rule sample_plain
 drops those keys: the same draws without them. diffusion.sample.rgb_permute (unconditional
 draws of `ours` and `ours_plain`) gives each sample a random channel order from its draw's
-stream "rgb_permute" (neumat.diffusion.symmetry)."""
+stream "rgb_permute" (neumat.diffusion.symmetry), and diffusion.sample.type_prior draws each
+with a type picked as in training from the stream "type_prior", unguided
+(neumat.diffusion.dataset.prior_types; column `prior_type` of samples.tsv)."""
 import time
 
 import numpy as np
@@ -22,7 +24,7 @@ with script_logging(snakemake) as log:
     s = {"negative_step": 0.0, "refit_steps": 0, **p.cfg["sample"]}
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
-    draw = None
+    draw, prior = None, None
     if p.mode == "uncond":
         n_ref, types, guidance = len(dataset.reference_rows(man)), None, 1.0
         n, requested = n_ref * len(p.seeds), [""] * (n_ref * len(p.seeds))
@@ -38,14 +40,19 @@ with script_logging(snakemake) as log:
                            s["clip"], s["negative_step"], p.activation,
                            refit_steps=s["refit_steps"])
     else:
-        def one_draw(seed):
-            w = sampler.sample(n_ref, seed, None, s["steps"], s["eta"], guidance, s["batch_size"],
-                               s["clip"], s["negative_step"], p.activation,
-                               refit_steps=s["refit_steps"])
+        if s.get("type_prior"):  # neutral false: absent from params
+            prior = [dataset.prior_types(man, n_ref, seed_for(seed, "type_prior")) for seed in p.seeds]
+            log.info("each sample with a type drawn as in training, unguided "
+                     "(diffusion.sample.type_prior): %d of %d typed", sum(map(bool, sum(prior, []))), n)
+
+        def one_draw(d, seed):
+            w = sampler.sample(n_ref, seed, prior[d] if prior else None, s["steps"], s["eta"],
+                               guidance, s["batch_size"], s["clip"], s["negative_step"],
+                               p.activation, refit_steps=s["refit_steps"])
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
             return w
-        w = np.concatenate([one_draw(seed) for seed in p.seeds])
+        w = np.concatenate([one_draw(d, seed) for d, seed in enumerate(p.seeds)])
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
     dt = time.perf_counter() - t0
@@ -53,6 +60,8 @@ with script_logging(snakemake) as log:
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
     if draw is not None:
         table["draw"] = draw
+    if prior is not None:
+        table["prior_type"] = sum(prior, [])
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
                    "steps": s["steps"], "eta": s["eta"], "guidance": guidance,

@@ -146,10 +146,10 @@ def _check_start(args, chosen: list[str]) -> None:
         raise CLIError("--refiner uses the run's refiner model: leave out --model")
 
 
-def _run_file(run: Run, rel: str, rule: str) -> Path:
+def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
     p = run.path / rel
     if not p.exists():
-        raise CLIError(f"--start needs {p}; build it with rule {rule}: `{run.target(rel)}`")
+        raise CLIError(f"{why} needs {p}; build it with rule {rule}: `{run.target(rel)}`")
     return p
 
 
@@ -258,6 +258,14 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         w, table = _draw_category(args, run, sampler, cfg)
         return w, table.assign(**info)
     types = [args.type] * args.n if args.type else None
+    uncond_ours = not types and not fixed and info["model"] == "ours"
+    prior = None
+    if uncond_ours and run.setting("diffusion", "sample", "type_prior"):
+        # types drawn as in training, unguided, as the run's sample_uncond
+        from neumat.diffusion import dataset
+        man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl",
+                                              "diffusion.sample.type_prior"))
+        types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
     ws = []
     with _progress(args.n, "sampling") as bar:
         for s in range(0, args.n, args.batch):
@@ -265,17 +273,18 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
             # a named stream per batch: --seed 8 does not redraw --seed 0's second batch of 8
             ws.append(sampler.sample(b, seed_for(args.seed, "cli_sample", s),
                                      types[s:s + b] if types else None, args.steps,
-                                     0.0, scales.get("type", 1.0), args.batch, None, neg,
-                                     args.activation, refit_steps=refit))
+                                     0.0, 1.0 if prior else scales.get("type", 1.0), args.batch,
+                                     None, neg, args.activation, refit_steps=refit))
             bar.update(b)
     w = np.concatenate(ws)
-    if (not types and not fixed and info["model"] == "ours"
-            and run.setting("diffusion", "sample", "rgb_permute")):
+    if uncond_ours and run.setting("diffusion", "sample", "rgb_permute"):
         # unconditional draws of ours in random channel orders, as the run's sample_uncond
         from neumat.diffusion import symmetry
         w = symmetry.random_channels(w, seed_for(args.seed, "cli_rgb_permute"))
         info["rgb_permute"] = True
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
+    if prior:
+        table["prior_type"] = prior
     return w, table
 
 

@@ -61,6 +61,15 @@ def labels(types, names: list[str]) -> np.ndarray:
     return np.array([index[t] if t else -1 for t in types], dtype=np.int64)
 
 
+def prior_types(man: pd.DataFrame, n: int, seed: int) -> list[str]:
+    """n type names drawn as `ours` saw them in training: the types of n train-split rows
+    picked uniformly with replacement ('' for untyped interpolations, i.e. the null class).
+    Sampling each with its type and no guidance (scale 1) draws from sum_c p(c) p(x | c), the
+    training distribution, through the conditional model (diffusion.sample.type_prior)."""
+    types = man["type"].to_numpy()[training_rows(man, "ours")]
+    return list(types[np.random.default_rng(seed).integers(0, len(types), n)])
+
+
 def training_subset(man: pd.DataFrame, seed: int, draws: int = 1) -> np.ndarray:
     """Rows of `draws` disjoint random train-split subsets, each as large as the test split
     (Table 2 'Training set'), draw-major, each draw sorted. Too few training rows: the draws

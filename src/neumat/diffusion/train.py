@@ -260,10 +260,11 @@ class Sampler:
         self.diffusion = Diffusion(ScheduleConfig(**bundle["sched_cfg"]))
 
     def labels_of(self, types: list[str]) -> torch.Tensor:
-        unknown = sorted(set(types) - set(self.class_names))
+        """Type names -> class indices; '' -> -1, the null class (that sample unconditioned)."""
+        unknown = sorted(set(types) - set(self.class_names) - {""})
         if unknown:
             raise ValueError(f"unknown material type(s) {unknown}; known: {self.class_names}")
-        return torch.tensor([self.class_names.index(t) for t in types])
+        return torch.tensor([self.class_names.index(t) if t else -1 for t in types])
 
     @torch.no_grad()
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
