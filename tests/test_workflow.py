@@ -384,23 +384,29 @@ def test_clamp_keys_rerun_only_sampling(tiny_run, key, value):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("key, value", [("rgb_permute", False), ("type_prior", True)])
-def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run, key, value):
-    """diffusion.sample.rgb_permute and type_prior (neutral false; the tiny config sets
-    rgb_permute true) are params of the unconditional draws of `ours` (and `ours_plain`, drawn
-    with the same seeds) alone: flipped, merl100's, the type-conditioned, the conditioned and the
-    constrained samples stay, and nothing retrains."""
+@pytest.mark.parametrize("key", ["rgb_permute", "type_prior"])
+def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run, key):
+    """diffusion.sample.rgb_permute and type_prior (neutral false; the tiny config sets both
+    true) are params of the unconditional draws of `ours` (and `ours_plain`, drawn with the same
+    seeds) alone: off, merl100's, the type-conditioned, the conditioned and the constrained
+    samples stay, and nothing retrains."""
     import re
+
+    import pandas as pd
     import yaml
+    says = {"rgb_permute": "random RGB channel order", "type_prior": "drawn as in training"}
     log = (tiny_run / "results/tiny/logs/sample_uncond/ours.log").read_text()
-    assert "random RGB channel order" in log and "type_prior" not in log
-    assert "random RGB channel order" not in (
-        tiny_run / "results/tiny/logs/sample_uncond/merl100.log").read_text()
+    merl100 = (tiny_run / "results/tiny/logs/sample_uncond/merl100.log").read_text()
+    assert says[key] in log and says[key] not in merl100
+    if key == "type_prior":  # each sample's drawn type recorded, typed and untyped ones
+        t = pd.read_csv(tiny_run / "results/tiny/samples/ours/samples.tsv", sep="\t",
+                        keep_default_na=False)
+        assert (t["type"] == "").all() and "" in set(t["prior_type"]) and len(set(t["prior_type"])) > 1
     cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
-    _set(cfg, f"diffusion.sample.{key}", value)
-    (tiny_run / f"config/{key}_flipped.yaml").write_text(yaml.safe_dump(cfg))
+    _set(cfg, f"diffusion.sample.{key}", False)
+    (tiny_run / f"config/{key}_off.yaml").write_text(yaml.safe_dump(cfg))
     res = _snakemake(tiny_run, "report", "--dry-run", "--quiet", "rules", "--configfile",
-                     f"config/{key}_flipped.yaml")
+                     f"config/{key}_off.yaml")
     jobs = dict(re.findall(r"^(\w+)\s+(\d+)$", res.stdout + res.stderr, re.M))
     assert jobs.get("sample_uncond") == "1" and jobs.get("sample_plain") == "1", jobs
     assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_type", "sample_text",
