@@ -7,7 +7,8 @@ order drawn as rule sample_uncond draws it (`diffusion.sample.rgb_permute`,
 neumat.diffusion.symmetry): a column "+ rgb" of the same draws. With `--type-prior`, each
 variant is also sampled with a type per sample drawn from the training split's types (untyped
 interpolations: the null class) and no guidance (`diffusion.sample.type_prior`,
-neumat.diffusion.dataset.prior_types): a column "+ types", the same seeds.
+neumat.diffusion.dataset.prior_types): a column "+ types", the same seeds. Without it, each
+variant is sampled as the run's setting says.
 
 `ours` is sampled again at each lambda with the run's model, sampling settings and draw seeds
 (what rule sample_uncond does), and scored as rule metrics scores it (the run's prepared
@@ -111,9 +112,10 @@ def main():
          for k in ("steps", "eta", "batch_size", "clip", "negative_step")}
     activation = setting("fit", "activation")
     run_variant = (s["negative_step"], setting("diffusion", "sample", "refit_steps"))
-    variants = [(lam, r, tp) for lam in a.steps for r in a.refit
-                for tp in ([False, True] if a.type_prior else [False])]
     run_rgb = bool(setting("diffusion", "sample", "rgb_permute"))
+    run_tp = bool(setting("diffusion", "sample", "type_prior"))
+    variants = [(lam, r, tp) for lam in a.steps for r in a.refit
+                for tp in ([False, True] if a.type_prior else [run_tp])]
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
                                          seeds.seed_for(seed, "metrics")),
@@ -145,6 +147,7 @@ def main():
                                 s["steps"], s["eta"], 1.0, s["batch_size"],
                                 s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
         lam0, sampled = name(lam, r) + (" + types" if tp else ""), time.perf_counter() - t0
+        at_run = (lam, r, tp) == (*run_variant, run_tp)  # the run's own setting: checked below
         for rgb in [False, True] if a.rgb_permute else [run_rgb]:
             # as rule sample_uncond: each draw's samples in channel orders from its own stream
             w = np.concatenate([symmetry.random_channels(x, seeds.seed_for(d, "rgb_permute"))
@@ -165,7 +168,7 @@ def main():
                   f"{brightness(w[:n_ref], kw['resolution'], activation)}")
             # at the run's lambda, both orders with --rgb-permute: a --config may say other than
             # the run was built with, and the order that matches says which it was
-            if lam0 == name(*run_variant) and not a.model and baseline is not None \
+            if at_run and not a.model and baseline is not None \
                     and (a.rgb_permute or rgb == run_rgb):
                 got = table.merge(baseline, on=["draw", "metric", "distance"], suffixes=("", "_run"))
                 rel = ((got["value"] - got["value_run"]).abs() / got["value_run"].abs().clip(lower=1e-12))

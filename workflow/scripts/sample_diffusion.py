@@ -41,18 +41,20 @@ with script_logging(snakemake) as log:
                            refit_steps=s["refit_steps"])
     else:
         if s.get("type_prior"):  # neutral false: absent from params
-            prior = [dataset.prior_types(man, n_ref, seed_for(seed, "type_prior")) for seed in p.seeds]
+            prior = {seed: dataset.prior_types(man, n_ref, seed_for(seed, "type_prior"))
+                     for seed in p.seeds}
             log.info("each sample with a type drawn as in training, unguided "
-                     "(diffusion.sample.type_prior): %d of %d typed", sum(map(bool, sum(prior, []))), n)
+                     "(diffusion.sample.type_prior): %d of %d typed",
+                     sum(bool(t) for ts in prior.values() for t in ts), n)
 
-        def one_draw(d, seed):
-            w = sampler.sample(n_ref, seed, prior[d] if prior else None, s["steps"], s["eta"],
+        def one_draw(seed):
+            w = sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"], s["eta"],
                                guidance, s["batch_size"], s["clip"], s["negative_step"],
                                p.activation, refit_steps=s["refit_steps"])
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
             return w
-        w = np.concatenate([one_draw(d, seed) for d, seed in enumerate(p.seeds)])
+        w = np.concatenate([one_draw(seed) for seed in p.seeds])
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
     dt = time.perf_counter() - t0
@@ -61,7 +63,7 @@ with script_logging(snakemake) as log:
     if draw is not None:
         table["draw"] = draw
     if prior is not None:
-        table["prior_type"] = sum(prior, [])
+        table["prior_type"] = [t for seed in p.seeds for t in prior[seed]]
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
                    "steps": s["steps"], "eta": s["eta"], "guidance": guidance,
