@@ -21,13 +21,18 @@ keeps a start it is given); one without the mode's condition refines the start u
 --candidates / --clamp-penalties (image mode): best of n (`conditions.image.candidates`,
 `clamp_penalty`): each image's samples are the best of n times as many draws by render PSNR
 against it, less the penalty (dB) for a clamping draw (clamps checked on their own seed stream,
-not the one the clamping column reports); n = 1 is the plain sampling of the same run. Adds the
+not the one the clamping column reports); n = 1 is the plain sampling of the same run.
+--unconstrained-candidates m (with --candidates n): each image also draws m times its samples
+without the clamp constraint (`conditions.image.unconstrained_candidates`; seed stream
+"unconstrained"), and best of n + m chooses among all of them. Adds the
 samples' spread: the mean pairwise PSNR between the metric-view renders of an image's samples
 (higher: more alike) and their mean pairwise weight-space L2. The workflow's image sampling of
 config/config.yaml:
 
     python benchmarks/conditions_strength.py --results results/<run> --model results/<run>/diffusion/refiner/model.pt \
         --strengths 0.05 --render-steps 0.5 --candidates 1 4 8 --clamp-penalties 0 3 10
+    python benchmarks/conditions_strength.py --results results/<run> --model results/<run>/diffusion/refiner/model.pt \
+        --strengths 0.05 --render-steps 0.5 --candidates 4 8 --unconstrained-candidates 0 4 8
 """
 
 import argparse
@@ -92,6 +97,9 @@ def main():
                     help="image mode: best of n draws (conditions.image.candidates)")
     ap.add_argument("--clamp-penalties", type=float, nargs="+", default=[10.0],
                     help="dB off a clamping draw's score (conditions.image.clamp_penalty)")
+    ap.add_argument("--unconstrained-candidates", type=int, nargs="+", default=[0],
+                    help="image mode: more draws per sample without the clamp constraint "
+                         "(conditions.image.unconstrained_candidates)")
     a = ap.parse_args()
     R, k, mode = a.results, a.per_image, a.mode
     print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}; mode {mode}",
@@ -116,30 +124,48 @@ def main():
         print(f"{a.model}: no {mode} condition; the start is refined unconditionally", flush=True)
         c = {}
     f_start = np.repeat(ts.fv(ret), k, 0)
-    if mode != "image" and (a.render_steps != [0.0] or a.candidates != [1]):
+    if mode != "image" and (a.render_steps != [0.0] or a.candidates != [1]
+                            or a.unconstrained_candidates != [0]):
         raise SystemExit("--render-steps and --candidates need --mode image (they follow an image)")
-    for st, rs, n in [(st, rs, n) for st in a.strengths for rs in a.render_steps
-                      for n in a.candidates]:
-        kd = k * n  # draws per condition
+
+    def draw(n, seed, negative_step, st, rs):
+        """n draws per sample of every condition (len(emb), k n, 675) and their seconds."""
         cd = {m: (list(np.repeat(v, n)) if mode == "type" else np.repeat(v, n, 0))
               for m, v in c.items()}
-        tgt = None if cond is None else cond.repeat_interleave(kd, 0)
+        tgt = None if cond is None else cond.repeat_interleave(k * n, 0)
         t0 = time.perf_counter()
-        draws = sample(sampler, len(emb) * kd, a.seed, cd, {mode: a.guidance} if c else None,
-                       a.steps, 0.0, 256, None, negative_step=a.negative_step,
-                       start=weights[np.repeat(got, kd)], strength=st,
-                       render_targets=tgt if rs else None, render_step=rs)
-        dt = time.perf_counter() - t0
-        if n == 1:
+        w = sample(sampler, len(emb) * k * n, seed, cd, {mode: a.guidance} if c else None,
+                   a.steps, 0.0, 256, None, negative_step=negative_step,
+                   start=weights[np.repeat(got, k * n)], strength=st,
+                   render_targets=tgt if rs else None, render_step=rs)
+        return w.reshape(len(emb), k * n, -1), time.perf_counter() - t0
+
+    def pick(st, rs, n, m, draws, dt):
+        """Report the best k of each condition's k (n + m) draws (all of them for n + m = 1)."""
+        kd = k * (n + m)  # draws per condition
+        draws = draws.reshape(len(emb) * kd, -1)
+        if n + m == 1:
             picks = [(None, draws)]
         else:
             psnr, clamps = image.score_draws(draws, cond, a.bins, a.seed, "relu")
             picks = [(pen, draws[image.best_of(image.selection_score(psnr, clamps, pen), kd, k)])
                      for pen in a.clamp_penalties]
         for pen, w in picks:
-            tag = f", best of {n}, clamp penalty {pen:g} dB" if n > 1 else ""
+            tag = (f", best of {n + m}{f' ({m} unconstrained)' if m else ''}, clamp penalty "
+                   f"{pen:g} dB" if n + m > 1 else "")
             report(a, ts, w, k, emb, cond, rsc if cond is not None else None, asked, scorable,
                    f_start, f"strength {st:g}{f', render step {rs:g}' if rs else ''}{tag}", dt)
+
+    for st, rs in [(st, rs) for st in a.strengths for rs in a.render_steps]:
+        free = {m: draw(m, seed_for(a.seed, "unconstrained"), 0.0, st, rs)
+                for m in a.unconstrained_candidates if m}
+        for n in a.candidates:
+            w, dt = draw(n, a.seed, a.negative_step, st, rs)  # the constrained draws first
+            for m in a.unconstrained_candidates:
+                if m:
+                    pick(st, rs, n, m, np.concatenate([w, free[m][0]], 1), dt + free[m][1])
+                else:
+                    pick(st, rs, n, m, w, dt)
 
 
 def spread(w, k, resolution):

@@ -228,9 +228,12 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
     assert "config/tiny_reference.png" in set(t["source"])
     log = (res / "logs/sample_image.log").read_text()
     assert "render guidance, step 1, toward 3 conditioning images" in log
-    # best of 2 (conditions.image.candidates): each kept draw named, the better of its pair
-    assert "best of 2: kept 6 of 12 draws by render PSNR" in log
-    assert set(t["candidate"]) <= {0, 1, 2, 3} and t["render_psnr"].notna().all()
+    # best of 3 (conditions.image.candidates 2 + unconstrained_candidates 1): each kept draw
+    # named, the best of its three; per image 2 x 2 constrained draws first, then 2 without
+    assert "best of 3: kept 6 of 18 draws by render PSNR" in log
+    assert "of the 6 kept draws (6 of all 18) without the clamp constraint" in log
+    assert set(t["candidate"]) <= set(range(6)) and t["render_psnr"].notna().all()
+    assert (t["constrained"] == (t["candidate"] < 4)).all()
     assert set(t["clamps"]) <= {True, False}
     summary = pd.read_csv(res / "conditions/eval_summary.tsv", sep="\t")
     assert {"text", "image", "mm_type", "mm_uncond"} <= set(summary["set"])

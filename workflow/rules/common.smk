@@ -347,6 +347,12 @@ def image_sampling():
     start = f"strength {img['strength']:g}" if img["strength"] < 1 else "from noise"
     render = f"render step {img['render_step']:g}" if img["render_step"] else "no render guidance"
     text = f"Image samples: {how} ({start}, {render})."
+    n, free = img["candidates"], img["unconstrained_candidates"]
+    if n + free > 1:  # said only when set: the default run's section is unchanged
+        drawn = f"{n} with the clamp constraint and {free} without" if free else f"{n}"
+        text += (f" Each kept sample is the best of {n + free} draws ({drawn}) by the PSNR of "
+                 f"its metric-view render against the image, less {img['clamp_penalty']:g} dB "
+                 "where its field clamps negative values.")
     typ = COND["type"]
     if typ["strength"] < 1:  # said only when set: the default run's section is unchanged
         by = ("the refiner, unconditionally" if TYPE_REFINER else

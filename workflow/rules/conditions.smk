@@ -19,6 +19,8 @@ TEXT_REFINER = COND["text"]["refiner"]
 _starts.check(COND)  # a refiner or start_match needs strength < 1
 TYPE_START = COND["type"]["strength"] < 1  # mm_type from training materials of its types
 TEXT_START = COND["text"]["strength"] < 1  # text from the training materials nearest the prompt
+# draws per kept image sample: best of n over the constrained and the unconstrained candidates
+IMAGE_DRAWS = COND["image"]["candidates"] + COND["image"]["unconstrained_candidates"]
 if COND["image"]["images"]:  # a missing or broken image would fail only its job, or, in a run
     # that has sampled before, be skipped without a word (Snakemake does not look upstream)
     from neumat.io import images as _images  # noqa: E402
@@ -229,10 +231,11 @@ rule sample_image:
         **COND_SAMPLING,
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
-        **neutral_params("conditions.image", ["render_step", "refiner", "candidates"]),
+        **neutral_params("conditions.image", ["render_step", "refiner", "candidates",
+                                              "unconstrained_candidates"]),
         # best of n's penalty and the bins it checks for clamping: params only where used
         **({"clamp_penalty": COND["image"]["clamp_penalty"], "angles": DIFF["plausibility_angles"]}
-           if COND["image"]["candidates"] > 1 else {}),
+           if IMAGE_DRAWS > 1 else {}),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
         mode="image",

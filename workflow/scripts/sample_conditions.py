@@ -14,14 +14,19 @@ samples of a type no training material has start from noise. Text prompts with
 type the nearest descriptions vote for, those of the prompt's colour first), refined with
 `conditions.text.refiner`. Images with `conditions.image.candidates` n > 1 draw n times their
 samples and keep, per image, the best by the PSNR of their metric-view render against it, less
-`conditions.image.clamp_penalty` dB where the field clamps negatives (best of n); samples.tsv
-names each kept draw (`candidate`), its `render_psnr` and whether it `clamps`."""
+`conditions.image.clamp_penalty` dB where the field clamps negatives (best of n). With
+`conditions.image.unconstrained_candidates` m > 0 each image draws m times its samples more
+without the clamp constraint (`diffusion.sample.negative_step` 0, seed stream "unconstrained"),
+and best of n chooses among all: materials that clamp by nature (chrome) keep their look, at the
+clamp penalty. samples.tsv names each kept draw (`candidate`, the constrained draws first),
+whether it was `constrained`, its `render_psnr` and whether it `clamps`."""
 import time
 
 import numpy as np
 import pandas as pd
 import torch
 
+from neumat import nbrdf
 from neumat.conditions import image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
@@ -112,7 +117,8 @@ with script_logging(snakemake) as log:
     start, strength = None, getattr(p, "strength", 1.0)
     targets, render_step = None, getattr(p, "render_step", 0.0)  # absent at its neutral 0
     n_cand = getattr(p, "candidates", 1) if p.mode == "image" else 1
-    kd = k * n_cand  # draws per condition
+    n_free = getattr(p, "unconstrained_candidates", 0) if p.mode == "image" else 0
+    kd = k * (n_cand + n_free)  # draws per condition: the constrained ones first
     if p.mode == "image":
         weights = np.load(inp.weights)
         man = dataset.read_manifest(inp.manifest, len(weights))
@@ -156,29 +162,38 @@ with script_logging(snakemake) as log:
     guidance = {name: p.guidance[name]} if name in p.guidance and conditions else {}
     t0 = time.perf_counter()
 
-    def draw(idx, seed, start, strength):
+    def draw(idx, seed, start, strength, negative_step=s["negative_step"]):
         """The samples `idx` (a slice of the table's conditions and targets)."""
         cond = {m: (v[idx] if isinstance(v, np.ndarray) else [v[i] for i in idx])
                 for m, v in conditions.items()}
         return sample(sampler, len(idx), seed, cond, guidance, s["steps"], s["eta"],
-                      s["batch_size"], s["clip"], negative_step=s["negative_step"],
+                      s["batch_size"], s["clip"], negative_step=negative_step,
                       activation=p.activation, start=start, strength=strength,
                       refit_steps=s.get("refit_steps", 0),  # neutral 0: not in params
                       render_targets=None if targets is None else torch.as_tensor(targets[idx]),
                       render_step=render_step)
 
     everyone = np.arange(len(table))
-    if n_cand > 1:  # best of n (image conditions: start is never NaN)
-        w = draw(np.arange(len(conds) * kd), p.seed, start, strength)
+    if n_cand + n_free > 1:  # best of n (image conditions: start is never NaN)
+        free = np.arange(len(conds) * kd) % kd >= k * n_cand
+        w = np.zeros((len(free), nbrdf.N_PARAMS), np.float32)
+        for part, seed, neg in [(~free, p.seed, s["negative_step"]),
+                                (free, seed_for(p.seed, "unconstrained"), 0.0)]:
+            idx = np.flatnonzero(part)
+            if len(idx):
+                w[idx] = draw(idx, seed, None if start is None else start[idx], strength, neg)
         psnr, clamps = image.score_draws(w, imgs, p.angles, p.seed, p.activation)
         keep = image.best_of(image.selection_score(psnr, clamps, p.clamp_penalty), kd, k)
         w = w[keep]
-        table = table.assign(candidate=keep % kd, render_psnr=psnr[keep].round(3),
-                             clamps=clamps[keep])
+        table = table.assign(candidate=keep % kd, constrained=~free[keep],
+                             render_psnr=psnr[keep].round(3), clamps=clamps[keep])
         log.info("best of %d: kept %d of %d draws by render PSNR (%.2f dB kept, %.2f dB all), "
-                 "less %g dB for clamping (%.3f of kept clamp, %.3f of all)", n_cand, len(w),
-                 len(psnr), psnr[keep].mean(), psnr.mean(), p.clamp_penalty, clamps[keep].mean(),
+                 "less %g dB for clamping (%.3f of kept clamp, %.3f of all)", n_cand + n_free,
+                 len(w), len(psnr), psnr[keep].mean(), psnr.mean(), p.clamp_penalty, clamps[keep].mean(),
                  clamps.mean())
+        if n_free:
+            log.info("%d of the %d kept draws (%d of all %d) without the clamp constraint",
+                     int(free[keep].sum()), len(keep), int(free.sum()), len(free))
     elif start is None or not np.isnan(start).any():
         w = draw(everyone, p.seed, start, strength)
     else:  # types no training material has: those samples from noise, on their own stream
