@@ -34,6 +34,13 @@ same settings and seeds; the check is then skipped.
         [--model M]    # another model.pt in ours' place
         [--rgb-permute]  # each variant also with its samples in random channel orders
         [--type-prior]   # each variant also sampled with types drawn as in training
+        [--keep-look 25]  # each lambda > 0 also mixed with lambda 0's draws (below)
+
+`--keep-look X ...` (dB): per lambda > 0, a column per X that keeps each sample's clamp-step
+draw unless the step changed its look: where the PSNR between the metric-view renders (sRGB)
+of its draw at lambda and at lambda 0 from the same seed is below X dB, the lambda-0 draw is
+kept (fields that clamp by nature, e.g. mirrors, which the step pulls to another look). The
+column says the share of samples so kept.
 """
 from __future__ import annotations
 
@@ -79,6 +86,13 @@ def best_or_tied(ours: pd.DataFrame, others: dict[str, pd.DataFrame]) -> pd.Seri
     return pd.Series(out)
 
 
+def render_psnr(a: np.ndarray, b: np.ndarray, resolution: int, activation: str) -> np.ndarray:
+    """Per pair of fields: PSNR (dB, sRGB, data range 1) between their metric-view renders."""
+    ra, rb = (materials.renders(x, resolution, activation) for x in (a, b))
+    mse = ((ra - rb) ** 2).flatten(1).mean(1).double().clamp_min(distances.PSNR_FLOOR_MSE)
+    return (-10 * np.log10(mse.numpy()))
+
+
 def name(lam: float, refit: int) -> str:
     """A variant's column: the clamp step, and the refit's steps when on."""
     return f"{lam:g}" + (f" + refit {refit}" if refit else "")
@@ -101,6 +115,9 @@ def main():
     ap.add_argument("--type-prior", action="store_true",
                     help="sample each variant also with per-sample types drawn as in training, "
                          "unguided (diffusion.sample.type_prior)")
+    ap.add_argument("--keep-look", type=float, nargs="+", default=[],
+                    help="dB: per lambda > 0, also a column keeping the lambda-0 draw of every "
+                         "sample whose look the step changed by more (render PSNR below X)")
     a = ap.parse_args()
     run = Path(a.results)
     model = Path(a.model) if a.model else run / "diffusion/ours/model.pt"
@@ -139,15 +156,39 @@ def main():
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
               for m in ["training_set", *others]))
     cols, clamp = {}, {}
-    for lam, r, tp in variants:
-        t0 = time.perf_counter()
+    drawn_at = {}  # (lambda, refit, types) -> draws: lambda 0's are reused by --keep-look
+
+    def draw(lam, r, tp):
+        if (lam, r, tp) in drawn_at:
+            return drawn_at[(lam, r, tp)]
         # as rule sample_uncond: each draw's types from its own stream
-        drawn = [sampler.sample(n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(
-                                    d, "type_prior")) if tp else None,
-                                s["steps"], s["eta"], 1.0, s["batch_size"],
-                                s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
-        lam0, sampled = name(lam, r) + (" + types" if tp else ""), time.perf_counter() - t0
-        at_run = (lam, r, tp) == (*run_variant, run_tp)  # the run's own setting: checked below
+        drawn_at[(lam, r, tp)] = [
+            sampler.sample(n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(
+                d, "type_prior")) if tp else None, s["steps"], s["eta"], 1.0, s["batch_size"],
+                s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
+        return drawn_at[(lam, r, tp)]
+
+    def sampled_variants():
+        """(column, draws, seconds, is the run's own setting) per variant, with the --keep-look
+        mixtures after their lambda."""
+        for lam, r, tp in variants:
+            t0 = time.perf_counter()
+            drawn = draw(lam, r, tp)
+            col = name(lam, r) + (" + types" if tp else "")
+            yield col, drawn, time.perf_counter() - t0, (lam, r, tp) == (*run_variant, run_tp)
+            if not (a.keep_look and lam > 0):
+                continue
+            base = draw(0.0, r, tp)
+            look = np.concatenate([render_psnr(x, y, kw["resolution"], activation)
+                                   for x, y in zip(drawn, base)])
+            for x in a.keep_look:
+                keep0 = look < x
+                mixed = [np.where(k[:, None], y, z) for k, y, z in
+                         zip(np.split(keep0, len(drawn)), base, drawn)]
+                yield (f"{col} keep look {x:g} dB ({keep0.mean():.3f} at lambda 0)", mixed,
+                       time.perf_counter() - t0, False)
+
+    for lam0, drawn, sampled, at_run in sampled_variants():
         for rgb in [False, True] if a.rgb_permute else [run_rgb]:
             # as rule sample_uncond: each draw's samples in channel orders from its own stream
             w = np.concatenate([symmetry.random_channels(x, seeds.seed_for(d, "rgb_permute"))
