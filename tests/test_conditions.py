@@ -278,6 +278,31 @@ def test_best_of_keeps_the_best_draws_of_each_image():
     assert image.best_of(s, 2, 1).tolist() == [1]  # the clamping draw loses despite +5 dB
 
 
+def test_candidates_draw_constrained_then_unconstrained_per_image():
+    """conditions.image.unconstrained_candidates: per image its k constrained draws (the run's
+    clamp step and seed) first, then its k m draws without the clamp step on their own seed
+    stream; with m = 0 one draw of every row at the run's settings, as before the key."""
+    from neumat.seeds import seed_for
+    calls = []
+
+    def draw(idx, seed, neg):  # row i's field: i in its first weight, the step in its second
+        calls.append((idx.tolist(), seed, neg))
+        return np.stack([idx, np.full(len(idx), neg)], 1).repeat(675 // 2 + 1, 1)[:, :675]
+
+    w, free = image.draw_candidates(draw, 2, k=2, constrained=2, unconstrained=1, seed=7,
+                                    negative_step=30.0)
+    assert w.shape == (12, 675) and w.dtype == np.float32
+    assert free.tolist() == [False] * 4 + [True] * 2 + [False] * 4 + [True] * 2
+    assert calls == [([0, 1, 2, 3, 6, 7, 8, 9], 7, 30.0),
+                     ([4, 5, 10, 11], seed_for(7, "unconstrained"), 0.0)]
+    np.testing.assert_array_equal(w[:, 0], np.arange(12))  # each row drawn once, in place
+    assert (w[free, 675 // 2 + 1] == 0).all() and (w[~free, 675 // 2 + 1] == 30).all()
+    calls.clear()
+    w, free = image.draw_candidates(draw, 3, k=2, constrained=1, unconstrained=0, seed=7,
+                                    negative_step=30.0)
+    assert not free.any() and calls == [(list(range(6)), 7, 30.0)]
+
+
 def test_render_psnr_is_image_scores_psnr():
     from neumat.conditions import evaluate as ev
     from neumat.render import sphere

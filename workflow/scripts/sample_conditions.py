@@ -26,7 +26,6 @@ import numpy as np
 import pandas as pd
 import torch
 
-from neumat import nbrdf
 from neumat.conditions import image, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
@@ -175,13 +174,10 @@ with script_logging(snakemake) as log:
 
     everyone = np.arange(len(table))
     if n_cand + n_free > 1:  # best of n (image conditions: start is never NaN)
-        free = np.arange(len(conds) * kd) % kd >= k * n_cand
-        w = np.zeros((len(free), nbrdf.N_PARAMS), np.float32)
-        for part, seed, neg in [(~free, p.seed, s["negative_step"]),
-                                (free, seed_for(p.seed, "unconstrained"), 0.0)]:
-            idx = np.flatnonzero(part)
-            if len(idx):
-                w[idx] = draw(idx, seed, None if start is None else start[idx], strength, neg)
+        w, free = image.draw_candidates(
+            lambda idx, seed, neg: draw(idx, seed, None if start is None else start[idx],
+                                        strength, neg),
+            len(conds), k, n_cand, n_free, p.seed, s["negative_step"])
         psnr, clamps = image.score_draws(w, imgs, p.angles, p.seed, p.activation)
         keep = image.best_of(image.selection_score(psnr, clamps, p.clamp_penalty), kd, k)
         w = w[keep]

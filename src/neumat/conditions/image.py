@@ -263,6 +263,27 @@ def best_of(score: np.ndarray, draws: int, k: int) -> np.ndarray:
     return (top + draws * np.arange(len(groups))[:, None]).reshape(-1)
 
 
+def draw_candidates(draw, conditions: int, k: int, constrained: int, unconstrained: int,
+                    seed: int, negative_step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The candidates of best of n: (draws (conditions kd, 675), free (conditions kd,) bool),
+    kd = k (constrained + unconstrained) per condition, each condition's k constrained draws
+    first (conditions.image.candidates: `negative_step`, `seed`), then its k unconstrained
+    ones (conditions.image.unconstrained_candidates: negative step 0, seed stream
+    "unconstrained" of `seed`), which keep the look of fields that clamp by nature.
+    `draw(idx, seed, negative_step)` draws the rows `idx` of the conditions' repeated
+    conditions, targets and starts."""
+    from neumat.nbrdf import N_PARAMS
+    from neumat.seeds import seed_for
+    kd = k * (constrained + unconstrained)
+    free = np.arange(conditions * kd) % kd >= k * constrained
+    w = np.zeros((len(free), N_PARAMS), np.float32)
+    for part, s, neg in [(~free, seed, negative_step), (free, seed_for(seed, "unconstrained"), 0.0)]:
+        idx = np.flatnonzero(part)
+        if len(idx):
+            w[idx] = draw(idx, s, neg)
+    return w, free
+
+
 def score_draws(draws: np.ndarray, images, angles: int, seed: int, activation: str):
     """(render PSNR, clamps) of each draw for best of n: draws (M kd, 675) in groups of kd per
     conditioning image (images (M, R, R, 3), linear HDR in the metric view); the PSNR of each
