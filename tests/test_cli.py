@@ -198,6 +198,7 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["sample", "--run", "{run}", "--category", "shiny", "--out", "{tmp}/o"], "choose one of diffuse"),
     (["sample", "--run", "{run}", "--steps", "50", "--out", "{tmp}/o"], "give 1 ... 20 DDIM steps"),
     (["sample", "--run", "{run}", "--seed", "-1", "--out", "{tmp}/o"], "--seed must be >= 0"),
+    (["sample", "--run", "{run}", "--candidates", "2", "--out", "{tmp}/o"], "give it with --image"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),
@@ -374,6 +375,30 @@ def test_image_sampling_png_and_exr(mm_run, sphere_png, tmp_path):
     target = sphere.to_srgb(torch.as_tensor(image.load_image(sphere_png, 32)))
     err = lambda w: ((sphere.to_srgb(sphere.render_fields(w, 32)) - target) ** 2).mean()  # noqa: E731
     assert err(g) < err(a)
+
+
+def test_image_best_of_n_keeps_the_best_draws(mm_run, sphere_png, tmp_path):
+    """--candidates / --unconstrained-candidates (default: the run's conditions.image keys,
+    whose schema values 1 and 0 keep every draw): each sample is one of the best draws by
+    render PSNR against the image less the clamp penalty, best first, the constrained draws
+    numbered first; deterministic."""
+    from neumat.conditions import evaluate as ev
+    a, t = _sample(mm_run, tmp_path / "a", "--image", sphere_png, "--candidates", 2,
+                   "--unconstrained-candidates", 1)
+    b, _ = _sample(mm_run, tmp_path / "b", "--image", sphere_png, "--candidates", 2,
+                   "--unconstrained-candidates", 1)
+    np.testing.assert_array_equal(a, b)
+    assert t["candidate"].is_unique and t["candidate"].between(0, 8).all()
+    assert (t["constrained"] == (t["candidate"] < 6)).all()
+    score = t["render_psnr"] - 10.0 * t["clamps"]  # the schema's clamp_penalty
+    assert (np.diff(score) <= 0).all()
+    run = cli.Run(mm_run)
+    res = int(run.setting("report", "sphere_resolution"))
+    target = np.repeat(image.load_image(sphere_png, res)[None], 3, 0)
+    np.testing.assert_allclose(ev.render_psnr(a, target, res, run.activation()),
+                               t["render_psnr"], atol=1e-3)
+    _, plain = _sample(mm_run, tmp_path / "p", "--image", sphere_png)
+    assert "candidate" not in plain  # the run's default: every draw kept
 
 
 def test_conditions_compose_with_per_modality_guidance(mm_run, sphere_png, tmp_path):

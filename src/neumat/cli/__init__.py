@@ -85,6 +85,16 @@ def parser() -> argparse.ArgumentParser:
                         "the image, 0 = off; the image must show the metric view (a sphere under "
                         "neumat's light, as `neumat render` draws it). Default: the run's "
                         "conditions.image.render_step")
+    s.add_argument("--candidates", type=int, metavar="N",
+                   help="--image: best of n, each sample the best of N draws by the PSNR of its "
+                        "metric-view render against the image, less the run's "
+                        "conditions.image.clamp_penalty dB for a draw that clamps negative values "
+                        "(the image must show the metric view). Default: the run's "
+                        "conditions.image.candidates")
+    s.add_argument("--unconstrained-candidates", type=int, metavar="M",
+                   help="--image: M more draws per sample without the clamp constraint, in the "
+                        "same best of n (fields that clamp by nature, e.g. chrome, keep their "
+                        "look). Default: the run's conditions.image.unconstrained_candidates")
     s.add_argument("--start", type=float, metavar="S",
                    help="start from the run's training materials noised to S of the schedule "
                         "(0 < S < 1, SDEdit), as the workflow's conditions.<type|text>.strength: "

@@ -257,6 +257,10 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.category:
         w, table = _draw_category(args, run, sampler, cfg)
         return w, table.assign(**info)
+    if args.image and args.candidates + args.unconstrained_candidates > 1:
+        w, extra = _best_of(args, run, sampler, scales, neg, refit)
+        return w, pd.DataFrame({"sample": range(args.n), "type": args.type or "",
+                                **extra}).assign(**info)
     types = [args.type] * args.n if args.type else None
     uncond_ours = not types and not fixed and info["model"] == "ours"
     prior = None
@@ -286,6 +290,36 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if prior:
         table["prior_type"] = prior
     return w, table
+
+
+def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
+    """(weights, table columns): --image with --candidates / --unconstrained-candidates, as the
+    workflow's sample_image: each sample the best of its draws by render PSNR against the image
+    (at the run's report resolution), less the run's clamp penalty for a clamping draw."""
+    from neumat.conditions import image
+    from neumat.seeds import seed_for
+
+    def draw(idx, seed, negative_step):
+        out = []
+        for s in range(0, len(idx), args.batch):
+            b = min(args.batch, len(idx) - s)
+            out.append(sampler.sample(b, seed_for(seed, "cli_sample", s),
+                                      [args.type] * b if args.type else None, args.steps, 0.0,
+                                      scales.get("type", 1.0), args.batch, None, negative_step,
+                                      args.activation, refit_steps=refit))
+            bar.update(b)
+        return np.concatenate(out)
+
+    n, m = args.candidates, args.unconstrained_candidates
+    target = image.load_image(args.image, int(run.setting("report", "sphere_resolution")))
+    with _progress(args.n * (n + m), f"sampling, best of {n + m}") as bar:
+        w, free = image.draw_candidates(draw, 1, args.n, n, m, args.seed, neg)
+    psnr, clamps = image.score_draws(w, target[None], int(run.setting(
+        "diffusion", "plausibility_angles")), args.seed, args.activation)
+    penalty = float(run.setting("conditions", "image", "clamp_penalty"))
+    keep = image.best_of(image.selection_score(psnr, clamps, penalty), len(w), args.n)
+    return w[keep], {"candidate": keep, "constrained": ~free[keep],
+                     "render_psnr": psnr[keep].round(3), "clamps": clamps[keep]}
 
 
 def _draw_category(args, run: Run, sampler, cfg):
@@ -362,6 +396,14 @@ def cmd_sample(args) -> int:
     if args.category_step is not None and (not args.category or args.category_step < 0):
         raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
                        f"number >= 0 (0 = rejection only)")
+    for flag, key, low in [("candidates", "candidates", 1),
+                           ("unconstrained_candidates", "unconstrained_candidates", 0)]:
+        v = getattr(args, flag)
+        if v is not None and (not args.image or args.category or v < low):
+            raise CLIError(f"--{flag.replace('_', '-')} {v}: give it with --image (not with "
+                           f"--category), as a whole number >= {low}")
+        if v is None:  # the run's best of n
+            setattr(args, flag, int(run.setting("conditions", "image", key)) if args.image else 0)
     if args.render_step is not None and (not args.image or args.render_step < 0):
         raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
                        f">= 0 (0 = off)")
