@@ -185,8 +185,8 @@ with script_logging(snakemake) as log:
                              render_psnr=psnr[keep].round(3), clamps=clamps[keep])
         log.info("best of %d: kept %d of %d draws by render PSNR (%.2f dB kept, %.2f dB all), "
                  "less %g dB for clamping (%.3f of kept clamp, %.3f of all)", n_cand + n_free,
-                 len(w), len(psnr), psnr[keep].mean(), psnr.mean(), p.clamp_penalty, clamps[keep].mean(),
-                 clamps.mean())
+                 len(w), len(psnr), psnr[keep].mean(), psnr.mean(), p.clamp_penalty,
+                 clamps[keep].mean(), clamps.mean())
         if n_free:
             log.info("%d of the %d kept draws (%d of all %d) without the clamp constraint",
                      int(free[keep].sum()), len(keep), int(free.sum()), len(free))

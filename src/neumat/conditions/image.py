@@ -277,7 +277,8 @@ def draw_candidates(draw, conditions: int, k: int, constrained: int, unconstrain
     kd = k * (constrained + unconstrained)
     free = np.arange(conditions * kd) % kd >= k * constrained
     w = np.zeros((len(free), N_PARAMS), np.float32)
-    for part, s, neg in [(~free, seed, negative_step), (free, seed_for(seed, "unconstrained"), 0.0)]:
+    for part, s, neg in [(~free, seed, negative_step),
+                         (free, seed_for(seed, "unconstrained"), 0.0)]:
         idx = np.flatnonzero(part)
         if len(idx):
             w[idx] = draw(idx, s, neg)
