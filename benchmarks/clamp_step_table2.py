@@ -39,8 +39,9 @@ same settings and seeds; the check is then skipped.
 `--keep-look X ...` (dB): per lambda > 0, a column per X that keeps each sample's clamp-step
 draw unless the step changed its look: where the PSNR between the metric-view renders (sRGB)
 of its draw at lambda and at lambda 0 from the same seed is below X dB, the lambda-0 draw is
-kept (fields that clamp by nature, e.g. mirrors, which the step pulls to another look). The
-column says the share of samples so kept.
+kept (fields that clamp by nature, e.g. mirrors, which the step pulls to another look;
+`diffusion.sample.keep_look`, neumat.diffusion.sample.keep_look). The column says the share of
+samples so kept.
 """
 from __future__ import annotations
 
@@ -54,6 +55,7 @@ import yaml
 
 from neumat import cli, machine, seeds
 from neumat.diffusion import Sampler, dataset, plausibility, symmetry
+from neumat.diffusion.sample import keep_look
 from neumat.metrics import distances, evaluate, inception, materials
 
 ROWS = ["FID", "MMD", "COV", "1-NNA"]
@@ -84,13 +86,6 @@ def best_or_tied(ours: pd.DataFrame, others: dict[str, pd.DataFrame]) -> pd.Seri
         best = min(((sign * o.loc[row, "mean"], o.loc[row, "std"]) for o in others.values()))
         out[row] = sign * m <= best[0] or abs(sign * m - best[0]) <= max(s, best[1])
     return pd.Series(out)
-
-
-def render_psnr(a: np.ndarray, b: np.ndarray, resolution: int, activation: str) -> np.ndarray:
-    """Per pair of fields: PSNR (dB, sRGB, data range 1) between their metric-view renders."""
-    ra, rb = (materials.renders(x, resolution, activation) for x in (a, b))
-    mse = ((ra - rb) ** 2).flatten(1).mean(1).double().clamp_min(distances.PSNR_FLOOR_MSE)
-    return (-10 * np.log10(mse.numpy()))
 
 
 def name(lam: float, refit: int) -> str:
@@ -179,13 +174,10 @@ def main():
             if not (a.keep_look and lam > 0):
                 continue
             base = draw(0.0, r, tp)
-            look = np.concatenate([render_psnr(x, y, kw["resolution"], activation)
-                                   for x, y in zip(drawn, base)])
-            for x in a.keep_look:
-                keep0 = look < x
-                mixed = [np.where(k[:, None], y, z) for k, y, z in
-                         zip(np.split(keep0, len(drawn)), base, drawn)]
-                yield (f"{col} keep look {x:g} dB ({keep0.mean():.3f} at lambda 0)", mixed,
+            for x in a.keep_look:  # as rule sample_uncond with diffusion.sample.keep_look x
+                mixed, kept = zip(*[keep_look(z, y, x, kw["resolution"], activation)
+                                    for z, y in zip(drawn, base)])
+                yield (f"{col} keep look {x:g} dB ({np.mean(kept):.3f} at lambda 0)", list(mixed),
                        time.perf_counter() - t0, False)
 
     for lam0, drawn, sampled, at_run in sampled_variants():

@@ -349,6 +349,35 @@ def test_unconditional_draws_follow_the_runs_type_prior(run, tmp_path, capsys):
     np.testing.assert_array_equal(np.load(tmp_path / "tp/weights.npy"), want)
 
 
+def test_unconditional_draws_follow_the_runs_keep_look(run, tmp_path):
+    """A run with diffusion.sample.keep_look: unconditional `sample` draws of ours are drawn
+    again without the clamp step and keep that draw where the step moved the render by more,
+    recorded as `kept_look`; the same as keep_look on the two draws of the library."""
+    import shutil
+
+    from neumat.diffusion import Sampler
+    from neumat.diffusion.sample import keep_look
+    from neumat.seeds import seed_for
+    from neumat.render import sphere
+    s = Sampler(str(run / "diffusion/ours/model.pt"))
+    at = [s.sample(6, seed_for(0, "cli_sample", 0), None, 3, 0.0, 1.0, negative_step=step)
+          for step in (30.0, 0.0)]
+    a, b = (sphere.to_srgb(sphere.render_fields(x, 128)) for x in at)  # render.resolution
+    db = float(np.median((-10 * torch.log10(((a - b) ** 2).flatten(1).mean(1))).numpy()))
+    want, kept = keep_look(*at, db, 128)
+    assert 0 < kept.sum() < 6, kept  # the threshold splits this draw: both branches checked
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         f"diffusion:\n  sample: {{keep_look: {db!r}}}\n```\n")
+    assert main("sample", "--run", rec, "-n", 6, "--steps", 3, "--no-binary", "--out",
+                tmp_path / "kl") == 0
+    table = pd.read_csv(tmp_path / "kl/samples.tsv", sep="\t")
+    assert table["kept_look"].tolist() == kept.tolist()
+    np.testing.assert_array_equal(np.load(tmp_path / "kl/weights.npy"), want)
+
+
 def test_seeds_do_not_shift_into_each_other(run, tmp_path):
     """Each batch has its own named stream: --seed 2 does not redraw the second batch of
     --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""

@@ -537,6 +537,26 @@ def test_model_rows_labels_and_training_subset():
     assert len(three) == 6 and len(set(three)) == 6 and set(three) <= {0, 1, 3, 4, 5, 6}
 
 
+def test_keep_look_keeps_the_free_draw_where_the_step_moved_the_render():
+    """diffusion.sample.keep_look: a sample keeps its free draw exactly where the renders of its
+    two draws are less than `db` apart in PSNR; an unmoved sample keeps its stepped draw."""
+    from neumat.diffusion.sample import keep_look
+    from neumat.render import sphere
+    rng = np.random.default_rng(0)
+    stepped = rng.normal(0, 0.3, (3, nbrdf.N_PARAMS)).astype(np.float32)
+    free = stepped.copy()
+    free[1] = rng.normal(0, 0.3, nbrdf.N_PARAMS)  # the step moved sample 1 to another look
+    r = [sphere.to_srgb(sphere.render_fields(w[1:2], 16, "relu")) for w in (stepped, free)]
+    apart = float(-10 * torch.log10(((r[0] - r[1]) ** 2).mean().double()))
+    w, kept = keep_look(stepped, free, apart + 0.5, 16)
+    assert kept.tolist() == [False, True, False]
+    np.testing.assert_array_equal(w, np.stack([stepped[0], free[1], stepped[2]]))
+    w, kept = keep_look(stepped, free, apart - 0.5, 16)  # moved by less than the threshold
+    assert not kept.any() and (w == stepped).all()
+    with pytest.raises(ValueError, match="keep_look"):
+        keep_look(stepped, free[:2], 25.0, 16)
+
+
 def test_prior_types_follow_the_training_split_and_untyped_is_the_null_class():
     """diffusion.sample.type_prior: types drawn as `ours` saw them in training (train rows
     only, '' for untyped rows), deterministic per seed; '' samples through the null class."""

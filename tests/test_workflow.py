@@ -387,17 +387,19 @@ def test_clamp_keys_rerun_only_sampling(tiny_run, key, value):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("key", ["rgb_permute", "type_prior"])
+@pytest.mark.parametrize("key", ["rgb_permute", "type_prior", "keep_look"])
 def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run, key):
     """diffusion.sample.rgb_permute and type_prior (neutral false; the tiny config sets both
     true) are params of the unconditional draws of `ours` (and `ours_plain`, drawn with the same
-    seeds) alone: off, merl100's, the type-conditioned, the conditioned and the constrained
-    samples stay, and nothing retrains."""
+    seeds) alone, keep_look (neutral 0; the tiny config sets 25) of `ours`' alone: off,
+    merl100's, the type-conditioned, the conditioned and the constrained samples stay, and
+    nothing retrains."""
     import re
 
     import pandas as pd
     import yaml
-    says = {"rgb_permute": "random RGB channel order", "type_prior": "drawn as in training"}
+    says = {"rgb_permute": "random RGB channel order", "type_prior": "drawn as in training",
+            "keep_look": "keep look (diffusion.sample.keep_look 25 dB)"}
     log = (tiny_run / "results/tiny/logs/sample_uncond/ours.log").read_text()
     merl100 = (tiny_run / "results/tiny/logs/sample_uncond/merl100.log").read_text()
     assert says[key] in log and says[key] not in merl100
@@ -405,13 +407,19 @@ def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run,
         t = pd.read_csv(tiny_run / "results/tiny/samples/ours/samples.tsv", sep="\t",
                         keep_default_na=False)
         assert (t["type"] == "").all() and "" in set(t["prior_type"]) and len(set(t["prior_type"])) > 1
+    if key == "keep_look":  # which samples kept their draw without the step, and the log agrees
+        t = pd.read_csv(tiny_run / "results/tiny/samples/ours/samples.tsv", sep="\t")
+        n = re.search(r"keep_look 25 dB\): (\d+) of (\d+) samples", log)
+        assert n and int(n[1]) == t["kept_look"].sum() and int(n[2]) == len(t)
     cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
-    _set(cfg, f"diffusion.sample.{key}", False)
+    _set(cfg, f"diffusion.sample.{key}", 0.0 if key == "keep_look" else False)
     (tiny_run / f"config/{key}_off.yaml").write_text(yaml.safe_dump(cfg))
     res = _snakemake(tiny_run, "report", "--dry-run", "--quiet", "rules", "--configfile",
                      f"config/{key}_off.yaml")
     jobs = dict(re.findall(r"^(\w+)\s+(\d+)$", res.stdout + res.stderr, re.M))
-    assert jobs.get("sample_uncond") == "1" and jobs.get("sample_plain") == "1", jobs
+    # ours_plain is drawn without the clamp step: keep_look is not its param
+    assert jobs.get("sample_uncond") == "1", jobs
+    assert jobs.get("sample_plain") == (None if key == "keep_look" else "1"), jobs
     assert not [j for j in jobs if j.startswith(HEAVY + ("train_", "sample_type", "sample_text",
                                                           "sample_image", "sample_m",
                                                           "sample_constrained"))], jobs

@@ -58,10 +58,13 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        # unguided; diffusion.sample.rgb_permute and type_prior for `ours` only (merl100's
-        # rows are not closed under channel permutation, and are all typed)
+        # unguided; diffusion.sample.rgb_permute, type_prior and keep_look for `ours` only
+        # (merl100's rows are not closed under channel permutation, and are all typed)
+        # keep_look compares metric-view renders: their size, only where it is on
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            [] if wc.model == "ours" else ["rgb_permute", "type_prior"]))},
+            [] if wc.model == "ours" else ["rgb_permute", "type_prior", "keep_look"])),
+            **({"look_resolution": config["render"]["resolution"]} if wc.model == "ours"
+               and DIFF["sample"]["keep_look"] and DIFF["sample"]["negative_step"] else {})},
         mode="uncond",
         seeds=lambda wc: draw_seeds("sample", wc.model),  # one per Table-2 draw
         activation=DIFF_ACTIVATION,  # decodes x0 for the clamp constraint (negative_step)
@@ -90,7 +93,8 @@ rule sample_plain:
         table=out("samples/ours_plain/samples.tsv"),
         timing=out("samples/ours_plain/timing.tsv"),
     params:
-        cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step", "refit_steps"])},
+        cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step", "refit_steps",
+                                                          "keep_look"])},
         mode="uncond",
         seeds=draw_seeds("sample", "ours"),  # the seeds of `ours`: paired samples
         activation=DIFF_ACTIVATION,
@@ -118,7 +122,8 @@ rule sample_type:
         timing=out("samples/ours_type/timing.tsv"),
     params:
         cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
-                   "sample": settings("diffusion.sample", drop=["rgb_permute", "type_prior"])}),
+                   "sample": settings("diffusion.sample",
+                                      drop=["rgb_permute", "type_prior", "keep_look"])}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,

@@ -7,13 +7,17 @@ drops those keys: the same draws without them. diffusion.sample.rgb_permute (unc
 draws of `ours` and `ours_plain`) gives each sample a random channel order from its draw's
 stream "rgb_permute" (neumat.diffusion.symmetry), and diffusion.sample.type_prior draws each
 with a type picked as in training from the stream "type_prior", unguided
-(neumat.diffusion.dataset.prior_types; column `prior_type` of samples.tsv)."""
+(neumat.diffusion.dataset.prior_types; column `prior_type` of samples.tsv).
+diffusion.sample.keep_look (dB, unconditional draws of `ours`, with the clamp step on) draws each
+sample again from its seed without the step and keeps that draw where the step moved its
+metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look`)."""
 import time
 
 import numpy as np
 import pandas as pd
 
 from neumat.diffusion import Sampler, dataset, symmetry
+from neumat.diffusion.sample import keep_look
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.seeds import seed_for
@@ -24,7 +28,8 @@ with script_logging(snakemake) as log:
     s = {"negative_step": 0.0, "refit_steps": 0, **p.cfg["sample"]}
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
-    draw, prior = None, None
+    draw, prior, kept = None, None, []
+    look = s.get("keep_look", 0.0) if s["negative_step"] else 0.0  # neutral 0: absent from params
     if p.mode == "uncond":
         n_ref, types, guidance = len(dataset.reference_rows(man)), None, 1.0
         n, requested = n_ref * len(p.seeds), [""] * (n_ref * len(p.seeds))
@@ -48,15 +53,23 @@ with script_logging(snakemake) as log:
                      sum(bool(t) for ts in prior.values() for t in ts), n)
 
         def one_draw(seed):
-            w = sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"], s["eta"],
-                               guidance, s["batch_size"], s["clip"], s["negative_step"],
-                               p.activation, refit_steps=s["refit_steps"])
+            def at(step):
+                return sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"],
+                                      s["eta"], guidance, s["batch_size"], s["clip"], step,
+                                      p.activation, refit_steps=s["refit_steps"])
+            w = at(s["negative_step"])
+            if look:  # the same seed without the clamp step, kept where the step moved the look
+                w, k = keep_look(w, at(0.0), look, p.cfg["look_resolution"], p.activation)
+                kept.append(k)
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
             return w
         w = np.concatenate([one_draw(seed) for seed in p.seeds])
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
+        if look:
+            log.info("keep look (diffusion.sample.keep_look %g dB): %d of %d samples drawn again "
+                     "without the clamp step and kept so", look, int(np.sum(kept)), n)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
@@ -64,6 +77,8 @@ with script_logging(snakemake) as log:
         table["draw"] = draw
     if prior is not None:
         table["prior_type"] = [t for seed in p.seeds for t in prior[seed]]
+    if kept:
+        table["kept_look"] = np.concatenate(kept)
     table.to_csv(out.table, sep="\t", index=False)
     pd.DataFrame([{"samples": n, "seconds": dt, "samples_per_second": n / max(dt, 1e-9),
                    "steps": s["steps"], "eta": s["eta"], "guidance": guidance,

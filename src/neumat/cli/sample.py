@@ -270,15 +270,24 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl",
                                               "diffusion.sample.type_prior"))
         types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
-    ws = []
+    # the run's keep look (diffusion.sample.keep_look), as its sample_uncond
+    look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
+    ws, kept = [], []
     with _progress(args.n, "sampling") as bar:
         for s in range(0, args.n, args.batch):
             b = min(args.batch, args.n - s)
-            # a named stream per batch: --seed 8 does not redraw --seed 0's second batch of 8
-            ws.append(sampler.sample(b, seed_for(args.seed, "cli_sample", s),
-                                     types[s:s + b] if types else None, args.steps,
-                                     0.0, 1.0 if prior else scales.get("type", 1.0), args.batch,
-                                     None, neg, args.activation, refit_steps=refit))
+
+            def at(step):  # a named stream per batch: --seed 8 does not redraw --seed 0's second
+                return sampler.sample(b, seed_for(args.seed, "cli_sample", s),  # batch of 8
+                                      types[s:s + b] if types else None, args.steps,
+                                      0.0, 1.0 if prior else scales.get("type", 1.0), args.batch,
+                                      None, step, args.activation, refit_steps=refit)
+            ws.append(at(neg))
+            if look:
+                from neumat.diffusion.sample import keep_look
+                ws[-1], k = keep_look(ws[-1], at(0.0), look,
+                                      int(run.setting("render", "resolution")), args.activation)
+                kept.append(k)
             bar.update(b)
     w = np.concatenate(ws)
     if uncond_ours and run.setting("diffusion", "sample", "rgb_permute"):
@@ -289,6 +298,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or ""}).assign(**info)
     if prior:
         table["prior_type"] = prior
+    if kept:
+        table["kept_look"] = np.concatenate(kept)
     return w, table
 
 

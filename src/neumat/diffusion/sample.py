@@ -52,6 +52,23 @@ def guided_multi(model, cond: dict, scales: dict) -> Callable:
     return predict
 
 
+def keep_look(stepped: np.ndarray, free: np.ndarray, db: float, resolution: int,
+              activation: str = "relu") -> tuple[np.ndarray, np.ndarray]:
+    """(weights, kept free): each sample's draw under the clamp step (`stepped`) unless the step
+    changed its look, i.e. unless the PSNR (sRGB, data range 1) between the metric-view renders
+    of it and of the draw from the same seed without the step (`free`) is below `db`; then the
+    free draw (diffusion.sample.keep_look). Fields that clamp by nature (mirrors) are pulled to
+    another look by the step; the others lose only their spurious negative values."""
+    from neumat.metrics.distances import PSNR_FLOOR_MSE
+    from neumat.render import sphere
+    if stepped.shape != free.shape:
+        raise ValueError(f"keep_look: {stepped.shape} stepped draws against {free.shape} free ones")
+    a, b = (sphere.to_srgb(sphere.render_fields(w, resolution, activation)) for w in (stepped, free))
+    mse = ((a - b) ** 2).flatten(1).mean(1).double().clamp_min(PSNR_FLOOR_MSE)
+    kept = (-10 * torch.log10(mse)).numpy() < db
+    return np.where(kept[:, None], free, stepped), kept
+
+
 def _per_sample(value, n: int, what: str) -> list:
     values = [value] * n if isinstance(value, (str, type(None))) else list(value)
     if len(values) != n:
