@@ -68,8 +68,9 @@ with script_logging(snakemake) as log:
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
         if look:
-            log.info("keep look (diffusion.sample.keep_look %g dB): %d of %d samples drawn again "
-                     "without the clamp step and kept so", look, int(np.sum(kept)), n)
+            log.info("keep look (diffusion.sample.keep_look %g dB): %d of %d samples keep "
+                     "their draw without the clamp step (each drawn again from its seed)", look,
+                     int(np.sum(kept)), n)
     dt = time.perf_counter() - t0
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
