@@ -178,8 +178,8 @@ with script_logging(snakemake) as log:
             lambda idx, seed, neg: draw(idx, seed, None if start is None else start[idx],
                                         strength, neg),
             len(conds), k, n_cand, n_free, p.seed, s["negative_step"])
-        psnr, clamps = image.score_draws(w, imgs, p.angles, p.seed, p.activation)
-        keep = image.best_of(image.selection_score(psnr, clamps, p.clamp_penalty), kd, k)
+        keep, psnr, clamps = image.choose(w, imgs, k, p.angles, p.seed, p.activation,
+                                          p.clamp_penalty)
         w = w[keep]
         table = table.assign(candidate=keep % kd, constrained=~free[keep],
                              render_psnr=psnr[keep].round(3), clamps=clamps[keep])

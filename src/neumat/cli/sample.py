@@ -325,10 +325,9 @@ def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
     target = image.load_image(args.image, int(run.setting("report", "sphere_resolution")))
     with _progress(args.n * (n + m), f"sampling, best of {n + m}") as bar:
         w, free = image.draw_candidates(draw, 1, args.n, n, m, args.seed, neg)
-    psnr, clamps = image.score_draws(w, target[None], int(run.setting(
-        "diffusion", "plausibility_angles")), args.seed, args.activation)
-    penalty = float(run.setting("conditions", "image", "clamp_penalty"))
-    keep = image.best_of(image.selection_score(psnr, clamps, penalty), len(w), args.n)
+    keep, psnr, clamps = image.choose(
+        w, target[None], args.n, int(run.setting("diffusion", "plausibility_angles")),
+        args.seed, args.activation, float(run.setting("conditions", "image", "clamp_penalty")))
     return w[keep], {"candidate": keep, "constrained": ~free[keep],
                      "render_psnr": psnr[keep].round(3), "clamps": clamps[keep]}
 

@@ -306,6 +306,16 @@ def selection_score(psnr: np.ndarray, clamps: np.ndarray, clamp_penalty: float) 
     return np.asarray(psnr, np.float64) - clamp_penalty * np.asarray(clamps, bool)
 
 
+def choose(draws: np.ndarray, images, k: int, angles: int, seed: int, activation: str,
+           clamp_penalty: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Best of n over `draws` (M kd, 675) in groups of kd per image (images (M, R, R, 3)):
+    (indices of each image's k kept draws, best first; render PSNR and clamps of every draw),
+    by score_draws less `clamp_penalty` dB for a clamping draw."""
+    psnr, clamps = score_draws(draws, images, angles, seed, activation)
+    keep = best_of(selection_score(psnr, clamps, clamp_penalty), len(draws) // len(images), k)
+    return keep, psnr, clamps
+
+
 def load_image(path, resolution: int) -> np.ndarray:
     """A user's reference image -> (resolution, resolution, 3) linear HDR.
 

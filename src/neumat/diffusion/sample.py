@@ -59,13 +59,12 @@ def keep_look(stepped: np.ndarray, free: np.ndarray, db: float, resolution: int,
     of it and of the draw from the same seed without the step (`free`) is below `db`; then the
     free draw (diffusion.sample.keep_look). Fields that clamp by nature (mirrors) are pulled to
     another look by the step; the others lose only their spurious negative values."""
-    from neumat.metrics.distances import PSNR_FLOOR_MSE
+    from neumat.conditions.evaluate import render_psnr
     from neumat.render import sphere
     if stepped.shape != free.shape:
         raise ValueError(f"keep_look: {stepped.shape} stepped draws against {free.shape} free ones")
-    a, b = (sphere.to_srgb(sphere.render_fields(w, resolution, activation)) for w in (stepped, free))
-    mse = ((a - b) ** 2).flatten(1).mean(1).double().clamp_min(PSNR_FLOOR_MSE)
-    kept = (-10 * torch.log10(mse)).numpy() < db
+    kept = render_psnr(stepped, sphere.render_fields(free, resolution, activation), resolution,
+                       activation) < db
     return np.where(kept[:, None], free, stepped), kept
 
 
