@@ -485,6 +485,11 @@ def test_type_start_samples_from_training_materials_of_the_type(tiny_run):
     train = man[man["split"] == "train"].set_index("name")["type"]
     table = pd.read_csv(res / "samples/mm_type/samples.tsv", sep="\t", keep_default_na=False)
     assert len(table) and "start" in table
+    # only the test prompts' types that training has are drawn (when any is): the model never
+    # saw the others
+    prompts = pd.read_csv(res / "conditions/prompts.tsv", sep="\t", keep_default_na=False)
+    asked, have = set(prompts.loc[prompts["kind"] == "test", "type"]), set(train) - {""}
+    assert set(table["type"]) == (asked & have or asked), (set(table["type"]), asked, have)
     for t, starts in zip(table["type"], table["start"]):
         if t in set(train):  # a type training has: k starts of that type
             names = starts.split(",")

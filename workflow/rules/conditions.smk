@@ -255,8 +255,8 @@ rule sample_image:
 
 
 rule sample_multimodal:
-    """Same-run baseline from the multimodal model: unconditional samples (`mm_uncond`), as
-    many as sample_mm_type draws."""
+    """Same-run baseline from the multimodal model: unconditional samples (`mm_uncond`),
+    conditions.per_condition for each test prompt."""
     input:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
@@ -285,13 +285,14 @@ rule sample_multimodal:
 
 rule sample_mm_type:
     """Same-run baseline from the multimodal model: samples of the test prompts' types
-    (`mm_type`), from noise or (conditions.type.strength < 1) from a training material of the
-    type, refined by the refiner with conditions.type.refiner."""
+    (`mm_type`), of the types some training material has, from noise or
+    (conditions.type.strength < 1) from a training material of the type, refined by the
+    refiner with conditions.type.refiner."""
     input:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
-        **({"weights": out("neumerl/weights.npy"), "manifest": out("neumerl/manifest.tsv")}
-           if TYPE_START else {}),
+        manifest=out("neumerl/manifest.tsv"),
+        **({"weights": out("neumerl/weights.npy")} if TYPE_START else {}),
         refiner=[out("diffusion/refiner/model.pt")] if TYPE_REFINER else [],
     output:
         weights=out("samples/mm_type/weights.npy"),

@@ -5,10 +5,12 @@ test prompts: their types ('mm_type') and no condition ('mm_uncond'). Images wit
 metric-view embedding) noised to that fraction of the schedule; with
 `conditions.image.render_step` > 0 each image's samples are also pulled toward its metric-view
 render (render guidance); with `conditions.image.refiner` the retrieved material is refined by
-the refiner model (rule train_refiner), without the image condition. `mm_type` with
-`conditions.type.strength` < 1 starts each sample from a training material of its type (drawn
-with the seed's stream "type_start"), refined by the refiner with `conditions.type.refiner`;
-samples of a type no training material has start from noise. Text prompts with
+the refiner model (rule train_refiner), without the image condition. `mm_type` draws the test prompts
+whose type some training material has (guidance_sweep's choice): the model never saw the other
+types, so their class embeddings are untrained and no such type can be asked of it (when no
+prompt's type is in training, e.g. a tiny split, all of them, from noise, with a warning). With
+`conditions.type.strength` < 1 each sample starts from a training material of its type (drawn
+with the seed's stream "type_start"), refined by the refiner with `conditions.type.refiner`. Text prompts with
 `conditions.text.strength` < 1 start from the training materials whose descriptions are nearest
 (sample i of a prompt from the i-th nearest; with `conditions.text.start_match` only those of the
 type the nearest descriptions vote for, those of the prompt's colour first), refined with
@@ -62,6 +64,23 @@ def training_set(inp):
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
     return weights, man, dataset.training_rows(man, "ours")
+
+
+def trained_types(inp, conds, log):
+    """The rows of `conds` whose type some training material (training_set's rows) has; all of
+    them, with a warning, when none has."""
+    man = dataset.read_manifest(inp.manifest)
+    have = set(man["type"].iloc[dataset.training_rows(man, "ours")]) - {""}
+    ok = conds["type"].isin(have).to_numpy()
+    if not ok.any():
+        log.warning("mm_type: no test prompt's type is among the training materials' types: "
+                    "all %d drawn from noise, their class embeddings untrained", len(conds))
+        return conds
+    if not ok.all():
+        log.info("mm_type: %d of %d test prompts have a type no training material has (%s): not "
+                 "drawn, the model never saw it", int((~ok).sum()), len(conds),
+                 ", ".join(sorted(set(conds["type"][~ok]))))
+    return conds[ok]
 
 
 def type_starts(inp, conds, k, seed, log):
@@ -145,6 +164,7 @@ with script_logging(snakemake) as log:
                 start, conds = text_starts(inp, conds, emb, k, getattr(p, "start_match", False),
                                            p.activation, log)
         elif p.mode == "mm_type":
+            conds = trained_types(inp, conds, log)
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
             if strength < 1:
                 start, conds = type_starts(inp, conds, k, seed_for(p.seed, "type_start"), log)
