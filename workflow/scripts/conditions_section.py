@@ -88,7 +88,9 @@ with script_logging(snakemake) as log:
         "material has (a test-split source may have a type found nowhere in training). Colour match: the render's mean chromaticity matches "
         "the prompt's colour word (hue within 40 degrees, saturation >= 0.15; achromatic words: "
         "saturation below). `mm_type` and `mm_uncond` are type-conditioned and unconditional "
-        "samples of the same model for the test descriptions' types (chance level). Goal: type "
+        "samples of the same model for the test descriptions' types (chance level); `mm_type` "
+        "draws only the types some training material has (the model never saw the others). "
+        "Goal: type "
         "hits >= 90 % with the median distance within 1.5x the real test split's and negative "
         "clamping no more common than in the training fits.",
         report.md_table(summary),
