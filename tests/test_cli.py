@@ -565,6 +565,26 @@ def test_start_errors_name_what_to_do(run, tmp_path, capsys, args, says):
     assert says in capsys.readouterr().err
 
 
+def test_a_type_only_held_out_materials_have_is_refused(run, tmp_path, capsys):
+    """--type of a class the model has but never trained on (only test-split materials have
+    it): an error naming the type and the types it learnt; a learnt type samples as before."""
+    import shutil
+    r = tmp_path / "run"
+    shutil.copytree(run, r)
+    (r / "neumerl").mkdir()
+    pd.DataFrame({"id": range(4), "name": list("abcd"), "operation": "original",
+                  "type": ["fabric", "fabric", "steel", ""],
+                  "split": ["train", "train", "test", "train"]}).to_csv(
+        r / "neumerl/manifest.tsv", sep="\t", index=False)
+    assert main("sample", "--run", r, "--type", "steel", "-n", 2, "--out", tmp_path / "x") == 2
+    err = capsys.readouterr().err
+    assert "--type steel: no training material" in err and "types it learnt: fabric" in err, err
+    assert not (tmp_path / "x").exists()
+    a, _ = _sample(r, tmp_path / "a", "--type", "fabric", "--seed", 1)
+    b, _ = _sample(run, tmp_path / "b", "--type", "fabric", "--seed", 1)  # no manifest: no check
+    np.testing.assert_array_equal(a, b)
+
+
 def test_large_xml_renders_bake_the_materials_in():
     """`neumat render`: at mitsuba_bsdf.INLINE_SAMPLES camera samples or more, every neumat_brdf
     of the scene is baked into the kernel (as the workflow's scenes are); below, and in a file

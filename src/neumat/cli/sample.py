@@ -153,6 +153,25 @@ def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
     return p
 
 
+def _check_trained_type(run: Run, typ: str) -> None:
+    """CLIError unless some training material (`ours`'s rows, on which the run's models train)
+    has type `typ`: a type only held-out materials have is among the model's classes, but its
+    class embedding never trained, so samples asked for it follow no type (the workflow's
+    mm_type leaves such types out). Not checked where the run has no manifest (a shared model
+    alone)."""
+    from neumat.diffusion import dataset
+
+    path = run.path / "neumerl/manifest.tsv"
+    if not path.exists():
+        return
+    man = dataset.read_manifest(path)
+    have = set(man["type"].iloc[dataset.training_rows(man, "ours")]) - {""}
+    if typ not in have:
+        raise CLIError(f"--type {typ}: no training material of {run.path} has this type (only "
+                       f"held-out ones do), so the model never learnt it; types it learnt: "
+                       f"{', '.join(sorted(have))}")
+
+
 def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float,
                      refit: int = 0):
     """(weights, table): --start. Each sample starts from a training material (`ours`'s rows)
@@ -172,10 +191,7 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
     types = man["type"].iloc[rows].to_numpy()
     extra = {}
     if args.type:
-        pool = rows[types == args.type]
-        if not len(pool):
-            raise CLIError(f"--start --type {args.type}: no training material of that type in "
-                           f"{run.path}; sample it without --start")
+        pool = rows[types == args.type]  # not empty: _check_trained_type
         got = np.random.default_rng(seed_for(args.seed, "cli_type_start")).choice(pool, args.n)
         cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
     else:
@@ -212,6 +228,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.type and args.type not in sampler.class_names:
         raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
                        f"{', '.join(sampler.class_names)}")
+    if args.type:
+        _check_trained_type(run, args.type)
     # type guidance also steers --category's guide types when no --type is given
     scales = _guidance(args, run, bundle, asked + (["type"] if args.category and not args.type
                                                    and "type" in model_conditions(bundle) else []))
