@@ -523,6 +523,8 @@ def test_model_rows_labels_and_training_subset():
     assert dataset.training_rows(man, "ours").tolist() == [0, 1, 3, 4, 5, 6]
     assert dataset.training_rows(man, "merl100").tolist() == [0, 1]
     assert dataset.reference_rows(man).tolist() == [2, 7]
+    # felt is a class (a held-out material has it) that no training material has
+    assert dataset.training_types(man) == {"paint", "metal"}
     names = dataset.class_names(man["type"])
     assert names == ["felt", "metal", "paint"]
     assert dataset.labels(man["type"], names).tolist() == [2, 1, 0, 2, 1, -1, -1, 0]

@@ -69,8 +69,7 @@ def training_set(inp):
 def trained_types(inp, conds, log):
     """The rows of `conds` whose type some training material (training_set's rows) has; all of
     them, with a warning, when none has."""
-    man = dataset.read_manifest(inp.manifest)
-    have = set(man["type"].iloc[dataset.training_rows(man, "ours")]) - {""}
+    have = dataset.training_types(dataset.read_manifest(inp.manifest))
     ok = conds["type"].isin(have).to_numpy()
     if not ok.any():
         log.warning("mm_type: no test prompt's type is among the training materials' types: "

@@ -164,8 +164,7 @@ def _check_trained_type(run: Run, typ: str) -> None:
     path = run.path / "neumerl/manifest.tsv"
     if not path.exists():
         return
-    man = dataset.read_manifest(path)
-    have = set(man["type"].iloc[dataset.training_rows(man, "ours")]) - {""}
+    have = dataset.training_types(dataset.read_manifest(path))
     if typ not in have:
         raise CLIError(f"--type {typ}: no training material of {run.path} has this type (only "
                        f"held-out ones do), so the model never learnt it; types it learnt: "

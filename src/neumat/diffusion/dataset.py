@@ -45,6 +45,12 @@ def training_rows(man: pd.DataFrame, model: str) -> np.ndarray:
     return rows
 
 
+def training_types(man: pd.DataFrame, model: str = "ours") -> set[str]:
+    """The material types some training material of `model` has: the classes whose embeddings
+    trained (a type only held-out materials have is a class too, never trained)."""
+    return set(man["type"].iloc[training_rows(man, model)]) - {""}
+
+
 def reference_rows(man: pd.DataFrame) -> np.ndarray:
     rows = np.flatnonzero(man["split"] == "test")
     if len(rows) == 0:
