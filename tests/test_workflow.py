@@ -193,6 +193,17 @@ def test_tiny_constrained_synthesis_and_cli(tiny_run, tmp_path):
     acc = pd.read_csv(res / "constrained/acceptance.tsv", sep="\t")
     assert len(acc) == 7 and (acc["drawn"] <= 16).all()
     pilots = acc.set_index("category")["pilot"]  # category guidance piloted where it exists
+    # type guidance only with types some training material has (the others never trained)
+    from neumat import constrained
+    man = pd.read_csv(res / "neumerl/manifest.tsv", sep="\t", keep_default_na=False)
+    trained = set(man.loc[man["split"] == "train", "type"]) - {""}
+    src = classes[classes["set"] == "source"]
+    log = (res / "logs/sample_constrained.log").read_text()
+    for cat, types in constrained.category_types(src["type"], src["category"]).items():
+        left = sorted(set(types) - trained)
+        assert (f"{cat}: guide types {', '.join(left)} left out" in log) == bool(left), cat
+        assert not any(t in pilots[cat].split("type: ")[-1].split(": ")[0].split(", ")
+                       for t in left), (cat, pilots[cat])
     assert all("category guidance" in pilots[c] for c in ("diffuse", "metallic"))
     assert not any("category guidance" in pilots[c] for c in ("mirror", "plastic"))
     samples = pd.read_csv(res / "samples/constrained/samples.tsv", sep="\t")

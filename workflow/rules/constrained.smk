@@ -66,6 +66,7 @@ rule sample_constrained:
         model=out("diffusion/ours/model.pt"),
         rules=out("constrained/rules.tsv"),
         classes=out("constrained/classes.tsv"),
+        manifest=out("neumerl/manifest.tsv"),
     output:
         weights=out("samples/constrained/weights.npy"),
         table=out("samples/constrained/samples.tsv"),

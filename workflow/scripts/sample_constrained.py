@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 
 from neumat import constrained
-from neumat.diffusion import Sampler
+from neumat.diffusion import Sampler, dataset
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.seeds import seed_for
@@ -20,11 +20,19 @@ with script_logging(snakemake) as log:
     classes = pd.read_csv(inp.classes, sep="\t", keep_default_na=False)
     src = classes[classes["set"] == "source"]
     guides = constrained.category_types(src["type"], src["category"])
+    # guide only with types some training material has: the others are classes whose
+    # embeddings never trained (types only held-out sources have)
+    trained = dataset.training_types(dataset.read_manifest(inp.manifest))
     bins = constrained.grid_bins(cfg["bins"], p.seed)
     step = cfg["guidance_step"] if cfg["guide"] == "auto" else 0.0  # none: the paper's setting
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:
-        types = [t for t in guides[cat] if t in sampler.class_names] if cfg["guide"] == "auto" else []
+        types = [t for t in guides[cat] if t in sampler.class_names and t in trained] \
+            if cfg["guide"] == "auto" else []
+        untrained = sorted(set(guides[cat]) - trained)
+        if cfg["guide"] == "auto" and untrained:
+            log.info("%s: guide types %s left out: no training material has them", cat,
+                     ", ".join(untrained))
         r = constrained.sample_category(sampler, cat, th, cfg["per_category"], cfg["budget"],
                                         cfg["batch"], seed_for(p.seed, "category", cat), p.sample,
                                         types, bins, p.activation,

@@ -153,19 +153,22 @@ def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
     return p
 
 
-def _check_trained_type(run: Run, typ: str) -> None:
-    """CLIError unless some training material (`ours`'s rows, on which the run's models train)
-    has type `typ`: a type only held-out materials have is among the model's classes, but its
-    class embedding never trained, so samples asked for it follow no type (the workflow's
-    mm_type leaves such types out). Not checked where the run has no manifest (a shared model
-    alone)."""
+def _trained_types(run: Run) -> set[str] | None:
+    """The types some training material (`ours`'s rows, on which the run's models train) has:
+    a type only held-out materials have is among the model's classes, but its class embedding
+    never trained, so samples asked for it follow no type (the workflow's mm_type and
+    constrained synthesis leave such types out). None where the run has no manifest (a shared
+    model alone): nothing is checked."""
     from neumat.diffusion import dataset
 
     path = run.path / "neumerl/manifest.tsv"
-    if not path.exists():
-        return
-    have = dataset.training_types(dataset.read_manifest(path))
-    if typ not in have:
+    return dataset.training_types(dataset.read_manifest(path)) if path.exists() else None
+
+
+def _check_trained_type(run: Run, typ: str) -> None:
+    """CLIError where the run's training materials do not have type `typ` (_trained_types)."""
+    have = _trained_types(run)
+    if have is not None and typ not in have:
         raise CLIError(f"--type {typ}: no training material of {run.path} has this type (only "
                        f"held-out ones do), so the model never learnt it; types it learnt: "
                        f"{', '.join(sorted(have))}")
@@ -367,8 +370,9 @@ def _draw_category(args, run: Run, sampler, cfg):
         if classes.exists():
             c = pd.read_csv(classes, sep="\t", keep_default_na=False)
             c = c[c["set"] == "source"]
+            trained = _trained_types(run)
             guide = [t for t in constrained.category_types(c["type"], c["category"])[args.category]
-                     if t in sampler.class_names]
+                     if t in sampler.class_names and (trained is None or t in trained)]
     bins = constrained.grid_bins(args.bins, args.seed)
     with _progress(args.budget, f"drawing {args.category}") as bar:
         def progress(drawn, hits):
