@@ -525,6 +525,10 @@ def test_model_rows_labels_and_training_subset():
     assert dataset.reference_rows(man).tolist() == [2, 7]
     # felt is a class (a held-out material has it) that no training material has
     assert dataset.training_types(man) == {"paint", "metal"}
+    dataset.require_trained(["paint", ""], man, "--type")
+    with pytest.raises(ValueError, match=r"^config diffusion.types asks for felt: no training "
+                                         r"material has this type .*types it learnt: metal, paint$"):
+        dataset.require_trained(["metal", "felt"], man, "config diffusion.types asks for")
     names = dataset.class_names(man["type"])
     assert names == ["felt", "metal", "paint"]
     assert dataset.labels(man["type"], names).tolist() == [2, 1, 0, 2, 1, -1, -1, 0]

@@ -37,6 +37,7 @@ with script_logging(snakemake) as log:
     else:
         train_types = man["type"].iloc[dataset.training_rows(man, "ours")]
         wanted = p.cfg["types"] or dataset.class_names(train_types)
+        dataset.require_trained(wanted, man, "config diffusion.types asks for")
         requested = [t for t in wanted for _ in range(p.cfg["per_type"])]
         n, types, guidance = len(requested), requested, s["guidance"]
     t0 = time.perf_counter()

@@ -167,11 +167,14 @@ def _trained_types(run: Run) -> set[str] | None:
 
 def _check_trained_type(run: Run, typ: str) -> None:
     """CLIError where the run's training materials do not have type `typ` (_trained_types)."""
-    have = _trained_types(run)
-    if have is not None and typ not in have:
-        raise CLIError(f"--type {typ}: no training material of {run.path} has this type (only "
-                       f"held-out ones do), so the model never learnt it; types it learnt: "
-                       f"{', '.join(sorted(have))}")
+    from neumat.diffusion import dataset
+
+    path = run.path / "neumerl/manifest.tsv"
+    if path.exists():
+        try:
+            dataset.require_trained([typ], dataset.read_manifest(path), "--type")
+        except ValueError as e:
+            raise CLIError(f"{e} (run {run.path})") from None
 
 
 def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float,

@@ -51,6 +51,17 @@ def training_types(man: pd.DataFrame, model: str = "ours") -> set[str]:
     return set(man["type"].iloc[training_rows(man, model)]) - {""}
 
 
+def require_trained(types, man: pd.DataFrame, what: str, model: str = "ours") -> None:
+    """ValueError, starting with `what` (the option or config key that asked), for the asked
+    `types` ('' = none) that no training material of `model` has (training_types)."""
+    have = training_types(man, model)
+    missing = sorted(set(types) - have - {""})
+    if missing:
+        raise ValueError(f"{what} {', '.join(missing)}: no training material has this type (only "
+                         f"held-out ones do), so the model never learnt it; types it learnt: "
+                         f"{', '.join(sorted(have))}")
+
+
 def reference_rows(man: pd.DataFrame) -> np.ndarray:
     rows = np.flatnonzero(man["split"] == "test")
     if len(rows) == 0:
