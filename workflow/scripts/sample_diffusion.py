@@ -35,8 +35,7 @@ with script_logging(snakemake) as log:
         n, requested = n_ref * len(p.seeds), [""] * (n_ref * len(p.seeds))
         draw = np.repeat(np.arange(len(p.seeds)), n_ref)
     else:
-        train_types = man["type"].iloc[dataset.training_rows(man, "ours")]
-        wanted = p.cfg["types"] or dataset.class_names(train_types)
+        wanted = p.cfg["types"] or sorted(dataset.training_types(man))
         dataset.require_trained(wanted, man, "config diffusion.types asks for")
         requested = [t for t in wanted for _ in range(p.cfg["per_type"])]
         n, types, guidance = len(requested), requested, s["guidance"]

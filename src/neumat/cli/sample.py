@@ -153,26 +153,33 @@ def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
     return p
 
 
+def _manifest(run: Run):
+    """The run's NeuMERL manifest, or None where it has none (a shared model alone)."""
+    from neumat.diffusion import dataset
+
+    path = run.path / "neumerl/manifest.tsv"
+    return dataset.read_manifest(path) if path.exists() else None
+
+
 def _trained_types(run: Run) -> set[str] | None:
     """The types some training material (`ours`'s rows, on which the run's models train) has:
     a type only held-out materials have is among the model's classes, but its class embedding
     never trained, so samples asked for it follow no type (the workflow's mm_type and
-    constrained synthesis leave such types out). None where the run has no manifest (a shared
-    model alone): nothing is checked."""
+    constrained synthesis leave such types out). None without a manifest: nothing is checked."""
     from neumat.diffusion import dataset
 
-    path = run.path / "neumerl/manifest.tsv"
-    return dataset.training_types(dataset.read_manifest(path)) if path.exists() else None
+    man = _manifest(run)
+    return None if man is None else dataset.training_types(man)
 
 
 def _check_trained_type(run: Run, typ: str) -> None:
     """CLIError where the run's training materials do not have type `typ` (_trained_types)."""
     from neumat.diffusion import dataset
 
-    path = run.path / "neumerl/manifest.tsv"
-    if path.exists():
+    man = _manifest(run)
+    if man is not None:
         try:
-            dataset.require_trained([typ], dataset.read_manifest(path), "--type")
+            dataset.require_trained([typ], man, "--type")
         except ValueError as e:
             raise CLIError(f"{e} (run {run.path})") from None
 
