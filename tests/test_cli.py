@@ -551,11 +551,33 @@ def test_start_draws_the_workflows_text_starts_and_refines_them(tiny_run, tmp_pa
     assert set(got["model"]) == {"ours"} and (got["strength"] == 0.1).all()
 
 
+def test_image_start_is_the_workflows_retrieved_material(tiny_run, tmp_path):
+    """--image --start S --refiner: each sample starts from the training material the workflow's
+    sample_image retrieved for the same image (config/tiny_reference.png, a user image of the
+    tiny config, embedded as the workflow embeds it), refined without the image condition, with
+    the run's render guidance and best of n; the draw is deterministic."""
+    run = tiny_run / "results/tiny"
+    ref = Path(__file__).resolve().parents[1] / "config/tiny_reference.png"
+    table = pd.read_csv(run / "samples/image/samples.tsv", sep="\t", keep_default_na=False)
+    want = table.loc[table["source"] == "config/tiny_reference.png", "start"]
+    outs = [tmp_path / "a", tmp_path / "b"]
+    for out in outs:
+        assert main("sample", "--run", run, "--image", ref, "--start", 0.5, "--refiner", "-n", 2,
+                    "--no-binary", "--out", out) == 0
+    got = pd.read_csv(outs[0] / "samples.tsv", sep="\t", keep_default_na=False)
+    assert set(got["start"]) == set(want) and len(set(want)) == 1, (got, want)
+    assert set(got["model"]) == {"refiner"} and (got["strength"] == 0.5).all()
+    assert not [c for c in got if c.startswith("guidance_")]  # the refiner takes no condition
+    # the tiny run's conditions.image: render_step 1, best of 2 constrained + 1 unconstrained
+    assert (got["render_step"] == 1).all() and got["candidate"].between(0, 2).all()
+    np.testing.assert_array_equal(np.load(outs[0] / "weights.npy"), np.load(outs[1] / "weights.npy"))
+
+
 @pytest.mark.parametrize("args, says", [
     (["--type", "fabric", "--refiner"], "give --start S too"),
     (["--type", "fabric", "--start", "1"], "0 < S < 1"),
     (["--type", "fabric", "--text", "red", "--start", "0.1"], "exactly one of --type, --text"),
-    (["--type", "fabric", "--category", "diffuse", "--start", "0.1"], "neither --image nor --category"),
+    (["--type", "fabric", "--category", "diffuse", "--start", "0.1"], "not --category"),
     (["--type", "fabric", "--start", "0.1", "--refiner", "--model", "ours"], "leave out --model"),
     (["--type", "fabric", "--start", "0.1"], "needs"),  # the miniature has no neumerl/ files
     (["--type", "fabric", "--start", "0.1", "--refiner"], "Build it with rule train_refiner"),

@@ -97,15 +97,17 @@ def parser() -> argparse.ArgumentParser:
                         "look). Default: the run's conditions.image.unconstrained_candidates")
     s.add_argument("--start", type=float, metavar="S",
                    help="start from the run's training materials noised to S of the schedule "
-                        "(0 < S < 1, SDEdit), as the workflow's conditions.<type|text>.strength: "
+                        "(0 < S < 1, SDEdit), as the workflow's conditions.<m>.strength: "
                         "--type from materials of the type, --text from those of the type the "
                         "prompt's nearest training descriptions vote for, its colour word first "
-                        "(conditions.text.start_match). With exactly one of --type, --text; not "
-                        "with --image or --category. Default: from noise")
+                        "(conditions.text.start_match), --image from the material whose image "
+                        "embedding is nearest (retrieval). With exactly one of --type, --text, "
+                        "--image; not with --category. Default: from noise")
     s.add_argument("--refiner", action="store_true",
                    help="with --start: denoise the starts by the run's refiner "
                         "(diffusion/refiner/model.pt, rule train_refiner), unconditionally, as "
-                        "the workflow's conditions.<type|text>.refiner")
+                        "the workflow's conditions.<m>.refiner (--image: render guidance and "
+                        "best of n still follow the image)")
     s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")
     s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
     s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")

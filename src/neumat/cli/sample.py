@@ -33,8 +33,9 @@ def _text_embedding(run: Run, prompt: str) -> np.ndarray:
     return text.embed([prompt])
 
 
-def _image_embedding(run: Run, path: str, dim: int) -> tuple[np.ndarray, Path]:
-    """(1, D) embedding of the user's image by the run's image encoder, and the encoder's file."""
+def _image_embedding(run: Run, path: str, dim: int | None) -> tuple[np.ndarray, Path]:
+    """(1, D) embedding of the user's image by the run's image encoder, and the encoder's file;
+    `dim`: the model's image condition's width (None: a model without one, the refiner)."""
     from neumat.conditions import image
     enc_path = run.image_encoder()
     if enc_path is None:
@@ -46,7 +47,7 @@ def _image_embedding(run: Run, path: str, dim: int) -> tuple[np.ndarray, Path]:
         raise CLIError(f"{enc_path}: not a neumat image encoder ({type(e).__name__}: {e}); rebuild "
                        f"it with `snakemake --cores 2 {enc_path} --forcerun train_image_encoder "
                        f"--configfile ...`")
-    if enc.cfg.embed_dim != dim:
+    if dim is not None and enc.cfg.embed_dim != dim:
         raise CLIError(f"{enc_path} gives {enc.cfg.embed_dim}-d embeddings, the multimodal model "
                        f"expects {dim}-d: the two come from different configs; rebuild the model "
                        f"with rule train_multimodal")
@@ -104,9 +105,11 @@ class Composed:
     constrained.sample_category can draw from it unconditionally or type-guided."""
 
     def __init__(self, sampler, fixed: dict[str, np.ndarray], scales: dict[str, float],
-                 render: tuple[np.ndarray, float] | None = None):
+                 render: tuple[np.ndarray, float] | None = None,
+                 start: tuple[np.ndarray, float] | None = None):
         self.sampler, self.fixed, self.scales = sampler, fixed, scales
         self.render = render  # (metric-view image (H, H, 3), step): render guidance
+        self.start = start  # (weight vector (675,), strength): every draw starts from it (SDEdit)
         self.class_names = sampler.class_names
 
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
@@ -123,10 +126,12 @@ class Composed:
         if self.render is not None and self.render[1]:
             import torch
             targets, step = torch.as_tensor(self.render[0])[None].expand(n, -1, -1, -1), self.render[1]
+        start, strength = (None, 1.0) if self.start is None else (
+            np.repeat(self.start[0][None], n, 0), self.start[1])
         return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
                       negative_step=negative_step, activation=activation, category=category,
                       category_step=category_step, render_targets=targets, render_step=step,
-                      refit_steps=refit_steps)
+                      refit_steps=refit_steps, start=start, strength=strength)
 
 
 def _check_start(args, chosen: list[str]) -> None:
@@ -139,9 +144,9 @@ def _check_start(args, chosen: list[str]) -> None:
     if not 0 < args.start < 1:
         raise CLIError(f"--start {args.start:g}: give the share of the schedule the starts are "
                        f"noised to, 0 < S < 1 (e.g. 0.05); without --start samples start from noise")
-    if args.image or args.category or len(chosen) != 1:
+    if args.category or len(chosen) != 1:
         raise CLIError("--start draws the starts for one condition: give exactly one of --type, "
-                       "--text, and neither --image nor --category")
+                       "--text, --image, and not --category")
     if args.refiner and args.model:
         raise CLIError("--refiner uses the run's refiner model: leave out --model")
 
@@ -182,6 +187,24 @@ def _check_trained_type(run: Run, typ: str) -> None:
             dataset.require_trained([typ], man, "--type")
         except ValueError as e:
             raise CLIError(f"{e} (run {run.path})") from None
+
+
+def _image_start(run: Run, emb: np.ndarray) -> tuple[np.ndarray, str]:
+    """--image --start: the training material (`ours`'s rows) whose metric-view embedding
+    (`conditions/image.npy`, under the first training light) is nearest the image's, as the
+    workflow's sample_image retrieves it with conditions.image.strength < 1: its weights and
+    name."""
+    from neumat.conditions import image
+    from neumat.diffusion import dataset
+
+    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
+    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
+    rows = dataset.training_rows(man, "ours")
+    library = np.load(_run_file(run, "conditions/image.npy", "image_embeddings"))[rows, 0]
+    got = image.retrieve(emb, library, rows)[0]
+    print(f"--image --start: from the training material {man['name'].iloc[got]!r} (nearest image "
+          f"embedding)", file=sys.stderr)
+    return weights[got], man["name"].iloc[got]
 
 
 def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float,
@@ -248,8 +271,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     fixed = {}
     if args.text:
         fixed["text"] = _text_embedding(run, args.text)
-    if args.image:
-        dim = bundle["model_cfg"]["vector_conditions"]["image"]
+    if args.image:  # the refiner has no image condition: the embedding only retrieves its start
+        dim = bundle["model_cfg"].get("vector_conditions", {}).get("image")
         fixed["image"], enc_path = _image_embedding(run, args.image, dim)
     render = None
     if args.image:
@@ -259,8 +282,12 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
             from neumat.conditions import image
             render = (image.load_image(args.image, int(run.setting("report", "sphere_resolution"))),
                       step)
-    if fixed:
-        sampler = Composed(sampler, fixed, scales, render)
+    start = None
+    if args.image and args.start is not None:
+        vector, name = _image_start(run, fixed["image"])
+        start = (vector, args.start)
+    if fixed:  # the refiner takes no condition: the start and render guidance carry the image
+        sampler = Composed(sampler, {} if args.refiner else fixed, scales, render, start)
     info = {"model": model_path.parent.name, "text": args.text or "", "image": args.image or ""}
     info.update({f"guidance_{m}": v for m, v in scales.items()})  # with --category's guide types
     if args.image:
@@ -280,8 +307,10 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.start is not None:
         if args.refiner:  # unconditional: no guidance was applied
             info = {k: v for k, v in info.items() if not k.startswith("guidance_")}
-        w, table = _draw_from_start(args, run, base, fixed, scales, neg, refit)
-        return w, table.assign(**info)
+        if not args.image:
+            w, table = _draw_from_start(args, run, base, fixed, scales, neg, refit)
+            return w, table.assign(**info)
+        info.update(start=name, strength=args.start, refiner=args.refiner)
     cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
            "batch_size": args.batch, "clip": None, "negative_step": neg, "refit_steps": refit}
     if args.category:
