@@ -23,9 +23,13 @@ constraint (diffusion.sample.negative_step) does: cheap measurements on a traine
   kinds  : where Table 2's image rows are won and lost: for every column of a finished run
            (its samples/<column>/ files, cut into the run's draws) the terms of MMD and COV
            under render RMSE, i.e. each reference's distance to its nearest sample and whether
-           it is some sample's nearest reference, averaged per kind of reference (the AugMERL
-           operation that made it: original, permutation, interpolation), mean and std over
-           draws. The references' renders come from the run's metrics/reference.pt; no model.
+           it is some sample's nearest reference, averaged per kind of reference (--by
+           operation: the AugMERL operation that made it, original, permutation,
+           interpolation; --by type: its material type), mean and std over draws. The
+           references' renders come from the run's metrics/reference.pt; no model.
+           --exposure E1 E2 ...: the samples also rendered E stops brighter (negative: darker)
+           than the metric view, as rows "<column> <E:+g>": does a global exposure offset
+           explain a column's loss?
 
 The model is a workflow model.pt or a train_diffusion checkpoint.pt (its EMA weights; the
 normaliser is refitted on the training rows, exactly as train() does).
@@ -35,9 +39,11 @@ normaliser is refitted on the training rows, exactly as train() does).
   python benchmarks/diffusion_diagnose.py sample --model M --results R --n 128 --seeds 0 1 \
       --grid steps=100,eta=0,negative_step=0 --grid steps=100,eta=0,negative_step=1
   python benchmarks/diffusion_diagnose.py kinds --results R --draws 3
+  python benchmarks/diffusion_diagnose.py kinds --results R --draws 1 --by type --exposure -0.15 -0.5
 """
 
 import argparse
+import itertools
 import os
 import time
 
@@ -313,22 +319,23 @@ def cmd_sample(a):
 COLUMNS = ["training", "pca_a", "pca_n", "vae_a", "vae_n", "merl100", "ours"]
 
 
-def reference_kinds(results, n):
-    """The AugMERL operation (original, permutation, interpolation) of each reference."""
+def reference_kinds(results, n, by="operation"):
+    """Each reference's AugMERL operation (original, permutation, interpolation), or its
+    material type (`by` "type")."""
     man = pd.read_csv(f"{results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
     ids = pd.read_csv(f"{results}/samples/reference/samples.tsv", sep="\t")["id"]
-    kind = man.set_index("id").loc[ids, "operation"].to_numpy()
+    kind = man.set_index("id").loc[ids, by].to_numpy()
     if len(kind) != n:
         raise SystemExit(f"{len(kind)} reference ids for {n} prepared renders: "
                          "metrics/reference.pt is not this run's reference set")
     return kind
 
 
-def nearest_terms(ri, smp, activation):
+def nearest_terms(ri, smp, activation, exposure=0.0):
     """Per reference: render RMSE to its nearest sample (MMD's terms) and whether it is some
-    sample's nearest reference (COV's)."""
+    sample's nearest reference (COV's); the samples rendered `exposure` stops brighter."""
     rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](
-        ri, materials.renders(smp, ri.shape[1], activation)))
+        ri, materials.renders(smp, ri.shape[1], activation, exposure=exposure)))
     covered = np.zeros(len(ri), bool)
     covered[rs.argmin(0).unique().numpy()] = True
     return rs.min(1).values.numpy(), covered
@@ -336,7 +343,7 @@ def nearest_terms(ri, smp, activation):
 
 def cmd_kinds(a):
     ri = evaluate.load_reference(f"{a.results}/metrics/reference.pt")["images"]
-    kind = reference_kinds(a.results, len(ri))
+    kind = reference_kinds(a.results, len(ri), a.by)
     out = []
     for col in COLUMNS:
         path = next((f"{a.results}/samples/{col}/{f}" for f in ("weights.npy", "tables.npz")
@@ -346,12 +353,13 @@ def cmd_kinds(a):
             continue
         s = materials.load(path)
         n = len(s) // a.draws
-        for d in range(a.draws):
+        for d, e in itertools.product(range(a.draws), [0.0, *a.exposure]):
             nearest, covered = nearest_terms(ri, materials.rows(s, slice(d * n, (d + 1) * n)),
-                                             a.activation)
+                                             a.activation, e)
             for k in [*np.unique(kind), "all"]:
                 m = kind == k if k != "all" else np.ones(len(kind), bool)
-                out.append({"kind": f"{k} ({m.sum()})", "column": col, "draw": d,
+                out.append({"kind": f"{k or '(untyped)'} ({m.sum()})", "draw": d,
+                            "column": col if e == 0 else f"{col} {e:+g}",
                             "MMD RMSE x10^2": 100 * nearest[m].mean(),
                             "COV RMSE %": 100 * covered[m].mean()})
         print(f"{col}: {a.draws} draws of {n}", flush=True)
@@ -367,6 +375,10 @@ def main():
     p.add_argument("command", choices=["loss", "roundtrip", "sample", "kinds"])
     p.add_argument("--model", help="model.pt or checkpoint.pt of train_diffusion (not for kinds)")
     p.add_argument("--draws", type=int, default=3, help="kinds: the run's metrics.draws")
+    p.add_argument("--by", choices=["operation", "type"], default="operation",
+                   help="kinds: group the references by AugMERL operation or material type")
+    p.add_argument("--exposure", type=float, nargs="*", default=[],
+                   help="kinds: also render the samples these stops brighter (negative: darker)")
     p.add_argument("--results", required=True, help="results/<run> directory (neumerl/ inside)")
     p.add_argument("--which", default="ours", choices=dataset.MODELS)
     p.add_argument("--seed", type=int, default=0, help="config seed (named streams)")

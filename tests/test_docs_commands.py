@@ -339,7 +339,7 @@ def _check(cmd: str) -> str | None:
     args = shlex.split(cmd)
     while args and re.match(r"\w+=", args[0]) or args[:1] == ["time"]:
         args = args[1:]  # environment assignments, `time`
-    flags = [a for a in args if a.startswith("-")]
+    flags = [a for a in args if a.startswith("-") and not re.fullmatch(r"-[\d.]+", a)]  # -0.5: a value
     prog = args[0]
     if "*" in prog:
         return None if list(ROOT.glob(prog)) else f"{prog} matches no file"

@@ -335,6 +335,10 @@ def test_table_set_scores_like_its_field():
     assert v[("MMD", "BRDF-L1")] == 0 and v[("COV", "RMSE")] == 1
     with pytest.raises(ValueError, match="lacks"):
         ts.at(np.setdiff1d(np.arange(merl.N_BINS), mb)[:5])
+    # renders are linear in the BRDF: a stop of exposure (the diagnosis of
+    # benchmarks/diffusion_diagnose.py kinds --exposure) renders the doubled tables
+    torch.testing.assert_close(materials.renders(ts, 16, exposure=1.0),
+                               materials.renders(materials.TableSet(mb, 2 * vals), 16))
 
 
 def test_sanity_flags_separable_halves():

@@ -91,11 +91,13 @@ def brdf_values(s: MaterialSet, bins, activation: str = "relu") -> torch.Tensor:
     return D.field_values(s, bins, activation)
 
 
-def renders(s: MaterialSet, resolution: int, activation: str = "relu", device="cpu") -> torch.Tensor:
-    """sRGB metric renders (N, H, W, 3) in [0, 1]."""
+def renders(s: MaterialSet, resolution: int, activation: str = "relu", device="cpu",
+            exposure: float = 0.0) -> torch.Tensor:
+    """sRGB metric renders (N, H, W, 3) in [0, 1]; `exposure`: stops added to the metric
+    exposure (a diagnosis, benchmarks/diffusion_diagnose.py kinds --exposure; 0 in the metrics)."""
     if isinstance(s, TableSet):
         view_bins = sphere.sphere_view(resolution).bins.numpy()
         lin = sphere.render_view_values(s.at(view_bins), resolution, device)
     else:
         lin = sphere.render_fields(s, resolution, activation, device)
-    return sphere.to_srgb(lin)
+    return sphere.to_srgb(lin, sphere.EXPOSURE + exposure)
