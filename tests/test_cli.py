@@ -571,6 +571,12 @@ def test_image_start_is_the_workflows_retrieved_material(tiny_run, tmp_path):
     # the tiny run's conditions.image: render_step 1, best of 2 constrained + 1 unconstrained
     assert (got["render_step"] == 1).all() and got["candidate"].between(0, 2).all()
     np.testing.assert_array_equal(np.load(outs[0] / "weights.npy"), np.load(outs[1] / "weights.npy"))
+    # without --refiner: the same start, denoised by the multimodal model under the image
+    assert main("sample", "--run", run, "--image", ref, "--start", 0.5, "-n", 2, "--no-binary",
+                "--out", tmp_path / "m") == 0
+    got = pd.read_csv(tmp_path / "m/samples.tsv", sep="\t", keep_default_na=False)
+    assert set(got["start"]) == set(want) and set(got["model"]) == {"multimodal"}
+    assert "guidance_image" in got and not got["refiner"].any()
 
 
 @pytest.mark.parametrize("args, says", [
