@@ -189,17 +189,23 @@ def _check_trained_type(run: Run, typ: str) -> None:
             raise CLIError(f"{e} (run {run.path})") from None
 
 
+def _training_set(run: Run):
+    """(NeuMERL weights, manifest, `ours`'s training rows) of the run: where --start draws from."""
+    from neumat.diffusion import dataset
+
+    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
+    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
+    return weights, man, dataset.training_rows(man, "ours")
+
+
 def _image_start(run: Run, emb: np.ndarray) -> tuple[np.ndarray, str]:
     """--image --start: the training material (`ours`'s rows) whose metric-view embedding
     (`conditions/image.npy`, under the first training light) is nearest the image's, as the
     workflow's sample_image retrieves it with conditions.image.strength < 1: its weights and
     name."""
     from neumat.conditions import image
-    from neumat.diffusion import dataset
 
-    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
-    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
-    rows = dataset.training_rows(man, "ours")
+    weights, man, rows = _training_set(run)
     library = np.load(_run_file(run, "conditions/image.npy", "image_embeddings"))[rows, 0]
     got = image.retrieve(emb, library, rows)[0]
     print(f"--image --start: from the training material {man['name'].iloc[got]!r} (nearest image "
@@ -216,13 +222,10 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
     condition, or by the refiner (--refiner) without one."""
     import pandas as pd
 
-    from neumat.diffusion import dataset
     from neumat.diffusion.sample import sample
     from neumat.seeds import seed_for
 
-    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
-    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
-    rows = dataset.training_rows(man, "ours")
+    weights, man, rows = _training_set(run)
     types = man["type"].iloc[rows].to_numpy()
     extra = {}
     if args.type:
