@@ -78,12 +78,15 @@ def test_kernel_equals_the_torch_path(kernel_device, kw):
         torch.testing.assert_close(got, want[raw], rtol=2e-5, atol=2e-5)
 
 
-@pytest.mark.parametrize("kw", [{}, dict(u_channels=6, hidden=24, layers=3)])
+@pytest.mark.parametrize("kw", [{}, dict(u_channels=6, hidden=24, layers=3),
+                                dict(u_channels=3, hidden=16, layers=2)])
 @torch.no_grad()
 def test_hpb_kernel_equals_the_torch_synthesis(kernel_device, kw):
     """HPB inside the kernel (float64 grid and fetch coordinates, integer hash, blend, LUT,
     inverse PCA folded into layer 1) = Synthesized.torch_forward, near u = 0 and at |u| ~ 1e5
-    (where an fp32 grid constant alone moved results by ~1e-2); another seed, another result."""
+    (where an fp32 grid constant alone moved results by ~1e-2); another seed, another result.
+    The taps run at the channels' power of two and are widened to layer 1's 16 rows: 8 columns
+    (8 channels, and 6 masked) doubled, 4 (3 channels) quadrupled."""
     torch.manual_seed(0)
     m = models.TriplePlane(23, 17, **kw).eval()
     for p in m.parameters():

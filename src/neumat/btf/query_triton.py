@@ -4,8 +4,8 @@ no TF32), with the activations in registers. The torch path runs these as separa
 fetches as gathers and its layers as batched gemv; it stays the path everywhere else (CPU: the
 fused C query, `neumat.btf.query`). Two more kernels synthesise f_U in place of its fetch:
 histogram-preserving blending (neumat.btf.synthesis.hpb: the triangle grid in float64, the
-integer hash, the fetch coordinates in 32-bit fixed point, blend and LUT; the inverse PCA folded
-into layer 1)
+integer hash, the fetch coordinates in 32-bit fixed point, the blend and the LUT at the
+plane's 8 channels, not the dot's 16; the inverse PCA folded into layer 1)
 and hex-tiling (neumat.btf.synthesis.hextile: the same grid and hash, the rotated patches and
 the luminance-weighted blend).
 
@@ -41,9 +41,11 @@ _failed: list[str] = []  # the first kernel failure of this process, if any
 # queries and warps per program, per kernel (None: the plain query): speed only, each query's
 # arithmetic is the same. The fastest of 7 shapes for each kernel in two sweeps on an H200
 # (benchmarks/btf_query.py --device cuda --sweep, 2026-11-28): plain 128 x 8 (level with 64 x 2,
-# 0.890 and 0.969 ms/frame against 0.897 and 0.980), HPB 64 x 4, hex-tiling 128 x 8 (swept with
-# its rotation still in float64; not re-swept since)
-LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 4},
+# 0.890 and 0.969 ms/frame against 0.897 and 0.980), hex-tiling 128 x 8 (swept with its rotation
+# still in float64; not re-swept since); HPB 64 x 2 since its taps sum into one 8-column
+# accumulator (over the plain kernel at the same shape, one sweep of 7 shapes on an H200,
+# 2026-11-28: +6.3 % at 64 x 2 and at 128 x 4, +10.8 % at the 64 x 4 of the kernel before)
+LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 2},
           "hextile": {"BLOCK": 128, "num_warps": 8}}
 PACKS = 8  # packings kept per model (`packed`): a synthesis each
 
@@ -188,6 +190,13 @@ def _pack_hpb(model, hpb, dtype) -> dict:
     w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)
     dev = model.f_u.device
     p = pack(model, (w1, b1))
+    # the kernel synthesises qu columns (the channels' power of two) and widens them to pu for
+    # tl.dot, channel i landing in column i pu / qu (triton_kernels.widen): layer 1's rows to match
+    cu, pu = p["cu"], p["pu"]
+    p["qu"] = qu = max(_pow2(cu, 1), pu // 4)
+    w1u = torch.zeros_like(p["w1u"])
+    w1u[0:cu * (pu // qu):pu // qu] = p["w1u"][:cu]
+    p["w1u"] = w1u
     p["gauss"] = hpb.gauss.detach().to(dev, dtype).contiguous()
     p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
     p["hs"] = _seed_hash(hpb.seed)
@@ -242,7 +251,7 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
         g = p["gauss"]
         _kernel("hpb")[grid](u.detach().double().contiguous(), wi, wo, g, p["lut"], fh, fd,
                              *mlp, g.shape[0], g.shape[1], p["lut"].shape[1], fh.shape[0],
-                             p["hs"], **shapes)
+                             p["hs"], QU=p["qu"], **shapes)
     else:
         pl = p["plane"]
         _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, p["lum"], fh, fd,

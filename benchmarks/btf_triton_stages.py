@@ -1,0 +1,315 @@
+"""Where HPB's GPU overhead goes: the Triton HPB query (`neumat.btf.triton_kernels`) against the
+plain query, and variants of HPB that leave one stage out, do it another way, or are the kernel
+before its taps summed into one accumulator, timed in interleaved rounds on one 1920 x 1080
+frame (random 400 x 400 Triple Plane, u float64 over a x2000 area, random directions). A GPU
+has no hardware counters here (gVisor), so a stage's time is the difference between the full
+kernel and the kernel without it (the device library's H200.md).
+
+Variants (each the shipped kernel's arithmetic except where named):
+  plain          the shipped plain query (query_triton.LAUNCH's shape)
+  mlp only       the plain query with no plane fetch (features zero): frame, MLP, store
+  hpb            the shipped HPB query: taps at the plane's 8 channels, the blend and the LUT's
+                 scale on the bilinear weights, one accumulator, widened for tl.dot
+  hpb -lut       without the inverse LUT (diagnostic: wrong values)
+  hpb 1 tap      one triangle vertex fetched, not three (diagnostic)
+  hpb grid f32   the triangle grid in float32 (diagnostic: wrong at large u)
+  hpb nodiv      the grid without float64 divisions, s = (2 sqrt3 u.x - 2 u.y, 4 u.y) (the
+                 skew's exact form; moves the grid by an ulp)
+  hpb 64x4       the shipped kernel at the launch shape of the kernel before
+  hpb before     the kernel before (2026-11-28, b62f565): each tap's 16 padded columns fetched
+                 into its own rows, then the blend and the LUT, at its 64 x 4
+  hex            the shipped hex-tiling query
+Candidates are checked against the shipped kernel (max |difference| of the RGB). Tried on an
+H200 on 2026-11-28 and dropped: the LUT's (value, slope) pair as one 64-bit load (level), the
+plain query's fetches at 8 columns (level), hex-tiling's taps at 8 columns (+28 %).
+
+    python benchmarks/btf_triton_stages.py [--rounds 20] [--calls 5]
+
+Without a GPU (under TRITON_INTERPRET=1) it only runs the checks, on --n queries.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import torch
+import triton
+import triton.language as tl
+
+from neumat import machine
+from neumat.btf import models, query_triton
+from neumat.btf import synthesis as syn
+from neumat.btf.triton_kernels import (bilinear, columns, frame, hpb_frac32, hpb_tap, mix,
+                                       mlp, triangle_grid, widen)
+
+FRAME = 1920 * 1080
+
+
+@triton.jit
+def mlp_only(u_ptr, wi_ptr, wo_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr,
+             bl_ptr, out_ptr, N, PU: tl.constexpr, PD: tl.constexpr, HP: tl.constexpr,
+             NH: tl.constexpr, BLOCK: tl.constexpr):
+    """The plain query without its three plane fetches (zero features that depend on the
+    loads, so none is dropped)."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fu = tl.full((BLOCK, PU), 0.0, tl.float32) + (ux + uy + hu + hv + du + dv)[:, None] * 0.0
+    fh = tl.full((BLOCK, PD), 0.0, tl.float32)
+    mlp(fu, fh, fh, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, False)
+
+
+@triton.jit
+def grid_nodiv(ux, uy):
+    """triangle_grid with s = (2 sqrt3 ux - 2 uy, 4 uy): no float64 division."""
+    K = tl.full(ux.shape, 3.4641016151377544, tl.float64)
+    s0 = ux * K - 2 * uy
+    s1 = 4 * uy
+    b0 = tl.floor(s0)
+    b1 = tl.floor(s1)
+    f0 = s0 - b0
+    f1 = s1 - b1
+    z = 1 - f0 - f1
+    up = z > 0
+    return (b0.to(tl.int64), b1.to(tl.int64), up, tl.where(up, z, -z).to(tl.float32),
+            tl.where(up, f1, 1 - f1).to(tl.float32), tl.where(up, f0, 1 - f0).to(tl.float32))
+
+
+@triton.jit
+def grid_f32(ux, uy):
+    """The triangle grid in float32 (diagnostic only: it loses the grid at large u)."""
+    x = ux.to(tl.float32)
+    y = uy.to(tl.float32)
+    s0 = x * 3.4641016 - 2 * y
+    s1 = 4 * y
+    b0 = tl.floor(s0)
+    b1 = tl.floor(s1)
+    f0 = s0 - b0
+    f1 = s1 - b1
+    z = 1 - f0 - f1
+    up = z > 0
+    return (b0.to(tl.int64), b1.to(tl.int64), up, tl.where(up, z, -z),
+            tl.where(up, f1, 1 - f1), tl.where(up, f0, 1 - f0))
+
+
+@triton.jit
+def hpb_variant(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_ptr,
+                w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N,
+                HG, WG, L, R, hs_bits, CU: tl.constexpr, CD: tl.constexpr,
+                PU: tl.constexpr, PD: tl.constexpr, QU: tl.constexpr, HP: tl.constexpr,
+                NH: tl.constexpr, GRID: tl.constexpr, TAPS: tl.constexpr, LUT: tl.constexpr,
+                BLOCK: tl.constexpr):
+    """triple_plane_hpb with GRID 0 (float64, shipped), 1 (no division) or 2 (float32); TAPS
+    3 or 1; LUT False: the accumulator is the feature."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    if GRID == 0:
+        i0, i1, up, w0, w1, w2, _, _ = triangle_grid(ux, uy)
+    elif GRID == 1:
+        i0, i1, up, w0, w1, w2 = grid_nodiv(ux, uy)
+    else:
+        i0, i1, up, w0, w1, w2 = grid_f32(ux, uy)
+    fx = hpb_frac32(ux)
+    fy = hpb_frac32(uy)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    dn = tl.where(up, 0, 1).to(tl.int64)
+    inv = 1.0 / tl.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    s = L * inv
+    bias = L * 0.5 * (1 - inv * (w0 + w1 + w2)) - 0.5
+    x = tl.full((BLOCK, QU), 0.0, tl.float32) + bias[:, None]
+    x = hpb_tap(x, gauss_ptr, fx, fy, i0 + dn, i1 + dn, hs, w0 * s, HG, WG, CU, QU, m)
+    if TAPS == 3:
+        x = hpb_tap(x, gauss_ptr, fx, fy, i0 + dn, i1 + 1 - dn, hs, w1 * s, HG, WG, CU, QU, m)
+        x = hpb_tap(x, gauss_ptr, fx, fy, i0 + 1 - dn, i1 + dn, hs, w2 * s, HG, WG, CU, QU, m)
+    mc = columns(m, CU, QU)
+    if LUT:
+        x = tl.minimum(tl.maximum(x, 0.0), L - 1.0)
+        k0 = tl.minimum(tl.floor(x).to(tl.int32), L - 2)
+        base = lut_ptr + tl.arange(0, QU)[None, :] * L + k0
+        a = tl.load(base, mask=mc, other=0.0)
+        b = tl.load(base + 1, mask=mc, other=0.0)
+        x = a + (x - k0.to(tl.float32)) * (b - a)
+    qf = widen(tl.where(mc, x, 0.0), BLOCK, QU, PU)
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, False)
+
+
+@triton.jit
+def old_tap(gauss_ptr, fx, fy, bx, by, hs, H, W, C: tl.constexpr, P: tl.constexpr, m):
+    """The kernel before's hpb_tap: one vertex's bilinear fetch, (BLOCK, P)."""
+    h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
+    x = (h + fx).to(tl.float32) * 2.3283064365386963e-10
+    h = mix(h ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
+    y = (h + fy).to(tl.float32) * 2.3283064365386963e-10
+    top = 1.0 - 5.9604644775390625e-08
+    return bilinear(gauss_ptr, tl.minimum(x, top), tl.minimum(y, top), H, W, C, P, True, m)
+
+
+@triton.jit
+def hpb_before(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_ptr,
+               w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N,
+               HG, WG, L, R, hs_bits, CU: tl.constexpr, CD: tl.constexpr,
+               PU: tl.constexpr, PD: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr,
+               BLOCK: tl.constexpr):
+    """triple_plane_hpb as of b62f565 (the baseline of its one-accumulator form)."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    i0, i1, up, w0, w1, w2, _, _ = triangle_grid(ux, uy)
+    fx = hpb_frac32(ux)
+    fy = hpb_frac32(uy)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    dn = tl.where(up, 0, 1).to(tl.int64)
+    g0 = old_tap(gauss_ptr, fx, fy, i0 + dn, i1 + dn, hs, HG, WG, CU, PU, m)
+    g1 = old_tap(gauss_ptr, fx, fy, i0 + dn, i1 + 1 - dn, hs, HG, WG, CU, PU, m)
+    g2 = old_tap(gauss_ptr, fx, fy, i0 + 1 - dn, i1 + dn, hs, HG, WG, CU, PU, m)
+    num = (g0 - 0.5) * w0[:, None] + (g1 - 0.5) * w1[:, None] + (g2 - 0.5) * w2[:, None]
+    g = num / tl.sqrt(w0 * w0 + w1 * w1 + w2 * w2)[:, None] + 0.5
+    x = tl.minimum(tl.maximum(tl.minimum(tl.maximum(g, 0.0), 1.0) * L - 0.5, 0.0), L - 1.0)
+    k0 = tl.minimum(tl.floor(x).to(tl.int32), L - 2)
+    c = tl.arange(0, PU)
+    mc = m[:, None] & (c < CU)[None, :]
+    base = lut_ptr + c[None, :] * L + k0
+    a = tl.load(base, mask=mc, other=0.0)
+    b = tl.load(base + 1, mask=mc, other=0.0)
+    qf = tl.where(mc, a + (x - k0.to(tl.float32)) * (b - a), 0.0)
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, False)
+
+
+def variants(m, h, x, u32, u64, wi, wo):
+    """name -> (launch(), the variant it is checked against, its output buffer)."""
+    n = u32.shape[0]
+    p, ph, px = query_triton.packed(m), query_triton._pack(m, h), query_triton._pack(m, x)
+    fh = m.f_h.detach().float().contiguous()
+    fd = m.f_d.detach().float().contiguous()
+    g, lut = ph["gauss"], ph["lut"]
+    shapes = dict(CU=p["cu"], CD=p["cd"], PU=p["pu"], PD=p["pd"], HP=p["hp"], NH=p["n_hidden"])
+    outs = []
+
+    def mlp_args(pk, w1u=None):  # a new output buffer per variant
+        outs.append(torch.empty(n, 3, device=u32.device))
+        return (pk["w1u"] if w1u is None else w1u, pk["w1h"], pk["w1d"], pk["b1"], pk["wh"],
+                pk["bh"], pk["wl"], pk["bl"], outs[-1], n)
+
+    launch = lambda L: dict(grid=(triton.cdiv(n, L["BLOCK"]),), shape=L)
+    hpb_tables = lambda: (g, lut, fh, fd)
+    hpb_sizes = (g.shape[0], g.shape[1], lut.shape[1], fh.shape[0], ph["hs"])
+
+    def run(kernel, args, L=None, **kw):  # args end with the buffer mlp_args just made
+        at = launch(L)
+        return lambda: kernel[at["grid"]](*args, **kw, **at["shape"]), len(outs) - 1
+
+    def shipped(method):  # through query_triton.query, packed once, as a renderer's calls
+        s = {None: None, "hpb": h, "hextile": x}[method]
+        uu = u32 if s is None else u64
+        pk = {None: p, "hpb": ph, "hextile": px}[method]
+        outs.append(None)
+        i = len(outs) - 1
+
+        def f():
+            outs[i] = query_triton.query(m, uu, wi, wo, packed=pk, synth=s)
+        return f, i
+
+    def variant(L=query_triton.LAUNCH["hpb"], **flags):
+        return run(hpb_variant, (u64, wi, wo, *hpb_tables(), *mlp_args(ph), *hpb_sizes), L,
+                   QU=ph["qu"], **shapes, **flags)
+
+    # the kernel before reads layer 1's rows in order: undo the shipped interleave
+    w1u_before = torch.zeros_like(ph["w1u"])
+    w1u_before[:p["cu"]] = ph["w1u"][0:p["cu"] * (p["pu"] // ph["qu"]):p["pu"] // ph["qu"]]
+    made = {}
+    for name, ref, make in (
+            ("plain", None, lambda: shipped(None)),
+            ("mlp only", None, lambda: run(mlp_only, (u32, wi, wo, *mlp_args(p)),
+                                           query_triton.LAUNCH[None], PU=p["pu"], PD=p["pd"],
+                                           HP=p["hp"], NH=p["n_hidden"])),
+            ("hpb", None, lambda: shipped("hpb")),
+            ("hpb -lut", None, lambda: variant(GRID=0, TAPS=3, LUT=False)),
+            ("hpb 1 tap", None, lambda: variant(GRID=0, TAPS=1, LUT=True)),
+            ("hpb grid f32", None, lambda: variant(GRID=2, TAPS=3, LUT=True)),
+            ("hpb nodiv", "hpb", lambda: variant(GRID=1, TAPS=3, LUT=True)),
+            ("hpb 64x4", "hpb", lambda: variant({"BLOCK": 64, "num_warps": 4}, GRID=0, TAPS=3,
+                                                LUT=True)),
+            ("hpb before", "hpb", lambda: run(hpb_before, (u64, wi, wo, *hpb_tables(),
+                                                           *mlp_args(ph, w1u_before), *hpb_sizes),
+                                              {"BLOCK": 64, "num_warps": 4}, **shapes)),
+            ("hex", None, lambda: shipped("hextile"))):
+        f, i = make()
+        made[name] = (f, ref, i)
+    return made, outs
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rounds", type=int, default=20, help="interleaved rounds (best kept)")
+    ap.add_argument("--calls", type=int, default=5, help="launches per timing (their mean)")
+    ap.add_argument("--n", type=int, default=FRAME, help="queries per launch")
+    a = ap.parse_args()
+    dev = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    torch.manual_seed(0)
+    m = models.TriplePlane(400, 400).to(dev).eval().requires_grad_(False)
+    h, x = syn.build(m, "hpb", 1, {}), syn.build(m, "hextile", 1, {})
+    gen = torch.Generator().manual_seed(0)
+    u = torch.rand(a.n, 2, generator=gen)
+
+    def hemi():
+        w = torch.randn(a.n, 3, generator=gen)
+        w[:, 2] = w[:, 2].abs() + 0.05
+        return torch.nn.functional.normalize(w, dim=-1).to(dev).contiguous()
+    wi, wo = hemi(), hemi()
+    u32 = u.to(dev).contiguous()
+    u64 = ((u.double() - 0.5) * 2e3).to(dev).contiguous()
+    runs, outs = variants(m, h, x, u32, u64, wi, wo)
+    for f, _, _ in runs.values():
+        f()  # compile and warm
+    where = machine.describe()
+    if dev.type == "cuda":
+        where += (f"; GPU {torch.cuda.get_device_name(dev)}, torch {torch.__version__}, "
+                  f"triton {triton.__version__}")
+    print(f"machine: {where}")
+    print(f"launch shapes (queries x warps per program): {query_triton.LAUNCH}")
+    for name, (_, ref, i) in runs.items():
+        if ref:
+            want = outs[runs[ref][2]]
+            d = (outs[i] - want).abs().max().item()
+            print(f"check: {name} vs {ref}: max |RGB difference| {d:.3g} "
+                  f"(mean |RGB| {want.abs().mean().item():.3g})")
+    if dev.type != "cuda":
+        return
+    best = {k: float("inf") for k in runs}
+    for _ in range(a.rounds):
+        for k, (f, _, _) in runs.items():
+            s, e = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+            s.record()
+            for _ in range(a.calls):
+                f()
+            e.record()
+            e.synchronize()
+            best[k] = min(best[k], s.elapsed_time(e) / a.calls)
+    print(f"ms per frame of {a.n} queries, best of {a.rounds} interleaved rounds of {a.calls} "
+          f"launches (CUDA events):")
+    for k, v in best.items():
+        extra = (f"; vs hpb {100 * (v / best['hpb'] - 1):+.1f} %"
+                 if k.startswith("hpb ") else "")
+        print(f"  {k:13s} {v:.4f} ms  vs plain {100 * (v / best['plain'] - 1):+.1f} %{extra}")
+    print(f"HPB overhead over the plain query: {100 * (best['hpb'] / best['plain'] - 1):+.1f} % "
+          f"(goal <= 10 %); the kernel before: "
+          f"{100 * (best['hpb before'] / best['plain'] - 1):+.1f} %")
+
+
+if __name__ == "__main__":
+    main()
