@@ -18,10 +18,15 @@ Variants (each the shipped kernel's arithmetic except where named):
   hpb 64x4       the shipped kernel at the launch shape of the kernel before
   hpb before     the kernel before (2026-11-28, b62f565): each tap's 16 padded columns fetched
                  into its own rows, then the blend and the LUT, at its 64 x 4
-  hex            the shipped hex-tiling query
+  hex            the shipped hex-tiling query: the luminance taps first, then the blend weights,
+                 then the feature taps at 8 channels folded into one accumulator, widened
+  hex BxW        the same at other launch shapes
+  hex before     the hex-tiling kernel before that (2445d8a): per-tap feature rows of 16
+                 padded columns, blended after, at its 128 x 8
 Candidates are checked against the shipped kernel (max |difference| of the RGB). Tried on an
 H200 on 2026-11-28 and dropped: the LUT's (value, slope) pair as one 64-bit load (level), the
-plain query's fetches at 8 columns (level), hex-tiling's taps at 8 columns (+28 %).
+plain query's fetches at 8 columns (level), hex-tiling's taps at 8 columns with the blend after
+them (+28 % at 128 x 8).
 
     python benchmarks/btf_triton_stages.py [--rounds 20] [--calls 5]
 
@@ -39,10 +44,12 @@ import triton.language as tl
 from neumat import machine
 from neumat.btf import models, query_triton
 from neumat.btf import synthesis as syn
-from neumat.btf.triton_kernels import (bilinear, columns, frame, hpb_frac32, hpb_tap, mix,
-                                       mlp, triangle_grid, widen)
+from neumat.btf.triton_kernels import (bilinear, columns, fixed32, frame, gain3, hpb_frac32,
+                                       hpb_tap, interp, mix, mlp, power, sincos, texels,
+                                       triangle_grid, widen)
 
 FRAME = 1920 * 1080
+HEX_SHAPES = ((32, 1), (64, 4), (128, 4), (128, 8))  # besides query_triton.LAUNCH's
 
 
 @triton.jit
@@ -190,6 +197,88 @@ def hpb_before(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_pt
         q, m, PU, PD, HP, NH, False)
 
 
+@triton.jit
+def old_hex_tap(plane_ptr, lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, C: tl.constexpr,
+            P: tl.constexpr, m):
+    """The kernel before's hex_tap: one triangle vertex (bx, by) (int64) of hex-tiling, as the C kernel (query_kernel.c
+    grid_prepare): its hashed offset and angle (grid.vertex_hash, k = 3); the patch rotated
+    about the vertex centre c: with d = u - c, the fetch coordinate frac(offset + R d + frac(c))
+    is frac(offset + frac(u) + (R d - d)), so the offset and frac(u) (fx, fy) add in 32-bit
+    fixed point and only R d - d is float32, d from the skewed fractions less the vertex's
+    corner (e0, e1), unskewed (grid.vertex_uv). Then the bilinear fetches of the feature plane
+    (H, W, C) and of the luminance plane (H, W): the features (BLOCK, P), channels >= C zero,
+    and the luminance (BLOCK)."""
+    h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
+    hx = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
+    h0 = mix(hx ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
+    ha = mix(h0 ^ tl.full(h.shape, 0x9E3779B3, tl.uint32))
+    a = (6.2831855 * ((ha >> 8).to(tl.float32) * 5.9604644775390625e-08) - 3.1415927) * rotation
+    sn, cs = sincos(a)
+    dx = (e0 + 0.5 * e1) * 0.28867513459481287  # 1 / (2 sqrt 3)
+    dy = e1 * 0.25  # (sqrt 3 / 2) / (2 sqrt 3)
+    zx = (cs - 1) * dx - sn * dy
+    zy = sn * dx + (cs - 1) * dy
+    x = (hx + fx + fixed32(zx)).to(tl.float32) * 2.3283064365386963e-10  # 2^-32
+    y = (h0 + fy + fixed32(zy)).to(tl.float32) * 2.3283064365386963e-10
+    top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
+    i00, i01, i10, i11, tx, ty = texels(tl.minimum(x, top), tl.minimum(y, top), H, W, True)
+    feat = interp(plane_ptr, i00, i01, i10, i11, tx, ty, C, C, P, m)
+    a = tl.load(lum_ptr + i00, mask=m, other=0.0)
+    b = tl.load(lum_ptr + i01, mask=m, other=0.0)
+    d = tl.load(lum_ptr + i10, mask=m, other=0.0)
+    e = tl.load(lum_ptr + i11, mask=m, other=0.0)
+    lum = ((1 - tx) * (1 - ty)) * a + (tx * (1 - ty)) * b + ((1 - tx) * ty) * d + (tx * ty) * e
+    return feat, lum
+
+
+@triton.jit
+def hex_before(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
+                     w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
+                     hs_bits, rotation, contrast, exponent, gain_k,
+                     CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
+                     HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
+                     RAW: tl.constexpr, BLOCK: tl.constexpr):
+    """triple_plane_hex as of 2445d8a (the baseline of its one-accumulator form)."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    i0, i1, up, w0, w1, w2, f0, f1 = triangle_grid(ux, uy)
+    fx = hpb_frac32(ux)
+    fy = hpb_frac32(uy)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    dnf = dn.to(tl.float32)
+    c0, l0 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn, i1 + dn, hs,
+                     rotation, HP_, WP_, CU, PU, m)
+    c1, l1 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn, i1 + 1 - dn,
+                     hs, rotation, HP_, WP_, CU, PU, m)
+    c2, l2 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf, i0 + 1 - dn, i1 + dn,
+                     hs, rotation, HP_, WP_, CU, PU, m)
+    # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
+    v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
+    v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
+    v2 = (1 + contrast * (l2 - 1)) * power(w2, exponent, IE)
+    tot = tl.maximum(v0 + v1 + v2, 1e-30)
+    v0 = v0 / tot
+    v1 = v1 / tot
+    v2 = v2 / tot
+    if GAIN:
+        v0 = gain3(v0, gain_k)
+        v1 = gain3(v1, gain_k)
+        v2 = gain3(v2, gain_k)
+        tot = v0 + v1 + v2
+        v0 = v0 / tot
+        v1 = v1 / tot
+        v2 = v2 / tot
+    fu = v0[:, None] * c0 + v1[:, None] * c1 + v2[:, None] * c2
+    hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, RAW)
+
+
 def variants(m, h, x, u32, u64, wi, wo):
     """name -> (launch(), the variant it is checked against, its output buffer)."""
     n = u32.shape[0]
@@ -213,7 +302,7 @@ def variants(m, h, x, u32, u64, wi, wo):
         at = launch(L)
         return lambda: kernel[at["grid"]](*args, **kw, **at["shape"]), len(outs) - 1
 
-    def shipped(method):  # through query_triton.query, packed once, as a renderer's calls
+    def shipped(method, shape=None):  # through query_triton.query, packed once, as a renderer's
         s = {None: None, "hpb": h, "hextile": x}[method]
         uu = u32 if s is None else u64
         pk = {None: p, "hpb": ph, "hextile": px}[method]
@@ -221,7 +310,7 @@ def variants(m, h, x, u32, u64, wi, wo):
         i = len(outs) - 1
 
         def f():
-            outs[i] = query_triton.query(m, uu, wi, wo, packed=pk, synth=s)
+            outs[i] = query_triton.query(m, uu, wi, wo, packed=pk, synth=s, launch=shape)
         return f, i
 
     def variant(L=query_triton.LAUNCH["hpb"], **flags):
@@ -229,8 +318,13 @@ def variants(m, h, x, u32, u64, wi, wo):
                    QU=ph["qu"], **shapes, **flags)
 
     # the kernel before reads layer 1's rows in order: undo the shipped interleave
-    w1u_before = torch.zeros_like(ph["w1u"])
-    w1u_before[:p["cu"]] = ph["w1u"][0:p["cu"] * (p["pu"] // ph["qu"]):p["pu"] // ph["qu"]]
+    def in_order(pk):
+        w = torch.zeros_like(pk["w1u"])
+        w[:p["cu"]] = pk["w1u"][0:p["cu"] * (p["pu"] // pk["qu"]):p["pu"] // pk["qu"]]
+        return w
+    w1u_before, w1u_hex_before = in_order(ph), in_order(px)
+    hex_sizes = (px["plane"].shape[0], px["plane"].shape[1], fh.shape[0], px["hs"],
+                 px["rotation"], px["contrast"], px["exponent"], px["gain_k"])
     made = {}
     for name, ref, make in (
             ("plain", None, lambda: shipped(None)),
@@ -247,7 +341,14 @@ def variants(m, h, x, u32, u64, wi, wo):
             ("hpb before", "hpb", lambda: run(hpb_before, (u64, wi, wo, *hpb_tables(),
                                                            *mlp_args(ph, w1u_before), *hpb_sizes),
                                               {"BLOCK": 64, "num_warps": 4}, **shapes)),
-            ("hex", None, lambda: shipped("hextile"))):
+            ("hex", None, lambda: shipped("hextile")),
+            *[(f"hex {b}x{w}", "hex", lambda b=b, w=w: shipped("hextile", dict(BLOCK=b, num_warps=w)))
+              for b, w in HEX_SHAPES],
+            ("hex before", "hex", lambda: run(hex_before, (u64, wi, wo, px["plane"], px["lum"], fh, fd,
+                                                            *mlp_args(px, w1u_hex_before),
+                                                            *hex_sizes),
+                                              {"BLOCK": 128, "num_warps": 8}, IE=px["ie"],
+                                              GAIN=px["gain"], RAW=False, **shapes))):
         f, i = make()
         made[name] = (f, ref, i)
     return made, outs
@@ -303,12 +404,14 @@ def main():
     print(f"ms per frame of {a.n} queries, best of {a.rounds} interleaved rounds of {a.calls} "
           f"launches (CUDA events):")
     for k, v in best.items():
-        extra = (f"; vs hpb {100 * (v / best['hpb'] - 1):+.1f} %"
-                 if k.startswith("hpb ") else "")
+        own = "hpb" if k.startswith("hpb ") else "hex" if k.startswith("hex ") else None
+        extra = f"; vs {own} {100 * (v / best[own] - 1):+.1f} %" if own else ""
         print(f"  {k:13s} {v:.4f} ms  vs plain {100 * (v / best['plain'] - 1):+.1f} %{extra}")
     print(f"HPB overhead over the plain query: {100 * (best['hpb'] / best['plain'] - 1):+.1f} % "
           f"(goal <= 10 %); the kernel before: "
           f"{100 * (best['hpb before'] / best['plain'] - 1):+.1f} %")
+    print(f"hex-tiling overhead: {100 * (best['hex'] / best['plain'] - 1):+.1f} %; the kernel "
+          f"before: {100 * (best['hex before'] / best['plain'] - 1):+.1f} %")
 
 
 if __name__ == "__main__":

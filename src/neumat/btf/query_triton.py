@@ -7,7 +7,7 @@ histogram-preserving blending (neumat.btf.synthesis.hpb: the triangle grid in fl
 integer hash, the fetch coordinates in 32-bit fixed point, the blend and the LUT at the
 plane's 8 channels, not the dot's 16; the inverse PCA folded into layer 1)
 and hex-tiling (neumat.btf.synthesis.hextile: the same grid and hash, the rotated patches and
-the luminance-weighted blend).
+the luminance-weighted blend, its features also at 8 channels).
 
     rgb = query(model, u, wi, wo)              # = model(u, wi, wo), all on the GPU
     rgb = query(model, u, wi, wo, synth=s)     # = Synthesized(model, s).torch_forward(u, wi, wo)
@@ -41,12 +41,13 @@ _failed: list[str] = []  # the first kernel failure of this process, if any
 # queries and warps per program, per kernel (None: the plain query): speed only, each query's
 # arithmetic is the same. The fastest of 7 shapes for each kernel in two sweeps on an H200
 # (benchmarks/btf_query.py --device cuda --sweep, 2026-11-28): plain 128 x 8 (level with 64 x 2,
-# 0.890 and 0.969 ms/frame against 0.897 and 0.980), hex-tiling 128 x 8 (swept with its rotation
-# still in float64; not re-swept since); HPB 64 x 2 since its taps sum into one 8-column
-# accumulator (over the plain kernel at the same shape, one sweep of 7 shapes on an H200,
-# 2026-11-28: +6.3 % at 64 x 2 and at 128 x 4, +10.8 % at the 64 x 4 of the kernel before)
+# 0.890 and 0.969 ms/frame against 0.897 and 0.980). HPB and hex-tiling 64 x 2 since their taps
+# sum into one 8-column accumulator (H200, 2026-11-28): HPB over the plain kernel at the same
+# shape, one sweep of 7 shapes, +6.3 % at 64 x 2 and at 128 x 4, +10.8 % at the 64 x 4 of its
+# kernel before; hex-tiling (benchmarks/btf_triton_stages.py) 0.911 ms at 64 x 2, 0.910 at
+# 128 x 4, 0.913 at 32 x 1, 1.32 at 64 x 4 and 1.53 at 128 x 8
 LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 2},
-          "hextile": {"BLOCK": 128, "num_warps": 8}}
+          "hextile": {"BLOCK": 64, "num_warps": 2}}
 PACKS = 8  # packings kept per model (`packed`): a synthesis each
 
 
@@ -183,6 +184,17 @@ def _seed_hash(seed: int) -> int:
     return hs - (1 << 32) if hs >= 1 << 31 else hs
 
 
+def _narrow(p: dict) -> None:
+    """A synthesis kernel forms f_U at qu columns (the channels' power of two, not the pu >= 16
+    that tl.dot wants) and widens them, channel i landing in column i pu / qu
+    (triton_kernels.widen): layer 1's f_U rows moved to match."""
+    cu, pu = p["cu"], p["pu"]
+    p["qu"] = qu = max(_pow2(cu, 1), pu // 4)
+    w1u = torch.zeros_like(p["w1u"])
+    w1u[0:cu * (pu // qu):pu // qu] = p["w1u"][:cu]
+    p["w1u"] = w1u
+
+
 def _pack_hpb(model, hpb, dtype) -> dict:
     """pack(model) with HPB's folded layer 1, its LUT and its Gaussianised plane as `dtype`:
     float16 holds it exactly (hpb.gaussianise rounds it so), at half the bytes per tap."""
@@ -190,13 +202,7 @@ def _pack_hpb(model, hpb, dtype) -> dict:
     w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)
     dev = model.f_u.device
     p = pack(model, (w1, b1))
-    # the kernel synthesises qu columns (the channels' power of two) and widens them to pu for
-    # tl.dot, channel i landing in column i pu / qu (triton_kernels.widen): layer 1's rows to match
-    cu, pu = p["cu"], p["pu"]
-    p["qu"] = qu = max(_pow2(cu, 1), pu // 4)
-    w1u = torch.zeros_like(p["w1u"])
-    w1u[0:cu * (pu // qu):pu // qu] = p["w1u"][:cu]
-    p["w1u"] = w1u
+    _narrow(p)
     p["gauss"] = hpb.gauss.detach().to(dev, dtype).contiguous()
     p["lut"] = hpb.lut.detach().float().to(dev).contiguous()
     p["hs"] = _seed_hash(hpb.seed)
@@ -209,6 +215,7 @@ def _pack_hex(model, hexs, dtype) -> dict:
     settings as the kernel takes them."""
     dev = model.f_u.device
     p, s = pack(model), hexs.s
+    _narrow(p)
     pl = hexs.plane_lum.detach().to(dev)
     p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum=pl[..., -1].float().contiguous(),
              hs=_seed_hash(hexs.seed),
@@ -257,7 +264,7 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
         _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, p["lum"], fh, fd,
                                  *mlp, pl.shape[0], pl.shape[1], fh.shape[0], p["hs"],
                                  p["rotation"], p["contrast"], p["exponent"], p["gain_k"],
-                                 IE=p["ie"], GAIN=p["gain"], **shapes)
+                                 IE=p["ie"], GAIN=p["gain"], QU=p["qu"], **shapes)
     return out
 
 

@@ -196,6 +196,21 @@ def columns(m, C: tl.constexpr, Q: tl.constexpr):
 
 
 @triton.jit
+def accumulate(acc, ptr, i00, i01, i10, i11, fx, fy, wk, C: tl.constexpr, Q: tl.constexpr, m):
+    """acc (BLOCK, Q) + wk x the bilinear fetch of texels of C values (float32, or float16
+    widened exactly), Q columns: a synthesis's tap with its blend weight wk folded into the
+    four bilinear weights, so the taps sum into one accumulator."""
+    c = tl.arange(0, Q)[None, :]
+    mc = columns(m, C, Q)
+    a = tl.load(ptr + i00[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
+    b = tl.load(ptr + i01[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
+    d = tl.load(ptr + i10[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
+    e = tl.load(ptr + i11[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
+    return (acc + ((1 - fx) * (1 - fy) * wk)[:, None] * a + (fx * (1 - fy) * wk)[:, None] * b
+            + ((1 - fx) * fy * wk)[:, None] * d + (fx * fy * wk)[:, None] * e)
+
+
+@triton.jit
 def hpb_tap(acc, gauss_ptr, fx, fy, bx, by, hs, wk, H, W, C: tl.constexpr, Q: tl.constexpr, m):
     """acc + wk x the bilinear fetch of one triangle vertex (bx, by) (int64) of HPB, (BLOCK, Q):
     its hashed offset (grid.vertex_hash), the fetch position frac(frac(u) + offset) in 32-bit
@@ -211,14 +226,7 @@ def hpb_tap(acc, gauss_ptr, fx, fy, bx, by, hs, wk, H, W, C: tl.constexpr, Q: tl
     y = (h + fy).to(tl.float32) * 2.3283064365386963e-10
     top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
     i00, i01, i10, i11, tx, ty = texels(tl.minimum(x, top), tl.minimum(y, top), H, W, True)
-    c = tl.arange(0, Q)[None, :]
-    mc = columns(m, C, Q)
-    a = tl.load(gauss_ptr + i00[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
-    b = tl.load(gauss_ptr + i01[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
-    d = tl.load(gauss_ptr + i10[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
-    e = tl.load(gauss_ptr + i11[:, None] * C + c, mask=mc, other=0.0).to(tl.float32)
-    return (acc + ((1 - tx) * (1 - ty) * wk)[:, None] * a + (tx * (1 - ty) * wk)[:, None] * b
-            + ((1 - tx) * ty * wk)[:, None] * d + (tx * ty * wk)[:, None] * e)
+    return accumulate(acc, gauss_ptr, i00, i01, i10, i11, tx, ty, wk, C, Q, m)
 
 
 @triton.jit
@@ -295,16 +303,15 @@ def fixed32(z):
 
 
 @triton.jit
-def hex_tap(plane_ptr, lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, C: tl.constexpr,
-            P: tl.constexpr, m):
+def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m):
     """One triangle vertex (bx, by) (int64) of hex-tiling, as the C kernel (query_kernel.c
     grid_prepare): its hashed offset and angle (grid.vertex_hash, k = 3); the patch rotated
     about the vertex centre c: with d = u - c, the fetch coordinate frac(offset + R d + frac(c))
     is frac(offset + frac(u) + (R d - d)), so the offset and frac(u) (fx, fy) add in 32-bit
     fixed point and only R d - d is float32, d from the skewed fractions less the vertex's
-    corner (e0, e1), unskewed (grid.vertex_uv). Then the bilinear fetches of the feature plane
-    (H, W, C) and of the luminance plane (H, W): the features (BLOCK, P), channels >= C zero,
-    and the luminance (BLOCK)."""
+    corner (e0, e1), unskewed (grid.vertex_uv). Returns the bilinear taps (texels and
+    fractions, as `texels`) and the luminance there (BLOCK); the features are fetched once the
+    blend weights are known (`accumulate`)."""
     h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
     hx = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
     h0 = mix(hx ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
@@ -319,13 +326,12 @@ def hex_tap(plane_ptr, lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, C: t
     y = (h0 + fy + fixed32(zy)).to(tl.float32) * 2.3283064365386963e-10
     top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
     i00, i01, i10, i11, tx, ty = texels(tl.minimum(x, top), tl.minimum(y, top), H, W, True)
-    feat = interp(plane_ptr, i00, i01, i10, i11, tx, ty, C, C, P, m)
     a = tl.load(lum_ptr + i00, mask=m, other=0.0)
     b = tl.load(lum_ptr + i01, mask=m, other=0.0)
     d = tl.load(lum_ptr + i10, mask=m, other=0.0)
     e = tl.load(lum_ptr + i11, mask=m, other=0.0)
     lum = ((1 - tx) * (1 - ty)) * a + (tx * (1 - ty)) * b + ((1 - tx) * ty) * d + (tx * ty) * e
-    return feat, lum
+    return i00, i01, i10, i11, tx, ty, lum
 
 
 @triton.jit
@@ -354,15 +360,18 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
                      w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
                      hs_bits, rotation, contrast, exponent, gain_k,
                      CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
-                     HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
-                     RAW: tl.constexpr, BLOCK: tl.constexpr):
+                     QU: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr,
+                     GAIN: tl.constexpr, RAW: tl.constexpr, BLOCK: tl.constexpr):
     """The query with f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile, its torch
     path `HexTile.__call__`; the arithmetic of the C kernel's btf_triple_plane_hex): u float64,
     the triangle grid in float64, per vertex the integer hash, the rotation (float32, about the
-    vertex, in fixed point as HPB's fetch coordinate) and bilinear fetches of the (H, W, CU)
-    feature plane and the (H, W) luminance plane, then the luminance-weighted,
-    contrast-sharpened blend. float32 in place of float64 for the rotation: +22.6 -> +14.4 to
-    +14.8 % over the plain kernel on an H200 (README, "Running on Slurm or a GPU")."""
+    vertex, in fixed point as HPB's fetch coordinate) and the bilinear fetch of the (H, W)
+    luminance plane, then the luminance-weighted, contrast-sharpened blend weights, and only
+    then the (H, W, CU) feature plane's taps at QU columns, each weight folded into its
+    bilinear weights (one accumulator, as HPB's), widened to layer 1's PU rows. On an H200
+    (README, "Running on Slurm or a GPU"): float32 in place of float64 for the rotation,
+    +22.6 -> +14.4 to +14.8 % over the plain kernel; the one accumulator, +16.5 -> +13.6 %
+    (benchmarks/btf_triton_stages.py, one run, 2026-11-28)."""
     q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     m = q < N
     ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
@@ -373,12 +382,12 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
     hs = hs_bits.to(tl.uint32, bitcast=True)
     dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
     dnf = dn.to(tl.float32)
-    c0, l0 = hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn, i1 + dn, hs,
-                     rotation, HP_, WP_, CU, PU, m)
-    c1, l1 = hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn, i1 + 1 - dn,
-                     hs, rotation, HP_, WP_, CU, PU, m)
-    c2, l2 = hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf, i0 + 1 - dn, i1 + dn,
-                     hs, rotation, HP_, WP_, CU, PU, m)
+    a00, a01, a10, a11, ax, ay, l0 = hex_tap(lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn,
+                                             i1 + dn, hs, rotation, HP_, WP_, m)
+    b00, b01, b10, b11, bx, by, l1 = hex_tap(lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn,
+                                             i1 + 1 - dn, hs, rotation, HP_, WP_, m)
+    c00, c01, c10, c11, cx, cy, l2 = hex_tap(lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf,
+                                             i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, m)
     # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
     v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
     v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
@@ -395,7 +404,11 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
         v0 = v0 / tot
         v1 = v1 / tot
         v2 = v2 / tot
-    fu = v0[:, None] * c0 + v1[:, None] * c1 + v2[:, None] * c2
+    fu = tl.full((BLOCK, QU), 0.0, tl.float32)
+    fu = accumulate(fu, plane_ptr, a00, a01, a10, a11, ax, ay, v0, CU, QU, m)
+    fu = accumulate(fu, plane_ptr, b00, b01, b10, b11, bx, by, v1, CU, QU, m)
+    fu = accumulate(fu, plane_ptr, c00, c01, c10, c11, cx, cy, v2, CU, QU, m)
+    fu = widen(fu, BLOCK, QU, PU)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
     fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
     fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
