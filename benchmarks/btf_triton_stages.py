@@ -44,9 +44,9 @@ import triton.language as tl
 from neumat import machine
 from neumat.btf import models, query_triton
 from neumat.btf import synthesis as syn
-from neumat.btf.triton_kernels import (bilinear, columns, fixed32, frame, gain3, hpb_frac32,
-                                       hpb_tap, interp, mix, mlp, power, sincos, texels,
-                                       triangle_grid, widen)
+from neumat.btf.triton_kernels import (bilinear, columns, decode, frame, hex_tap, hex_weights,
+                                       hpb_frac32, hpb_tap, interp, mix, mlp, triangle_grid,
+                                       widen)
 
 FRAME = 1920 * 1080
 HEX_SHAPES = ((32, 1), (64, 4), (128, 4), (128, 8))  # besides query_triton.LAUNCH's
@@ -70,11 +70,9 @@ def mlp_only(u_ptr, wi_ptr, wo_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, b
 
 
 @triton.jit
-def grid_nodiv(ux, uy):
-    """triangle_grid with s = (2 sqrt3 ux - 2 uy, 4 uy): no float64 division."""
-    K = tl.full(ux.shape, 3.4641016151377544, tl.float64)
-    s0 = ux * K - 2 * uy
-    s1 = 4 * uy
+def split(s0, s1):
+    """triangle_grid's second half from the skewed coordinates: lower vertex, upper or lower
+    triangle, the three weights (float32)."""
     b0 = tl.floor(s0)
     b1 = tl.floor(s1)
     f0 = s0 - b0
@@ -86,20 +84,18 @@ def grid_nodiv(ux, uy):
 
 
 @triton.jit
+def grid_nodiv(ux, uy):
+    """triangle_grid with s = (2 sqrt3 ux - 2 uy, 4 uy): no float64 division."""
+    K = tl.full(ux.shape, 3.4641016151377544, tl.float64)
+    return split(ux * K - 2 * uy, 4 * uy)
+
+
+@triton.jit
 def grid_f32(ux, uy):
     """The triangle grid in float32 (diagnostic only: it loses the grid at large u)."""
     x = ux.to(tl.float32)
     y = uy.to(tl.float32)
-    s0 = x * 3.4641016 - 2 * y
-    s1 = 4 * y
-    b0 = tl.floor(s0)
-    b1 = tl.floor(s1)
-    f0 = s0 - b0
-    f1 = s1 - b1
-    z = 1 - f0 - f1
-    up = z > 0
-    return (b0.to(tl.int64), b1.to(tl.int64), up, tl.where(up, z, -z),
-            tl.where(up, f1, 1 - f1), tl.where(up, f0, 1 - f0))
+    return split(x * 3.4641016 - 2 * y, 4 * y)
 
 
 @triton.jit
@@ -143,10 +139,8 @@ def hpb_variant(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_p
         x = a + (x - k0.to(tl.float32)) * (b - a)
     qf = widen(tl.where(mc, x, 0.0), BLOCK, QU, PU)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, False)
+    decode(qf, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, False)
 
 
 @triton.jit
@@ -191,53 +185,26 @@ def hpb_before(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_pt
     b = tl.load(base + 1, mask=mc, other=0.0)
     qf = tl.where(mc, a + (x - k0.to(tl.float32)) * (b - a), 0.0)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, False)
+    decode(qf, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, False)
 
 
 @triton.jit
 def old_hex_tap(plane_ptr, lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, C: tl.constexpr,
-            P: tl.constexpr, m):
-    """The kernel before's hex_tap: one triangle vertex (bx, by) (int64) of hex-tiling, as the C kernel (query_kernel.c
-    grid_prepare): its hashed offset and angle (grid.vertex_hash, k = 3); the patch rotated
-    about the vertex centre c: with d = u - c, the fetch coordinate frac(offset + R d + frac(c))
-    is frac(offset + frac(u) + (R d - d)), so the offset and frac(u) (fx, fy) add in 32-bit
-    fixed point and only R d - d is float32, d from the skewed fractions less the vertex's
-    corner (e0, e1), unskewed (grid.vertex_uv). Then the bilinear fetches of the feature plane
-    (H, W, C) and of the luminance plane (H, W): the features (BLOCK, P), channels >= C zero,
-    and the luminance (BLOCK)."""
-    h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
-    hx = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
-    h0 = mix(hx ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
-    ha = mix(h0 ^ tl.full(h.shape, 0x9E3779B3, tl.uint32))
-    a = (6.2831855 * ((ha >> 8).to(tl.float32) * 5.9604644775390625e-08) - 3.1415927) * rotation
-    sn, cs = sincos(a)
-    dx = (e0 + 0.5 * e1) * 0.28867513459481287  # 1 / (2 sqrt 3)
-    dy = e1 * 0.25  # (sqrt 3 / 2) / (2 sqrt 3)
-    zx = (cs - 1) * dx - sn * dy
-    zy = sn * dx + (cs - 1) * dy
-    x = (hx + fx + fixed32(zx)).to(tl.float32) * 2.3283064365386963e-10  # 2^-32
-    y = (h0 + fy + fixed32(zy)).to(tl.float32) * 2.3283064365386963e-10
-    top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
-    i00, i01, i10, i11, tx, ty = texels(tl.minimum(x, top), tl.minimum(y, top), H, W, True)
-    feat = interp(plane_ptr, i00, i01, i10, i11, tx, ty, C, C, P, m)
-    a = tl.load(lum_ptr + i00, mask=m, other=0.0)
-    b = tl.load(lum_ptr + i01, mask=m, other=0.0)
-    d = tl.load(lum_ptr + i10, mask=m, other=0.0)
-    e = tl.load(lum_ptr + i11, mask=m, other=0.0)
-    lum = ((1 - tx) * (1 - ty)) * a + (tx * (1 - ty)) * b + ((1 - tx) * ty) * d + (tx * ty) * e
-    return feat, lum
+                P: tl.constexpr, m):
+    """The kernel before's hex_tap: one vertex's features (BLOCK, P) and luminance."""
+    i00, i01, i10, i11, tx, ty, lum = hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H,
+                                              W, m)
+    return interp(plane_ptr, i00, i01, i10, i11, tx, ty, C, C, P, m), lum
 
 
 @triton.jit
 def hex_before(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
-                     w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
-                     hs_bits, rotation, contrast, exponent, gain_k,
-                     CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
-                     HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
-                     RAW: tl.constexpr, BLOCK: tl.constexpr):
+               w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
+               hs_bits, rotation, contrast, exponent, gain_k,
+               CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
+               HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
+               RAW: tl.constexpr, BLOCK: tl.constexpr):
     """triple_plane_hex as of 2445d8a (the baseline of its one-accumulator form)."""
     q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     m = q < N
@@ -250,33 +217,16 @@ def hex_before(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_pt
     dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
     dnf = dn.to(tl.float32)
     c0, l0 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn, i1 + dn, hs,
-                     rotation, HP_, WP_, CU, PU, m)
-    c1, l1 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn, i1 + 1 - dn,
-                     hs, rotation, HP_, WP_, CU, PU, m)
-    c2, l2 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf, i0 + 1 - dn, i1 + dn,
-                     hs, rotation, HP_, WP_, CU, PU, m)
-    # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
-    v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
-    v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
-    v2 = (1 + contrast * (l2 - 1)) * power(w2, exponent, IE)
-    tot = tl.maximum(v0 + v1 + v2, 1e-30)
-    v0 = v0 / tot
-    v1 = v1 / tot
-    v2 = v2 / tot
-    if GAIN:
-        v0 = gain3(v0, gain_k)
-        v1 = gain3(v1, gain_k)
-        v2 = gain3(v2, gain_k)
-        tot = v0 + v1 + v2
-        v0 = v0 / tot
-        v1 = v1 / tot
-        v2 = v2 / tot
+                         rotation, HP_, WP_, CU, PU, m)
+    c1, l1 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn,
+                         i1 + 1 - dn, hs, rotation, HP_, WP_, CU, PU, m)
+    c2, l2 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf, i0 + 1 - dn,
+                         i1 + dn, hs, rotation, HP_, WP_, CU, PU, m)
+    v0, v1, v2 = hex_weights(w0, w1, w2, l0, l1, l2, contrast, exponent, gain_k, IE, GAIN)
     fu = v0[:, None] * c0 + v1[:, None] * c1 + v2[:, None] * c2
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, RAW)
+    decode(fu, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, RAW)
 
 
 def variants(m, h, x, u32, u64, wi, wo):
@@ -342,11 +292,12 @@ def variants(m, h, x, u32, u64, wi, wo):
                                                            *mlp_args(ph, w1u_before), *hpb_sizes),
                                               {"BLOCK": 64, "num_warps": 4}, **shapes)),
             ("hex", None, lambda: shipped("hextile")),
-            *[(f"hex {b}x{w}", "hex", lambda b=b, w=w: shipped("hextile", dict(BLOCK=b, num_warps=w)))
+            *[(f"hex {b}x{w}", "hex",
+               lambda b=b, w=w: shipped("hextile", dict(BLOCK=b, num_warps=w)))
               for b, w in HEX_SHAPES],
-            ("hex before", "hex", lambda: run(hex_before, (u64, wi, wo, px["plane"], px["lum"], fh, fd,
-                                                            *mlp_args(px, w1u_hex_before),
-                                                            *hex_sizes),
+            ("hex before", "hex", lambda: run(hex_before, (u64, wi, wo, px["plane"], px["lum"],
+                                                           fh, fd, *mlp_args(px, w1u_hex_before),
+                                                           *hex_sizes),
                                               {"BLOCK": 128, "num_warps": 8}, IE=px["ie"],
                                               GAIN=px["gain"], RAW=False, **shapes))):
         f, i = make()

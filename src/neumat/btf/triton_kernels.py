@@ -112,6 +112,18 @@ def mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, b
 
 
 @triton.jit
+def decode(fu, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD: tl.constexpr, PU: tl.constexpr,
+           PD: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr, RAW: tl.constexpr):
+    """Queries q's RGB from their f_U features (BLOCK, PU) and their half/difference plane
+    coordinates (`frame`): the f_H and f_D fetches, then the MLP (every kernel's end)."""
+    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
+    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
+    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
+        q, m, PU, PD, HP, NH, RAW)
+
+
+@triton.jit
 def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr,
                  b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HU, WU, R,
                  CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
@@ -123,10 +135,8 @@ def triple_plane(u_ptr, wi_ptr, wo_ptr, fu_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr
     uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
     fu = bilinear(fu_ptr, ux, uy, HU, WU, CU, PU, True, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, RAW)
+    decode(fu, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, RAW)
 
 
 @triton.jit
@@ -271,10 +281,8 @@ def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, 
     b = tl.load(base + 1, mask=mc, other=0.0)
     qf = widen(tl.where(mc, a + (x - k0.to(tl.float32)) * (b - a), 0.0), BLOCK, QU, PU)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(qf, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, RAW)
+    decode(qf, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, RAW)
 
 
 @triton.jit
@@ -356,6 +364,29 @@ def gain3(x, k):
 
 
 @triton.jit
+def hex_weights(w0, w1, w2, l0, l1, l2, contrast, exponent, gain_k, IE: tl.constexpr,
+                GAIN: tl.constexpr):
+    """hextile's blend weights of three vertices: W_i = (1 + contrast (lum_i - 1))
+    w_i^exponent, normalised, then gain3 and normalised again (unless GAIN is off)."""
+    v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
+    v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
+    v2 = (1 + contrast * (l2 - 1)) * power(w2, exponent, IE)
+    tot = tl.maximum(v0 + v1 + v2, 1e-30)
+    v0 = v0 / tot
+    v1 = v1 / tot
+    v2 = v2 / tot
+    if GAIN:
+        v0 = gain3(v0, gain_k)
+        v1 = gain3(v1, gain_k)
+        v2 = gain3(v2, gain_k)
+        tot = v0 + v1 + v2
+        v0 = v0 / tot
+        v1 = v1 / tot
+        v2 = v2 / tot
+    return v0, v1, v2
+
+
+@triton.jit
 def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr,
                      w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr, N, HP_, WP_, R,
                      hs_bits, rotation, contrast, exponent, gain_k,
@@ -388,29 +419,12 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
                                              i1 + 1 - dn, hs, rotation, HP_, WP_, m)
     c00, c01, c10, c11, cx, cy, l2 = hex_tap(lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf,
                                              i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, m)
-    # hextile: W_i = (1 + contrast (lum_i - 1)) w_i^exponent, normalised, then gain3
-    v0 = (1 + contrast * (l0 - 1)) * power(w0, exponent, IE)
-    v1 = (1 + contrast * (l1 - 1)) * power(w1, exponent, IE)
-    v2 = (1 + contrast * (l2 - 1)) * power(w2, exponent, IE)
-    tot = tl.maximum(v0 + v1 + v2, 1e-30)
-    v0 = v0 / tot
-    v1 = v1 / tot
-    v2 = v2 / tot
-    if GAIN:
-        v0 = gain3(v0, gain_k)
-        v1 = gain3(v1, gain_k)
-        v2 = gain3(v2, gain_k)
-        tot = v0 + v1 + v2
-        v0 = v0 / tot
-        v1 = v1 / tot
-        v2 = v2 / tot
+    v0, v1, v2 = hex_weights(w0, w1, w2, l0, l1, l2, contrast, exponent, gain_k, IE, GAIN)
     fu = tl.full((BLOCK, QU), 0.0, tl.float32)
     fu = accumulate(fu, plane_ptr, a00, a01, a10, a11, ax, ay, v0, CU, QU, m)
     fu = accumulate(fu, plane_ptr, b00, b01, b10, b11, bx, by, v1, CU, QU, m)
     fu = accumulate(fu, plane_ptr, c00, c01, c10, c11, cx, cy, v2, CU, QU, m)
     fu = widen(fu, BLOCK, QU, PU)
     hu, hv, du, dv = frame(wi_ptr, wo_ptr, q, m)
-    fh = bilinear(fh_ptr, hu, hv, R, R, CD, PD, False, m)
-    fd = bilinear(fd_ptr, du, dv, R, R, CD, PD, False, m)
-    mlp(fu, fh, fd, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, bh_ptr, wl_ptr, bl_ptr, out_ptr,
-        q, m, PU, PD, HP, NH, RAW)
+    decode(fu, hu, hv, du, dv, fh_ptr, fd_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr,
+           bh_ptr, wl_ptr, bl_ptr, out_ptr, q, m, R, CD, PU, PD, HP, NH, RAW)
