@@ -45,8 +45,8 @@ from neumat import machine
 from neumat.btf import models, query_triton
 from neumat.btf import synthesis as syn
 from neumat.btf.triton_kernels import (bilinear, columns, decode, frame, hex_tap, hex_weights,
-                                       hpb_frac32, hpb_tap, interp, mix, mlp, triangle_grid,
-                                       widen)
+                                       hpb_frac32, hpb_tap, interp, mix, mlp, queries_grid,
+                                       triangle_grid, triangle_split, widen)
 
 FRAME = 1920 * 1080
 HEX_SHAPES = ((32, 1), (64, 4), (128, 4), (128, 8))  # besides query_triton.LAUNCH's
@@ -70,24 +70,10 @@ def mlp_only(u_ptr, wi_ptr, wo_ptr, w1u_ptr, w1h_ptr, w1d_ptr, b1_ptr, wh_ptr, b
 
 
 @triton.jit
-def split(s0, s1):
-    """triangle_grid's second half from the skewed coordinates: lower vertex, upper or lower
-    triangle, the three weights (float32)."""
-    b0 = tl.floor(s0)
-    b1 = tl.floor(s1)
-    f0 = s0 - b0
-    f1 = s1 - b1
-    z = 1 - f0 - f1
-    up = z > 0
-    return (b0.to(tl.int64), b1.to(tl.int64), up, tl.where(up, z, -z).to(tl.float32),
-            tl.where(up, f1, 1 - f1).to(tl.float32), tl.where(up, f0, 1 - f0).to(tl.float32))
-
-
-@triton.jit
 def grid_nodiv(ux, uy):
     """triangle_grid with s = (2 sqrt3 ux - 2 uy, 4 uy): no float64 division."""
     K = tl.full(ux.shape, 3.4641016151377544, tl.float64)
-    return split(ux * K - 2 * uy, 4 * uy)
+    return triangle_split(ux * K - 2 * uy, 4 * uy)
 
 
 @triton.jit
@@ -95,7 +81,7 @@ def grid_f32(ux, uy):
     """The triangle grid in float32 (diagnostic only: it loses the grid at large u)."""
     x = ux.to(tl.float32)
     y = uy.to(tl.float32)
-    return split(x * 3.4641016 - 2 * y, 4 * y)
+    return triangle_split(x * 3.4641016 - 2 * y, 4 * y)
 
 
 @triton.jit
@@ -114,9 +100,9 @@ def hpb_variant(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_p
     if GRID == 0:
         i0, i1, up, w0, w1, w2, _, _ = triangle_grid(ux, uy)
     elif GRID == 1:
-        i0, i1, up, w0, w1, w2 = grid_nodiv(ux, uy)
+        i0, i1, up, w0, w1, w2, _, _ = grid_nodiv(ux, uy)
     else:
-        i0, i1, up, w0, w1, w2 = grid_f32(ux, uy)
+        i0, i1, up, w0, w1, w2, _, _ = grid_f32(ux, uy)
     fx = hpb_frac32(ux)
     fy = hpb_frac32(uy)
     hs = hs_bits.to(tl.uint32, bitcast=True)
@@ -162,15 +148,7 @@ def hpb_before(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, w1u_pt
                PU: tl.constexpr, PD: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr,
                BLOCK: tl.constexpr):
     """triple_plane_hpb as of b62f565 (the baseline of its one-accumulator form)."""
-    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    m = q < N
-    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)
-    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    i0, i1, up, w0, w1, w2, _, _ = triangle_grid(ux, uy)
-    fx = hpb_frac32(ux)
-    fy = hpb_frac32(uy)
-    hs = hs_bits.to(tl.uint32, bitcast=True)
-    dn = tl.where(up, 0, 1).to(tl.int64)
+    q, m, i0, i1, dn, w0, w1, w2, _, _, fx, fy, hs = queries_grid(u_ptr, hs_bits, N, BLOCK)
     g0 = old_tap(gauss_ptr, fx, fy, i0 + dn, i1 + dn, hs, HG, WG, CU, PU, m)
     g1 = old_tap(gauss_ptr, fx, fy, i0 + dn, i1 + 1 - dn, hs, HG, WG, CU, PU, m)
     g2 = old_tap(gauss_ptr, fx, fy, i0 + 1 - dn, i1 + dn, hs, HG, WG, CU, PU, m)
@@ -206,15 +184,7 @@ def hex_before(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, w1u_pt
                HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr, GAIN: tl.constexpr,
                RAW: tl.constexpr, BLOCK: tl.constexpr):
     """triple_plane_hex as of 2445d8a (the baseline of its one-accumulator form)."""
-    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    m = q < N
-    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
-    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    i0, i1, up, w0, w1, w2, f0, f1 = triangle_grid(ux, uy)
-    fx = hpb_frac32(ux)
-    fy = hpb_frac32(uy)
-    hs = hs_bits.to(tl.uint32, bitcast=True)
-    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    q, m, i0, i1, dn, w0, w1, w2, f0, f1, fx, fy, hs = queries_grid(u_ptr, hs_bits, N, BLOCK)
     dnf = dn.to(tl.float32)
     c0, l0 = old_hex_tap(plane_ptr, lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn, i1 + dn, hs,
                          rotation, HP_, WP_, CU, PU, m)

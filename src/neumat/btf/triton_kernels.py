@@ -159,8 +159,12 @@ def triangle_grid(ux, uy):
     S3 = tl.full(ux.shape, 1.7320508075688772, tl.float64)
     stx = ux * (2 * S3)
     sty = uy * (2 * S3)
-    s0 = stx - sty / S3
-    s1 = 2 * sty / S3
+    return triangle_split(stx - sty / S3, 2 * sty / S3)
+
+
+@triton.jit
+def triangle_split(s0, s1):
+    """triangle_grid from the skewed coordinates (s0, s1): floor, fractions and weights."""
     b0 = tl.floor(s0)
     b1 = tl.floor(s1)
     f0 = s0 - b0
@@ -180,6 +184,24 @@ def hpb_frac32(u):
     bits. torch.remainder(u, 1) may round to 1, i.e. 2^32, which wraps to 0."""
     f = (u - tl.floor(u)) * 4294967296.0 + 6755399441055744.0
     return (f.to(tl.int64, bitcast=True) & 0xFFFFFFFF).to(tl.uint32)
+
+
+@triton.jit
+def queries_grid(u_ptr, hs_bits, N, BLOCK: tl.constexpr):
+    """A program's queries q (mask m) and their triangle grid, as HPB and hex-tiling start:
+    u float64, the cell's lower vertex (i0, i1) and dn (1 in its lower triangle: the vertices
+    are (0,0), (0,1), (1,0) from it, or (1,1), (1,0), (0,1)), the weights, the skewed fractions
+    (triangle_grid), frac(u) as uint32 (hpb_frac32) and the seed's hash as uint32."""
+    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+    m = q < N
+    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
+    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
+    i0, i1, up, w0, w1, w2, f0, f1 = triangle_grid(ux, uy)
+    fx = hpb_frac32(ux)
+    fy = hpb_frac32(uy)
+    hs = hs_bits.to(tl.uint32, bitcast=True)
+    dn = tl.where(up, 0, 1).to(tl.int64)
+    return q, m, i0, i1, dn, w0, w1, w2, f0, f1, fx, fy, hs
 
 
 @triton.jit
@@ -253,15 +275,7 @@ def triple_plane_hpb(u_ptr, wi_ptr, wo_ptr, gauss_ptr, lut_ptr, fh_ptr, fd_ptr, 
     weights, so the taps sum into one accumulator that is the LUT coordinate: on an H200, one
     frame, +16.8 and +17.0 % over the plain kernel before, +6.2 and +8.5 % after, with
     query_triton.LAUNCH's shape (benchmarks/btf_triton_stages.py, two runs, 2026-11-28)."""
-    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    m = q < N
-    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
-    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    i0, i1, up, w0, w1, w2, _, _ = triangle_grid(ux, uy)
-    fx = hpb_frac32(ux)
-    fy = hpb_frac32(uy)
-    hs = hs_bits.to(tl.uint32, bitcast=True)
-    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    q, m, i0, i1, dn, w0, w1, w2, _, _, fx, fy, hs = queries_grid(u_ptr, hs_bits, N, BLOCK)
     # hpb.blend, G = sum_k (g_k - 0.5) w_k inv + 0.5 (inv = 1 / sqrt(sum w_k^2)), and the LUT's
     # coordinate x = L G - 0.5 as one sum: x = sum_k (L inv w_k) g_k + bias
     inv = 1.0 / tl.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
@@ -403,15 +417,7 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
     (README, "Running on Slurm or a GPU"): float32 in place of float64 for the rotation,
     +22.6 -> +14.4 to +14.8 % over the plain kernel; the one accumulator, +16.5 -> +13.6 %
     (benchmarks/btf_triton_stages.py, one run, 2026-11-28)."""
-    q = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-    m = q < N
-    ux = tl.load(u_ptr + 2 * q, mask=m, other=0.0)  # float64
-    uy = tl.load(u_ptr + 2 * q + 1, mask=m, other=0.0)
-    i0, i1, up, w0, w1, w2, f0, f1 = triangle_grid(ux, uy)
-    fx = hpb_frac32(ux)
-    fy = hpb_frac32(uy)
-    hs = hs_bits.to(tl.uint32, bitcast=True)
-    dn = tl.where(up, 0, 1).to(tl.int64)  # vertices: up (0,0),(0,1),(1,0); down (1,1),(1,0),(0,1)
+    q, m, i0, i1, dn, w0, w1, w2, f0, f1, fx, fy, hs = queries_grid(u_ptr, hs_bits, N, BLOCK)
     dnf = dn.to(tl.float32)
     a00, a01, a10, a11, ax, ay, l0 = hex_tap(lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn,
                                              i1 + dn, hs, rotation, HP_, WP_, m)
