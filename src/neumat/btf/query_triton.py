@@ -43,8 +43,8 @@ _failed: list[str] = []  # the first kernel failure of this process, if any
 # (benchmarks/btf_query.py --device cuda --sweep, 2026-11-28): plain 128 x 8 (level with 64 x 2,
 # 0.890 and 0.969 ms/frame against 0.897 and 0.980). HPB and hex-tiling 64 x 2 since their taps
 # sum into one 8-column accumulator (H200, 2026-11-28): HPB over the plain kernel at the same
-# shape, one sweep of 7 shapes, +6.3 % at 64 x 2 and at 128 x 4, +10.8 % at the 64 x 4 of its
-# kernel before; hex-tiling (benchmarks/btf_triton_stages.py) 0.911 ms at 64 x 2, 0.910 at
+# shape, one sweep of 7 shapes (a one-off script timing `query` as btf_query.py --sweep does),
+# +6.3 % at 64 x 2 and at 128 x 4, +10.8 % at the 64 x 4 of its kernel before; hex-tiling (benchmarks/btf_triton_stages.py) 0.911 ms at 64 x 2, 0.910 at
 # 128 x 4, 0.913 at 32 x 1, 1.32 at 64 x 4 and 1.53 at 128 x 8
 LAUNCH = {None: {"BLOCK": 128, "num_warps": 8}, "hpb": {"BLOCK": 64, "num_warps": 2},
           "hextile": {"BLOCK": 64, "num_warps": 2}}
