@@ -35,6 +35,7 @@ same settings and seeds; the check is then skipped.
         [--rgb-permute]  # each variant also with its samples in random channel orders
         [--type-prior]   # each variant also sampled with types drawn as in training
         [--keep-look 25]  # each lambda > 0 also mixed with lambda 0's draws (below)
+        [--particle-step 0 0.1]  # each variant at each particle guidance step (below)
 
 `--keep-look X ...` (dB): per lambda > 0, a column per X that keeps each sample's clamp-step
 draw unless the step changed its look: where the PSNR between the metric-view renders (sRGB)
@@ -42,6 +43,10 @@ of its draw at lambda and at lambda 0 from the same seed is below X dB, the lamb
 kept (fields that clamp by nature, e.g. mirrors, which the step pulls to another look;
 `diffusion.sample.keep_look`, neumat.diffusion.sample.keep_look). The column says the share of
 samples so kept.
+
+`--particle-step X ...`: each variant is sampled at each particle guidance step
+(`diffusion.sample.particle_step`, neumat.diffusion.constraints.ParticleGuidance; 0 = off), a
+column " + particles X" where X > 0. Without it, at the run's setting.
 """
 from __future__ import annotations
 
@@ -110,6 +115,9 @@ def main():
     ap.add_argument("--type-prior", action="store_true",
                     help="sample each variant also with per-sample types drawn as in training, "
                          "unguided (diffusion.sample.type_prior)")
+    ap.add_argument("--particle-step", type=float, nargs="+", default=None,
+                    help="particle guidance steps (diffusion.sample.particle_step) per variant; "
+                         "default: the run's")
     ap.add_argument("--keep-look", type=float, nargs="+", default=[],
                     help="dB: per lambda > 0, also a column keeping the lambda-0 draw of every "
                          "sample whose look the step changed by more (render PSNR below X)")
@@ -126,8 +134,10 @@ def main():
     run_variant = (s["negative_step"], setting("diffusion", "sample", "refit_steps"))
     run_rgb = bool(setting("diffusion", "sample", "rgb_permute"))
     run_tp = bool(setting("diffusion", "sample", "type_prior"))
-    variants = [(lam, r, tp) for lam in a.steps for r in a.refit
-                for tp in ([False, True] if a.type_prior else [run_tp])]
+    run_ps = float(setting("diffusion", "sample", "particle_step"))
+    variants = [(lam, r, tp, ps) for lam in a.steps for r in a.refit
+                for tp in ([False, True] if a.type_prior else [run_tp])
+                for ps in (a.particle_step if a.particle_step is not None else [run_ps])]
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
                                          seeds.seed_for(seed, "metrics")),
@@ -151,29 +161,30 @@ def main():
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
               for m in ["training_set", *others]))
     cols, clamp = {}, {}
-    drawn_at = {}  # (lambda, refit, types) -> draws: lambda 0's are reused by --keep-look
+    drawn_at = {}  # (lambda, refit, types, particles) -> draws: lambda 0's reused by --keep-look
 
-    def draw(lam, r, tp):
-        if (lam, r, tp) in drawn_at:
-            return drawn_at[(lam, r, tp)]
+    def draw(lam, r, tp, ps):
+        if (lam, r, tp, ps) in drawn_at:
+            return drawn_at[(lam, r, tp, ps)]
         # as rule sample_uncond: each draw's types from its own stream
-        drawn_at[(lam, r, tp)] = [
+        drawn_at[(lam, r, tp, ps)] = [
             sampler.sample(n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(
                 d, "type_prior")) if tp else None, s["steps"], s["eta"], 1.0, s["batch_size"],
-                s["clip"], lam, activation, refit_steps=r) for d in draw_seeds]
-        return drawn_at[(lam, r, tp)]
+                s["clip"], lam, activation, refit_steps=r, particle_step=ps) for d in draw_seeds]
+        return drawn_at[(lam, r, tp, ps)]
 
     def sampled_variants():
         """(column, draws, seconds, is the run's own setting) per variant, with the --keep-look
         mixtures after their lambda."""
-        for lam, r, tp in variants:
+        for lam, r, tp, ps in variants:
             t0 = time.perf_counter()
-            drawn = draw(lam, r, tp)
-            col = name(lam, r) + (" + types" if tp else "")
-            yield col, drawn, time.perf_counter() - t0, (lam, r, tp) == (*run_variant, run_tp)
+            drawn = draw(lam, r, tp, ps)
+            col = name(lam, r) + (" + types" if tp else "") + (f" + particles {ps:g}" if ps else "")
+            yield col, drawn, time.perf_counter() - t0, \
+                (lam, r, tp, ps) == (*run_variant, run_tp, run_ps)
             if not (a.keep_look and lam > 0):
                 continue
-            base = draw(0.0, r, tp)
+            base = draw(0.0, r, tp, ps)
             for x in a.keep_look:  # as rule sample_uncond with diffusion.sample.keep_look x
                 mixed, kept = zip(*[keep_look(z, y, x, kw["resolution"], activation)
                                     for z, y in zip(drawn, base)])

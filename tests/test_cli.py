@@ -628,3 +628,31 @@ def test_large_xml_renders_bake_the_materials_in():
     assert baked.count('<bsdf type="neumat_brdf"><boolean name="inline" value="true"/>') == 2
     own = large.replace('<integer name="index" value="1"/>', '<boolean name="inline" value="false"/>')
     assert inline_if_large(own, 64 * 32 * 1024) == own
+
+
+def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
+    """A run with diffusion.sample.particle_step: unconditional `sample` draws of ours are drawn
+    jointly per --batch under particle guidance, the library's draw, recorded in samples.tsv;
+    a --type draw, conditioned, is drawn independently as before."""
+    import shutil
+
+    from neumat.diffusion import Sampler
+    from neumat.seeds import seed_for
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "diffusion:\n  sample: {particle_step: 0.5}\n```\n")
+    common = ["-n", 6, "--steps", 3, "--no-binary"]
+    for r, out in ((run, "plain"), (rec, "pg")):
+        assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
+        assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
+    want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
+        6, seed_for(0, "cli_sample", 0), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
+        particle_step=0.5)
+    got = np.load(tmp_path / "pg/weights.npy")
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, np.load(tmp_path / "plain/weights.npy"))
+    assert set(pd.read_csv(tmp_path / "pg/samples.tsv", sep="\t")["particle_step"]) == {0.5}
+    np.testing.assert_array_equal(np.load(tmp_path / "pg_t/weights.npy"),
+                                  np.load(tmp_path / "plain_t/weights.npy"))

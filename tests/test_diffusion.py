@@ -743,6 +743,46 @@ def test_category_guidance_composes_after_the_clamp_step():
                                  category_step=5.0), guided)
 
 
+def test_particle_guidance_pushes_a_batchs_looks_apart():
+    """diffusion.sample.particle_step: one step moves each sample away from the others' looks
+    (the batch's mean pairwise render distance grows, its potential falls); deterministic; 0,
+    or a batch of one, is the identity; composed after the clamp step; a negative step is
+    refused with the key's name."""
+    from neumat.diffusion.constraints import NegativeConstraint, ParticleGuidance, constraint_for
+    s = _tiny_sampler()
+    x0 = torch.randn(8, nbrdf.N_PARAMS, generator=torch.Generator().manual_seed(1))
+    pg = ParticleGuidance(s.norm, 0.5)
+    f = lambda z: pg.features(s.norm.decode(z))  # noqa: E731
+    spread = lambda z: torch.pdist(f(z)).mean()  # noqa: E731
+    moved = pg(x0)
+    assert spread(moved) > 1.02 * spread(x0), (spread(moved), spread(x0))
+    assert pg.potential(f(moved)) < pg.potential(f(x0))
+    assert torch.equal(pg(x0), moved)
+    assert torch.equal(ParticleGuidance(s.norm, 0.0)(x0), x0)
+    assert torch.equal(pg(x0[:1]), x0[:1])
+    both = constraint_for(s, 20.0, 5, particle_step=0.5)
+    assert torch.equal(both(x0), pg(NegativeConstraint(s.norm, 20.0, 5)(x0)))
+    assert constraint_for(s, 0.0, 5, particle_step=0.0) is None
+    with pytest.raises(ValueError, match="particle_step must be >= 0"):
+        ParticleGuidance(s.norm, -1.0)
+    kw = dict(steps=10, guidance=1.0, negative_step=0.0)
+    on = s.sample(16, 5, particle_step=0.05, **kw)
+    assert np.array_equal(s.sample(16, 5, particle_step=0.05, **kw), on)
+    assert not np.array_equal(s.sample(16, 5, **kw), on)
+
+
+def test_particle_guidance_view_ranks_pairs_as_the_metric_render():
+    """Particle guidance's cheap render (PARTICLE_VIEW: a coarse albedo quadrature) keeps the
+    metric render's pairwise distances: correlation >= 0.99 over random NBRDFs."""
+    from neumat.diffusion.constraints import ParticleGuidance
+    from neumat.render import sphere
+    w = nbrdf.init_weights(48, torch.Generator().manual_seed(2))
+    pg = ParticleGuidance(None, 0.1)
+    full = sphere.to_srgb(sphere.render_fields(w, 16)).flatten(1)
+    d_cheap, d_full = torch.pdist(pg.features(w)), torch.pdist(full)
+    assert np.corrcoef(d_cheap.numpy(), d_full.numpy())[0, 1] >= 0.99
+
+
 def test_channel_permutation_permutes_the_fields_output():
     """diffusion.sample.rgb_permute: output channel c of a permuted field is channel perm[c] of
     the original at every input (to float32 rounding: the batched matmul may sum a row in

@@ -30,7 +30,7 @@ COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 # the sampling params every conditioned sampler shares: diffusion.sample's settings with
 # conditions.guidance in place of its guidance
 COND_SAMPLING = dict(
-    sample=settings("diffusion.sample", drop=["guidance", "rgb_permute", "type_prior", "keep_look"]),  # conditioned
+    sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditioned
     per_prompt=COND["per_condition"],
     guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
 )
@@ -362,7 +362,7 @@ rule guidance_sweep:
     output:
         out("conditions/guidance_sweep.tsv"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance", "rgb_permute", "type_prior", "keep_look"]),  # conditions.guidance instead
+        sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditions.guidance instead
         scales=COND["sweep"]["scales"],
         per_prompt=COND["sweep"]["per_condition"],
         bins=DIFF["nn_bins"],

@@ -74,7 +74,7 @@ rule sample_constrained:
     params:
         cfg=settings("constrained", ["categories", "per_category", "budget", "batch", "guide",
                                      "guidance_step", "bins", "thresholds"]),
-        sample=settings("diffusion.sample", drop=["rgb_permute", "type_prior", "keep_look"]),  # its draws keep their channel order
+        sample=settings("diffusion.sample", drop=OURS_UNCOND_ONLY),  # its draws keep their channel order
         seed=seed_for("sample_constrained"),
         activation=config["fit"]["activation"],
     log:

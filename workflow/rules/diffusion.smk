@@ -10,6 +10,10 @@ DIFF_MODELS = ["ours", "merl100"]
 # Class names of the type condition: every type of this run's MERL catalogue (48 for MERL).
 DIFF_CLASSES = sorted(set(MERL["type"]))
 DIFF_ACTIVATION = config["fit"]["activation"]
+# diffusion.sample keys for the unconditional draws of `ours` alone (and ours_plain): merl100's
+# rows are not closed under channel permutation and are all typed, and conditioned draws keep
+# their channel order, their condition, and draws independent of one another
+OURS_UNCOND_ONLY = ["rgb_permute", "type_prior", "keep_look", "particle_step"]
 # Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
 # split ('reference', for the distance of unseen real materials to their nearest training one).
 # With the clamp constraint or the clamp refit on (diffusion.sample.negative_step,
@@ -58,11 +62,11 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        # unguided; diffusion.sample.rgb_permute, type_prior and keep_look for `ours` only
-        # (merl100's rows are not closed under channel permutation, and are all typed)
+        # unguided; diffusion.sample.rgb_permute, type_prior, keep_look and particle_step for
+        # `ours` only (OURS_UNCOND_ONLY)
         # keep_look compares metric-view renders: their size, only where it is on
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            [] if wc.model == "ours" else ["rgb_permute", "type_prior", "keep_look"])),
+            [] if wc.model == "ours" else OURS_UNCOND_ONLY)),
             **({"look_resolution": config["render"]["resolution"]} if wc.model == "ours"
                and DIFF["sample"]["keep_look"] and DIFF["sample"]["negative_step"] else {})},
         mode="uncond",
@@ -123,7 +127,7 @@ rule sample_type:
     params:
         cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
                    "sample": settings("diffusion.sample",
-                                      drop=["rgb_permute", "type_prior", "keep_look"])}),
+                                      drop=OURS_UNCOND_ONLY)}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,

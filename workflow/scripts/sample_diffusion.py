@@ -10,7 +10,9 @@ with a type picked as in training from the stream "type_prior", unguided
 (neumat.diffusion.dataset.prior_types; column `prior_type` of samples.tsv).
 diffusion.sample.keep_look (dB, unconditional draws of `ours`, with the clamp step on) draws each
 sample again from its seed without the step and keeps that draw where the step moved its
-metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look`)."""
+metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look`).
+diffusion.sample.particle_step (unconditional draws of `ours` and `ours_plain`) draws the samples
+of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance)."""
 import time
 
 import numpy as np
@@ -56,7 +58,8 @@ with script_logging(snakemake) as log:
             def at(step):
                 return sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"],
                                       s["eta"], guidance, s["batch_size"], s["clip"], step,
-                                      p.activation, refit_steps=s["refit_steps"])
+                                      p.activation, refit_steps=s["refit_steps"],
+                                      particle_step=s.get("particle_step", 0.0))
             w = at(s["negative_step"])
             if look:  # the same seed without the clamp step, kept where the step moved the look
                 w, k = keep_look(w, at(0.0), look, p.cfg["look_resolution"], p.activation)
@@ -67,6 +70,9 @@ with script_logging(snakemake) as log:
         w = np.concatenate([one_draw(seed) for seed in p.seeds])
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
+        if s.get("particle_step"):  # neutral 0: absent from params
+            log.info("particle guidance (diffusion.sample.particle_step %g) over batches of %d",
+                     s["particle_step"], s["batch_size"])
         if look:
             log.info("keep look (diffusion.sample.keep_look %g dB): %d of %d samples keep "
                      "their draw without the clamp step (each drawn again from its seed)", look,

@@ -334,6 +334,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
     # the run's keep look (diffusion.sample.keep_look), as its sample_uncond
     look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
+    # and its particle guidance (diffusion.sample.particle_step), over each batch of --batch
+    particles = float(run.setting("diffusion", "sample", "particle_step")) if uncond_ours else 0.0
     ws, kept = [], []
     with _progress(args.n, "sampling") as bar:
         for s in range(0, args.n, args.batch):
@@ -343,7 +345,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
                 return sampler.sample(b, seed_for(args.seed, "cli_sample", s),  # batch of 8
                                       types[s:s + b] if types else None, args.steps,
                                       0.0, 1.0 if prior else scales.get("type", 1.0), args.batch,
-                                      None, step, args.activation, refit_steps=refit)
+                                      None, step, args.activation, refit_steps=refit,
+                                      particle_step=particles)
             ws.append(at(neg))
             if look:
                 from neumat.diffusion.sample import keep_look
@@ -352,6 +355,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
                 kept.append(k)
             bar.update(b)
     w = np.concatenate(ws)
+    if particles:
+        info["particle_step"] = particles
     if uncond_ours and run.setting("diffusion", "sample", "rgb_permute"):
         # unconditional draws of ours in random channel orders, as the run's sample_uncond
         from neumat.diffusion import symmetry

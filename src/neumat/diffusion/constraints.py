@@ -28,12 +28,25 @@ after the other steps: reconstruction guidance as in diffusion posterior samplin
 2023), the diffusion model as the prior of an inverse rendering. It needs the image's view
 and lighting, so it applies to metric-view renders, not to arbitrary photographs.
 
+4. Particle guidance (`ParticleGuidance`, config diffusion.sample.particle_step = lambda;
+Corso et al. 2023, "Particle Guidance: non-I.I.D. Diverse Sampling with Diffusion Models"):
+the samples of a DDIM batch are drawn jointly, each pushed away from the others' looks. With
+f_i the sRGB render of sample i's x0 in an approximate metric view (PARTICLE_VIEW) and an RBF
+kernel whose bandwidth h is the median squared pairwise distance over log B (SVGD's heuristic),
+    P(x0_1..B) = (1/B) sum_{i,j} exp(-|f_i - f_j|^2 / h),    x0 <- x0 - lambda * dP/dx0,
+after the clamp-aware step. Independent draws bunch near common materials and leave distinct
+ones uncovered; the repulsion spreads a batch over looks (Table 2's image coverage +4.5 to
++4.8 points at lambda 0.05 on the realistic run, with more samples clamping: README,
+Hyperdiffusion). A sample then depends on the others of its batch (diffusion.sample.batch_size),
+deterministically.
+
 Its own module, imported by both `train.Sampler.sample` and `sample.py` (which imports train).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 import torch
@@ -157,6 +170,48 @@ class CategoryConstraint(_PenaltyStep):
         return category_penalty(w, self.x.to(w.device), self.category, self.activation, self.margin)
 
 
+# Particle guidance's approximate render: the metric view's point-light pixels at 16 px and an
+# albedo quadrature of 8 x 4 x 8 nodes, 407 NBRDF evaluations a material against the metric
+# render's 6295 at 16 px. Its pairwise distances correlate with the full render's at 0.9993 over
+# 256 training materials of the realistic run (scratch check, 2026-11-28, AMD EPYC AVX-512).
+PARTICLE_VIEW = (16, (8, 4, 8))
+
+
+class ParticleGuidance:
+    """Particle guidance over a batch (module docstring, 4)."""
+
+    def __init__(self, norm, step: float, activation: str = "relu"):
+        if step < 0:
+            raise ValueError(f"diffusion.sample.particle_step must be >= 0, got {step}")
+        self.norm, self.step, self.activation = norm, float(step), activation
+
+    def features(self, w: torch.Tensor) -> torch.Tensor:
+        """(B, 675) weights -> (B, D) sRGB values of the approximate metric render's sphere."""
+        from neumat.render import sphere
+
+        res, quadrature = PARTICLE_VIEW
+        v = sphere.sphere_view(res, str(w.device), quadrature=quadrature)
+        img = sphere.to_srgb(v.composite(nbrdf.forward(w, v.x6, self.activation)))
+        return img.reshape(len(w), -1, 3)[:, v.mask.reshape(-1)].flatten(1)
+
+    @staticmethod
+    def potential(f: torch.Tensor) -> torch.Tensor:
+        """The batch's RBF potential; the bandwidth is a constant of the step (no gradient)."""
+        sq = f.square().sum(1)
+        d2 = (sq[:, None] + sq[None, :] - 2 * f @ f.T).clamp_min(0)
+        off = ~torch.eye(len(f), dtype=torch.bool, device=f.device)
+        h = d2[off].median().detach().clamp_min(1e-12) / math.log(len(f))
+        return torch.exp(-d2 / h).sum() / len(f)
+
+    def __call__(self, x0: torch.Tensor) -> torch.Tensor:
+        if self.step == 0 or len(x0) < 2:  # one sample has no others to move away from
+            return x0
+        with torch.enable_grad():
+            z = x0.detach().float().requires_grad_(True)
+            g = torch.autograd.grad(self.potential(self.features(self.norm.decode(z))), z)[0]
+        return x0 - self.step * g.to(x0.dtype)
+
+
 def chain(*steps):
     """One `constrain` hook applying the given ones in order (None entries skipped; None if
     nothing is left)."""
@@ -169,13 +224,16 @@ def chain(*steps):
 
 
 def constraint_for(sampler, negative_step: float, seed: int, activation: str = "relu",
-                   category: str | None = None, category_step: float = 0.0):
+                   category: str | None = None, category_step: float = 0.0,
+                   particle_step: float = 0.0):
     """The `constrain` hook of `Diffusion.ddim_sample`: the clamp-aware step (negative_step > 0),
-    then category guidance (category given and category_step > 0); None when neither is on."""
+    then category guidance (category given and category_step > 0), then particle guidance
+    (particle_step > 0); None when none is on."""
     neg = NegativeConstraint(sampler.norm, negative_step, seed, activation) if negative_step else None
     cat = (CategoryConstraint(sampler.norm, category, category_step, seed, activation)
            if category is not None and category_step else None)
-    return chain(neg, cat)
+    pg = ParticleGuidance(sampler.norm, particle_step, activation) if particle_step else None
+    return chain(neg, cat, pg)
 
 
 class RenderConstraint(_PenaltyStep):

@@ -271,18 +271,21 @@ class Sampler:
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
-               category_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
+               category_step: float = 0.0, refit_steps: int = 0,
+               particle_step: float = 0.0) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
         (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`); `category` and
-        `category_step` > 0: category guidance after it (`CategoryConstraint`); `refit_steps`
+        `category_step` > 0: category guidance after it (`CategoryConstraint`); `particle_step`
+        > 0: particle guidance over each batch after those (`ParticleGuidance`); `refit_steps`
         > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`)."""
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
         gen = torch.Generator().manual_seed(seed)
-        constrain = constraint_for(self, negative_step, seed, activation, category, category_step)
+        constrain = constraint_for(self, negative_step, seed, activation, category, category_step,
+                                   particle_step)
         out = []
         for s in range(0, n, batch_size):
             b = min(batch_size, n - s)

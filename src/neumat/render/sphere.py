@@ -72,10 +72,13 @@ class SphereView:
       bins   (N,) int64 - flat MERL bin index of each row (nearest bin)
     """
 
-    def __init__(self, resolution: int, device: str | torch.device = "cpu", light=LIGHT_POS):
+    def __init__(self, resolution: int, device: str | torch.device = "cpu", light=LIGHT_POS,
+                 quadrature: tuple[int, int, int] = (N_THETA_O, AMB_U, AMB_PHI)):
         """`light`: point-light position (default the metric view's LIGHT_POS; other positions
         give extra views of the same sphere, e.g. Table 3's grazing light), intensity as for
-        LIGHT_POS: pi (|light| - 1)^2, irradiance pi at the sphere point nearest the light."""
+        LIGHT_POS: pi (|light| - 1)^2, irradiance pi at the sphere point nearest the light.
+        `quadrature`: (n_theta, n_u, n_phi) of the albedo term; coarser than the metric's for a
+        cheap approximate render (particle guidance, neumat.diffusion.constraints)."""
         if resolution < 2:
             raise ValueError(f"sphere resolution must be >= 2, got {resolution}")
         self.resolution, self.device = resolution, torch.device(device)
@@ -103,7 +106,7 @@ class SphereView:
         intensity = np.pi * (np.linalg.norm(light) - 1.0) ** 2
         weight = (intensity / dist2 * wi[:, 2])[lit]
 
-        theta_o, awi, awo, aw = albedo_quadrature()
+        theta_o, awi, awo, aw = albedo_quadrature(*quadrature)
         wi = np.concatenate([wi[lit], awi])
         wo = np.concatenate([wo[lit], awo])
         weight = np.concatenate([weight, np.full(len(awi), AMBIENT * aw)])
@@ -140,10 +143,11 @@ class SphereView:
 
 
 @functools.lru_cache(maxsize=8)
-def sphere_view(resolution: int, device: str = "cpu", light: tuple | None = None) -> SphereView:
+def sphere_view(resolution: int, device: str = "cpu", light: tuple | None = None,
+                quadrature: tuple[int, int, int] = (N_THETA_O, AMB_U, AMB_PHI)) -> SphereView:
     """Cached `SphereView` (the geometry is the same for every call); `light` a position tuple,
-    None = the metric view's LIGHT_POS."""
-    return SphereView(resolution, device, LIGHT_POS if light is None else light)
+    None = the metric view's LIGHT_POS; `quadrature` as SphereView's."""
+    return SphereView(resolution, device, LIGHT_POS if light is None else light, quadrature)
 
 
 def _chunks(n: int, size: int):
