@@ -71,6 +71,18 @@ def sphere_png(tmp_path_factory):
     return d / "ref.png"
 
 
+def _recorded(run, tmp_path, sample):
+    """A copy of `run` whose report records the config `diffusion: {sample: <sample>}`, as
+    `neumat sample --run` reads a run's settings."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         f"diffusion:\n  sample: {sample}\n```\n")
+    return rec
+
+
 def main(*args):
     return cli.main([str(a) for a in args])
 
@@ -104,12 +116,7 @@ def test_steps_default_to_the_runs_setting(run, tmp_path):
     """Without --steps, `sample` takes the run's diffusion.sample.steps (as its workflow sampled,
     like negative_step), records it, and equals an explicit --steps of that value; with no
     recorded config, the schema's default."""
-    import shutil
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "report").mkdir()
-    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
-                                         "diffusion:\n  sample: {steps: 7, negative_step: 0.0}\n```\n")
+    rec = _recorded(run, tmp_path, "{steps: 7, negative_step: 0.0}")
     common = ["-n", 2, "--no-binary"]
     assert main("sample", "--run", rec, *common, "--out", tmp_path / "a") == 0
     assert main("sample", "--run", rec, *common, "--steps", 7, "--out", tmp_path / "b") == 0
@@ -297,15 +304,9 @@ def test_unconditional_draws_follow_the_runs_rgb_permute(run, tmp_path):
     """A run with diffusion.sample.rgb_permute: unconditional `sample` draws of ours come in
     random channel orders (the same draws otherwise, recorded in samples.tsv); a --type draw,
     conditioned, is left as drawn."""
-    import shutil
-
     from neumat.diffusion import symmetry
     from neumat.seeds import seed_for
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "report").mkdir()
-    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
-                                         "diffusion:\n  sample: {rgb_permute: true}\n```\n")
+    rec = _recorded(run, tmp_path, "{rgb_permute: true}")
     common = ["-n", 4, "--steps", 3, "--no-binary"]
     for r, out in ((run, "plain"), (rec, "perm")):
         assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
@@ -322,15 +323,9 @@ def test_unconditional_draws_follow_the_runs_type_prior(run, tmp_path, capsys):
     """A run with diffusion.sample.type_prior: unconditional `sample` draws of ours are drawn
     each with a type picked from the run's training split (stream "cli_type_prior"), unguided,
     and record it; without the manifest the error names the file and the rule."""
-    import shutil
-
     from neumat.diffusion import Sampler, dataset
     from neumat.seeds import seed_for
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "report").mkdir()
-    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
-                                         "diffusion:\n  sample: {type_prior: true}\n```\n")
+    rec = _recorded(run, tmp_path, "{type_prior: true}")
     common = ["-n", 6, "--steps", 3, "--no-binary", "--out", tmp_path / "tp"]
     assert main("sample", "--run", rec, *common) != 0
     err = capsys.readouterr().err
@@ -353,8 +348,6 @@ def test_unconditional_draws_follow_the_runs_keep_look(run, tmp_path):
     """A run with diffusion.sample.keep_look: unconditional `sample` draws of ours are drawn
     again without the clamp step and keep that draw where the step moved the render by more,
     recorded as `kept_look`; the same as keep_look on the two draws of the library."""
-    import shutil
-
     from neumat.diffusion import Sampler
     from neumat.diffusion.sample import keep_look
     from neumat.seeds import seed_for
@@ -366,11 +359,7 @@ def test_unconditional_draws_follow_the_runs_keep_look(run, tmp_path):
     db = float(np.median((-10 * torch.log10(((a - b) ** 2).flatten(1).mean(1))).numpy()))
     want, kept = keep_look(*at, db, 128)
     assert 0 < kept.sum() < 6, kept  # the threshold splits this draw: both branches checked
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "report").mkdir()
-    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
-                                         f"diffusion:\n  sample: {{keep_look: {db!r}}}\n```\n")
+    rec = _recorded(run, tmp_path, f"{{keep_look: {db!r}}}")
     assert main("sample", "--run", rec, "-n", 6, "--steps", 3, "--no-binary", "--out",
                 tmp_path / "kl") == 0
     table = pd.read_csv(tmp_path / "kl/samples.tsv", sep="\t")
@@ -634,15 +623,9 @@ def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
     """A run with diffusion.sample.particle_step: unconditional `sample` draws of ours are drawn
     jointly per --batch under particle guidance, the library's draw, recorded in samples.tsv;
     a --type draw, conditioned, is drawn independently as before."""
-    import shutil
-
     from neumat.diffusion import Sampler
     from neumat.seeds import seed_for
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "report").mkdir()
-    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
-                                         "diffusion:\n  sample: {particle_step: 0.5}\n```\n")
+    rec = _recorded(run, tmp_path, "{particle_step: 0.5}")
     common = ["-n", 6, "--steps", 3, "--no-binary"]
     for r, out in ((run, "plain"), (rec, "pg")):
         assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
