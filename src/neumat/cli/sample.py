@@ -116,8 +116,12 @@ class Composed:
                eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
-               category_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
+               category_step: float = 0.0, refit_steps: int = 0,
+               particle_step: float = 0.0) -> np.ndarray:
         from neumat.diffusion.sample import sample
+        if particle_step:  # Sampler.sample's signature; the run's key is for unconditional draws
+            raise ValueError("particle guidance (diffusion.sample.particle_step) applies to "
+                             "unconditional draws of ours, not conditioned ones")
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
