@@ -1,0 +1,144 @@
+"""Builds of the fused BTF query kernel (`neumat/btf/query_kernel.c`) against each other, in
+alternating rounds: the working tree's kernel and the kernel at each git revision (or C file)
+given, each timed on the plain query and with HPB / hex-tiling inside it, on one 1920 x 1080
+frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area, as
+`btf_synthesis.py`). Per build: ms per frame (CPU time of this process, best of --repeat),
+each method's overhead over the same build's plain query, the plain query's fraction of this
+machine's FLOP bound (`btf_query.flops_per_query` over an fp32 torch.mm rate on the same
+threads), and whether its outputs on 4096 queries equal the first build's to the bit.
+
+A change to the kernel that must not change results shows "same" on every row. On a shared
+machine, one thread and alternating rounds are what make builds comparable: a load spike then
+hits one round of every build rather than every round of one.
+
+    OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py --rev HEAD~1 [--march x86-64-v3]
+                                                        [--methods hpb hextile] [--repeat 9]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from btf_query import flops_per_query  # noqa: E402
+
+import neumat.btf.synthesis as syn  # noqa: E402
+from neumat import machine  # noqa: E402
+from neumat.btf import models, query  # noqa: E402
+
+FRAME = 1920 * 1080
+CHUNK = 259200  # as btf_synthesis.py on the CPU
+KERNEL = "src/neumat/btf/query_kernel.c"
+
+
+def kernel_source(ref: str, tmp: Path) -> Path:
+    """A C file as given, or the kernel at git revision `ref`, written under tmp."""
+    if Path(ref).is_file():
+        return Path(ref)
+    root = Path(__file__).resolve().parents[1]
+    try:
+        text = subprocess.run(["git", "show", f"{ref}:{KERNEL}"], cwd=root, check=True,
+                              capture_output=True, text=True).stdout
+    except subprocess.CalledProcessError as e:
+        sys.exit(f"--rev {ref}: neither a file nor a git revision with {KERNEL}: {e.stderr.strip()}")
+    out = tmp / f"query_kernel_{ref.replace('/', '_').replace('~', '_')}.c"
+    out.write_text(text)
+    return out
+
+
+def build(source: Path, march: str):
+    """The ctypes library of `source` for `march`, built as neumat.btf.query builds its own."""
+    saved = query.SOURCE
+    try:
+        query.SOURCE = source
+        lib = query._library.__wrapped__(march)
+    finally:
+        query.SOURCE = saved
+    if lib is None:
+        sys.exit(f"{source}: the kernel did not build for -march={march} (see the log above)")
+    return lib
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rev", nargs="+", default=["HEAD"],
+                    help="git revisions (or C files) of query_kernel.c to compare with the "
+                         "working tree's (default: HEAD)")
+    ap.add_argument("--methods", nargs="+", default=["hpb", "hextile"], choices=["hpb", "hextile"])
+    ap.add_argument("--march", default="native", help="-march of every build (x86-64-v3: AVX2)")
+    ap.add_argument("--repeat", type=int, default=9, help="alternating rounds (best kept)")
+    a = ap.parse_args()
+
+    tmp = Path(tempfile.mkdtemp(prefix="btf_kernel_ab_"))
+    sources = {"working tree": Path(__file__).resolve().parents[1] / KERNEL}
+    sources.update({r: kernel_source(r, tmp) for r in a.rev})
+    libs = {name: build(src, a.march) for name, src in sources.items()}
+
+    m = models.TriplePlane(400, 400).eval()
+    m.requires_grad_(False)
+    g = torch.Generator().manual_seed(0)
+    u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
+    u32 = torch.remainder(u, 1.0).float()
+    w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
+                                      + torch.tensor([0, 0, 0.8]), dim=-1)
+    synth = {me: syn.build(m, me, 1, {}) for me in a.methods}
+    kinds = ["plain", *a.methods]
+
+    def call(kind, s):
+        if kind == "plain":
+            return query.query(m, u32[s], w[s], w[s], march=a.march)
+        return query.query(m, u[s], w[s], w[s], features_u=synth[kind], march=a.march)
+
+    def use(name):  # query.query looks its library up through _library
+        query._library = lambda march="native", lib=libs[name]: lib
+
+    saved = query._library
+    outs, best = {}, {}
+    try:
+        with torch.no_grad():
+            for name in libs:  # warm-up and the outputs compared
+                use(name)
+                outs[name] = {k: call(k, slice(0, 4096)) for k in kinds}
+            for _ in range(a.repeat):
+                for name in libs:
+                    use(name)
+                    for k in kinds:
+                        c0 = time.process_time()
+                        for s0 in range(0, FRAME, CHUNK):
+                            call(k, slice(s0, s0 + CHUNK))
+                        dt = time.process_time() - c0
+                        best[name, k] = min(best.get((name, k), float("inf")), dt)
+    finally:
+        query._library = saved
+
+    _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
+    bound = FRAME * flops_per_query(m) / peak_cpu  # CPU-s per frame at the FLOP bound
+    first = next(iter(libs))
+    print(f"machine: {machine.describe(a.march)}; torch threads {torch.get_num_threads()}; "
+          f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} CPU-ms/frame")
+    print(f"{'build':24s} {'plain CPU-ms':>12s} {'of bound':>8s}  "
+          + "  ".join(f"{k + ' CPU-ms (overhead)':>26s}" for k in a.methods) + "  outputs")
+    for name in libs:
+        p = best[name, "plain"]
+        same = all(torch.equal(outs[name][k], outs[first][k]) for k in kinds)
+        cells = "  ".join(f"{best[name, k] * 1e3:12.1f} ({(best[name, k] / p - 1) * 100:+6.1f} %)     "
+                          for k in a.methods)
+        print(f"{name:24s} {p * 1e3:12.1f} {bound / p:8.3f}  {cells}  "
+              f"{'same' if same else 'DIFFER'} as {first}")
+    for k in a.methods:
+        ref = [n for n in libs if n != first]
+        for n in ref:
+            d = best[first, k] - best[n, k]
+            print(f"{k}: working tree against {n}: {d * 1e3:+.1f} CPU-ms a frame "
+                  f"({(best[first, k] / best[n, k] - 1) * 100:+.1f} %)")
+
+
+if __name__ == "__main__":
+    main()
