@@ -634,10 +634,11 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
         /* AVX2: 8 pairs by 64-bit loads straight into two registers, split by two shuffles
            into values and slopes in query order: no pass through `ab`, whose 64-bit stores
            the 256-bit reloads could not forward from. HPB's overhead over the plain query, AVX2
-           build: +14.2, +13.5 -> +13.3, +12.0 % (-2.6, -2.3 ms a frame; bit-identical; two
-           alternating rounds of best of 9, one thread, AMD EPYC AVX-512, 2026-11-28). A pair
-           per lane of two vpgatherdq measured level with it, and gathers are slow on older
-           AMD and on microcode-patched Intel cores */
+           build: +13.2, +13.5 -> +12.3, +12.4 % (-1.6, -2.5 CPU-ms a frame; bit-identical;
+           benchmarks/btf_kernel_ab.py --rev d7b09d6 --march x86-64-v3 --methods hpb, one
+           thread, AMD EPYC AVX-512, 2026-11-28). Two vpgatherdq of 4 pairs each measured level
+           with it (issue #18's note), and gathers are slow on older AMD and on
+           microcode-patched Intel cores */
         (void)ab;
         const float *rowf = (const float *)row;
         for (int q = 0; q < T; q += 8) {
