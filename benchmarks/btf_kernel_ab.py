@@ -1,8 +1,8 @@
 """Builds of the fused BTF query kernel (`neumat/btf/query_kernel.c`) against each other, in
 alternating rounds: the working tree's kernel and the kernel at each git revision (or C file)
 given, each timed on the plain query and with HPB / hex-tiling inside it, on one 1920 x 1080
-frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area, as
-`btf_synthesis.py`). Per build: ms per frame (CPU time of this process, best of --repeat),
+frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area:
+`btf_synthesis.frame`). Per build: ms per frame (CPU time of this process, best of --repeat),
 each method's overhead over the same build's plain query, the plain query's fraction of this
 machine's FLOP bound (`btf_query.flops_per_query` over an fp32 torch.mm rate on the same
 threads), and whether its outputs on 4096 queries (log(1 + RGB), before the clamp at 0) equal the first
@@ -29,12 +29,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from btf_query import flops_per_query  # noqa: E402
+from btf_synthesis import FRAME, frame  # noqa: E402
 
 import neumat.btf.synthesis as syn  # noqa: E402
 from neumat import machine  # noqa: E402
 from neumat.btf import models, query  # noqa: E402
 
-FRAME = 1920 * 1080
 CHUNK = 259200  # as btf_synthesis.py on the CPU
 KERNEL = "src/neumat/btf/query_kernel.c"
 
@@ -87,11 +87,7 @@ def main():
     torch.manual_seed(0)  # the random model
     m = models.TriplePlane(400, 400).eval()
     m.requires_grad_(False)
-    g = torch.Generator().manual_seed(0)
-    u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
-    u32 = torch.remainder(u, 1.0).float()
-    w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
-                                      + torch.tensor([0, 0, 0.8]), dim=-1)
+    u, u32, w = frame()
     synth = {me: syn.build(m, me, 1, {}) for me in a.methods}
     kinds = ["plain", *a.methods]
 

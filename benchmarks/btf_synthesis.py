@@ -75,6 +75,22 @@ class _Fn:
         return self.fn(u)
 
 
+def frame(coherent: bool = False):
+    """One frame of queries: u (FRAME, 2) float64, uniform over a x15 area or, `coherent`, a x15
+    plane in pixel order; u32 its float32 remainder (the plain query's coordinates); w (FRAME, 3)
+    unit directions about the normal. Seeded: the same frame in every run."""
+    g = torch.Generator().manual_seed(0)
+    u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
+    if coherent:  # neighbouring pixels, neighbouring u: 128 pixels per unit of u
+        ys, xs = torch.meshgrid(torch.arange(1080.0, dtype=torch.float64),
+                                torch.arange(1920.0, dtype=torch.float64), indexing="ij")
+        u = torch.stack([(xs + 0.5) / 128, (ys + 0.5) / 128], -1).reshape(-1, 2) + 1234.5
+    u32 = torch.remainder(u, 1.0).float()
+    w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
+                                      + torch.tensor([0, 0, 0.8]), dim=-1)
+    return u, u32, w
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", help="trained triple_plane.pt (default: random 400 x 400 model)")
@@ -95,15 +111,7 @@ def main():
     a = ap.parse_args()
     m = (models.load(a.model) if a.model else models.TriplePlane(400, 400)).eval()
     m.requires_grad_(False)
-    g = torch.Generator().manual_seed(0)
-    u = torch.rand(FRAME, 2, generator=g, dtype=torch.float64) * 15
-    if a.coherent:  # neighbouring pixels, neighbouring u: 128 pixels per unit of u
-        ys, xs = torch.meshgrid(torch.arange(1080.0, dtype=torch.float64),
-                                torch.arange(1920.0, dtype=torch.float64), indexing="ij")
-        u = torch.stack([(xs + 0.5) / 128, (ys + 0.5) / 128], -1).reshape(-1, 2) + 1234.5
-    u32 = torch.remainder(u, 1.0).float()
-    w = torch.nn.functional.normalize(torch.randn(FRAME, 3, generator=g) * torch.tensor([1, 1, 0.5])
-                                      + torch.tensor([0, 0, 0.8]), dim=-1)
+    u, u32, w = frame(a.coherent)
     dev = torch.device(a.device)
     m, u, u32, w = m.to(dev), u.to(dev), u32.to(dev), w.to(dev)
     sync = torch.cuda.synchronize if dev.type == "cuda" else (lambda: None)

@@ -619,7 +619,7 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
 #if !defined(__AVX512F__)
     for (int c = 0; c < C; c++) {  /* as below, the pairs fetched by scalar 64-bit loads */
         const pair_t *restrict row = (const pair_t *)(s->lut + 2L * c * L);
-        float xs[T], ab[2 * T];
+        float xs[T];
         int is[T];
         for (int q = 0; q < T; q++) {
             float g = X[c * T + q] * p->inv[q] + p->bias[q];
@@ -639,7 +639,6 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
            thread, AMD EPYC AVX-512, 2026-11-28). Two vpgatherdq of 4 pairs each measured level
            with it (issue #18's note), and gathers are slow on older AMD and on
            microcode-patched Intel cores */
-        (void)ab;
         const float *rowf = (const float *)row;
         for (int q = 0; q < T; q += 8) {
 #define PAIR(k) _mm_loadl_epi64((const __m128i *)(rowf + 2 * is[q + (k)]))
@@ -656,6 +655,7 @@ hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
                              _mm256_fmadd_ps(_mm256_sub_ps(_mm256_loadu_ps(xs + q), fi), slope, val));
         }
 #else
+        float ab[2 * T];
         lut_fetch(row, is, (pair_t *)ab);
         for (int q = 0; q < T; q++)
             X[c * T + q] = ab[2 * q] + (xs[q] - is[q]) * ab[2 * q + 1];
