@@ -189,6 +189,30 @@ def test_summary_counts_hits_over_scorable_and_colours_over_coloured():
     assert row["share clamping negatives"] == 0.25 and row["samples"] == 4
 
 
+def test_image_yardsticks_score_own_materials_and_retrieval():
+    """image_yardsticks: the conditioning materials themselves score as the reference row does
+    on the same materials; retrieved training materials sit at distance 0, and score a hit where
+    the retrieved material has the image's type (known answers)."""
+    import pandas as pd
+    from neumat.conditions import evaluate as ev
+    from neumat.metrics import distances
+    rng = np.random.default_rng(0)
+    w = rng.normal(0, 0.3, (6, 675)).astype(np.float32)
+    man = pd.DataFrame({"id": range(6), "name": list("abcdxy"), "operation": "original",
+                        "type": ["metal", "fabric", "fabric", "", "metal", "plastic"],
+                        "split": ["train"] * 4 + ["test"] * 2})
+    ts = ev.TrainingSet(w, man, distances.brdf_sample(500, 0), "relu")
+    no_clamp = lambda x: np.zeros(len(x), bool)  # noqa: E731
+    own, ret = ev.image_yardsticks(ts, w, np.array([4, 5]), np.array([0, 1]), ["metal", "plastic"],
+                                   no_clamp, 16, "relu")
+    ref = ev.reference_summaries(ts, w, man, no_clamp)[0]
+    assert own["set"] == "image: the conditioning materials themselves" and own["samples"] == 2
+    for k in ("type hits", "samples with a training type", "median BRDF-L1 to nearest training"):
+        assert own[k] == pytest.approx(ref[k]), k
+    assert ret["set"] == "image: retrieval" and ret["samples with a training type"] == 1  # no plastic
+    assert ret["type hits"] == 1.0 and ret["median BRDF-L1 to nearest training"] == 0.0
+
+
 def test_measured_colour_words_name_permuted_and_mixed_materials():
     """conditions.text.colour_words: measured. A permuted or mixed material is named by the hue
     of its mean colour, the word the colour match would accept; originals keep their words."""

@@ -248,6 +248,10 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
     assert set(t["clamps"]) <= {True, False}
     summary = pd.read_csv(res / "conditions/eval_summary.tsv", sep="\t")
     assert {"text", "image", "mm_type", "mm_uncond"} <= set(summary["set"])
+    # the image yardsticks: one row per test render (not the user's PNG)
+    yard = summary.set_index("set").loc[["image: the conditioning materials themselves",
+                                         "image: retrieval"]]
+    assert (yard["samples"] == 2).all()
     sweep = pd.read_csv(res / "conditions/guidance_sweep.tsv", sep="\t")
     assert set(sweep["modality"]) == {"type", "text", "image"}
     for f in ("conditions_text.png", "conditions_image.png", "conditions_guidance.png"):

@@ -42,16 +42,25 @@ with script_logging(snakemake) as log:
                 rows.append(ev.summarise(df[df["kind"] == "unseen"], "text (unseen prompts)"))
     per = pd.concat(per, ignore_index=True)
     per.to_csv(out.per_sample, sep="\t", index=False, float_format="%.6g")
+
+    img = per[per["set"] == "image"]
+    conditions = img["condition"].to_numpy()
+    first = img.groupby("condition").first()  # per conditioning image: its source and type
+    sources = first["source"].tolist()
+    retrieved = image.retrieve(np.load(inp.conditioning_embeddings),
+                               np.load(inp.image_embeddings)[ts.rows, 0], ts.rows)  # metric view
+    # the image modality's yardsticks, over the images of test-split materials (not users')
+    row_of = pd.Series(np.arange(len(man)), index=man["name"])
+    own = first["source"].map(row_of)
+    known = own.notna().to_numpy()
+    if known.any():
+        rows += ev.image_yardsticks(ts, weights, own[known].astype(int).to_numpy(), retrieved[known],
+                                    first["type"][known], neg, p.resolution, p.activation)
     summary = pd.DataFrame(rows + ev.reference_summaries(ts, weights, man, neg))
     summary.to_csv(out.summary, sep="\t", index=False, float_format="%.4g")
     log.info("\n%s", summary.to_string())
 
     # image agreement in the conditioning view
-    img = per[per["set"] == "image"]
-    conditions = img["condition"].to_numpy()
-    sources = [img.loc[conditions == c, "source"].iloc[0] for c in range(len(np.load(inp.conditioning)))]
-    retrieved = image.retrieve(np.load(inp.conditioning_embeddings),
-                               np.load(inp.image_embeddings)[ts.rows, 0], ts.rows)  # metric view
     res = ev.image_agreement(torch.as_tensor(np.load(inp.conditioning)), conditions,
                              sets["image"], sets["mm_uncond"], retrieved, weights, sources,
                              man["name"].to_numpy(), p.resolution, p.activation)

@@ -92,7 +92,11 @@ with script_logging(snakemake) as log:
         "draws only the types some training material has (the model never saw the others). "
         "Goal: type "
         "hits >= 90 % with the median distance within 1.5x the real test split's and negative "
-        "clamping no more common than in the training fits.",
+        "clamping no more common than in the training fits. Yardsticks for images, one per "
+        "test-split image: `image: the conditioning materials themselves` scores each image's "
+        "own material, what a sampler that gave it back exactly would score (the most image "
+        "conditioning can reach by this measure), and `image: retrieval` the training "
+        "material whose image embedding is nearest.",
         report.md_table(summary),
         "### Image agreement (metric view)",
         "PSNR / SSIM (sRGB, data range 1) of each sample's metric-view render against its "

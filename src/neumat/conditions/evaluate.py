@@ -184,6 +184,21 @@ def reference_summaries(ts: TrainingSet, weights: np.ndarray, man: pd.DataFrame,
              "share clamping negatives": negative(weights[ts.rows]).mean()}]
 
 
+def image_yardsticks(ts: TrainingSet, weights: np.ndarray, rows: np.ndarray,
+                     retrieved: np.ndarray, types, negative, resolution: int,
+                     activation: str) -> list[dict]:
+    """Yardsticks for the image modality's type hits, one sample per conditioning image (rows:
+    the manifest rows of its material, types: its type): the conditioning materials themselves,
+    i.e. a sampler that gives back each image's own material, and the retrieval baseline's
+    training materials (weights[retrieved]), scored as a sample set is. The first is the most
+    an image-conditioned sampler can score: under the split by source, a held-out material's
+    nearest typed training material often has another type (diffuse paints sit by fabrics)."""
+    t = pd.DataFrame({"type": list(types)})
+    return [summarise(score_set(ts, weights[w], t, negative, resolution, activation), name)
+            for w, name in ((np.asarray(rows), "image: the conditioning materials themselves"),
+                            (np.asarray(retrieved), "image: retrieval"))]
+
+
 def image_agreement(targets: torch.Tensor, conditions: np.ndarray, w_cond: np.ndarray,
                     w_uncond: np.ndarray, retrieved: np.ndarray, weights: np.ndarray,
                     sources, names, resolution: int, activation: str) -> pd.DataFrame:
