@@ -168,6 +168,7 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     ({"augmerll": {"size": 8}}, "top level", "'augmerll' was unexpected"),
     ({"augmerl": {"pca_dim": 3}}, "augmerl", "'pca_dim' was unexpected"),
     ({"fit": {"steps": "many"}}, "fit.steps", "'many' is not of type 'integer'"),
+    ({"btf": {"tiling": {"lights": []}}}, "btf.tiling.lights", "[] should be non-empty"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

@@ -301,3 +301,60 @@ def test_builds_from_a_model_on_the_gpu(method):
     want = syn.build(m, method, 5)(u)  # seeded by _plane_model, so two calls differ
     got = syn.build(copy.deepcopy(m).cuda(), method, 5)(u.cuda()).cpu()
     torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("n, k", [(100, 1), (1 << 18, 225)])
+def test_histogram_positions_give_plain_tiling_the_exemplar_histogram(n, k):
+    """Every exemplar texel equally often (k times): plain tiling's W1 is 0 but for the float32
+    rounding of its fetch coordinates (4e-6 here; a random draw of positions with replacement
+    left it at ~0.003), and the draw is the seed's."""
+    from neumat.btf.synthesis import stage
+    m = _plane_model()
+    ex = m.f_u.detach().reshape(-1, m.f_u.shape[-1]).numpy()
+    u = stage.texel_centres(24, 24, 15, seed=5, n=n)
+    assert u.shape == (24 * 24 * k, 2) and u.dtype == torch.float64
+    assert (u >= 0).all() and (u < 15).all()
+    assert torch.equal(u, stage.texel_centres(24, 24, 15, seed=5, n=n))
+    if k == 225:  # the whole x15 area, each texel centre once
+        assert len(torch.unique(u, dim=0)) == len(u)
+    else:
+        assert not torch.equal(u, stage.texel_centres(24, 24, 15, seed=6, n=n))
+    tiled = syn.build(m, "tiling", 0)(u).numpy()
+    assert stage.histogram_distance(tiled, ex) < 1e-4
+    assert stage.histogram_distance(syn.build(m, "linear", 0)(u).numpy(), ex) > 0.05
+
+
+def test_linear_reference_blends_hpbs_patches():
+    """The evaluation's linear blending is HPB's patches (its seed), naively blended."""
+    from neumat.btf.synthesis import stage
+    m = _plane_model()
+    u = torch.rand(20_000, 2, dtype=torch.float64) * 15
+    lin = stage.references(m, patch_seed=11)["linear"].synth(u)[:, 0].numpy()
+    h = syn.build(m, "hpb", 11)(u)[:, 0].numpy()
+    other = syn.build(m, "hpb", 12)(u)[:, 0].numpy()
+    assert np.corrcoef(lin, h)[0, 1] > 0.9 and abs(np.corrcoef(lin, other)[0, 1]) < 0.3
+
+
+@pytest.mark.parametrize("lights", [[[0.3, 0.2, 1.0]], [[0.8, 0.6, 1.2], [-1.2, 1.5, 0.7], [0.0, -1.0, 1.0]]])
+def test_evaluation_and_section_take_any_number_of_lights(tmp_path, lights):
+    from neumat.btf import models
+    from neumat.btf.synthesis import stage
+    path = tmp_path / "tp.pt"
+    models.save(_plane_model(), path)
+    render = {"width": 8, "height": 8, "spp": 1, "scales": [1, 3]}
+    stage.evaluate("m", {"triple_plane": path}, {}, render, {"scale": 2, "px_per_tile": 8},
+                   lights, 2.0, 0, 1, tmp_path / "m.tsv", tmp_path / "a.png", tmp_path / "b.png",
+                   tmp_path / "c.png")
+    import pandas as pd
+    df = pd.read_csv(tmp_path / "m.tsv", sep="\t")
+    n = len(lights)
+    assert [c for c in df.columns if c.startswith("dmean_l")] == [f"dmean_l{j + 1}" for j in range(n)]
+    assert set(df.method) == {"tiling", "linear"}
+    tiling = df.set_index("method").loc["tiling"]
+    assert tiling["w1"] < 1e-4 and tiling["acf"] > 0.99
+    stage.write_section([tmp_path / "m.tsv"], tmp_path / "s.md", tmp_path / "s.tsv",
+                        {"scale": 2}, render, 15, 8)
+    md = (tmp_path / "s.md").read_text()
+    table = [line for line in md.splitlines() if line.startswith("|")]
+    assert table[0].count("dmean L") == n and f"dmean L{n + 1}" not in table[0]
+    assert len({line.count("|") for line in table}) == 1  # header, rule and rows line up

@@ -56,6 +56,7 @@ rule btf_synthesis_eval:
         lights=BTF["tiling"]["lights"],
         intensity=BTF["tiling"]["intensity"],
         seed=lambda w: syn_seed(w.material, "linear"),
+        patch_seed=lambda w: syn_seed(w.material, "hpb"),  # linear blends HPB's patches
     log:
         log("btf_synthesis_eval/{material}"),
     benchmark:

@@ -7,4 +7,4 @@ with script_logging(snakemake) as log:
     p, i, o = snakemake.params, snakemake.input, snakemake.output
     stage.evaluate(snakemake.wildcards.material, dict(zip(p.planes, i.models)),
                    dict(zip(p.methods, i.synth)), p.render, p.measure, p.lights, p.intensity,
-                   p.seed, o.metrics, o.methods, o.planes, o.models)
+                   p.seed, p.patch_seed, o.metrics, o.methods, o.planes, o.models)

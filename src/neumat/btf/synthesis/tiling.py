@@ -33,7 +33,8 @@ class Tiling:
 
 
 class LinearBlend(Tiling):
-    """sum_i w_i f(u + h(v_i)) over the three triangle vertices: same patches as HPB."""
+    """sum_i w_i f(u + h(v_i)) over the three triangle vertices: HPB's patches, given its seed
+    (the evaluation builds it so: neumat.btf.synthesis.stage.references)."""
 
     method = "linear"
 
