@@ -171,6 +171,29 @@ def test_category_round_trip(run, tmp_path):
     assert rc == (0 if len(w) == 2 else cli.EXIT_BUDGET)
 
 
+def test_category_takes_the_runs_threshold_overrides(run, tmp_path):
+    """--category judges draws by the thresholds the workflow uses: rules.tsv, then the run's
+    constrained.thresholds (here e = 2e6: every draw that is not metallic is diffuse, where
+    rules.tsv's e = 0 makes none diffuse)."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "constrained").mkdir(exist_ok=True)
+    constrained.Thresholds(e=0, mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
+                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
+                                                              index=False)
+    args = ["sample", "--run", rec, "--category", "diffuse", "-n", 2, "--steps", 3, "--budget", 4,
+            "--batch", 4, "--bins", 16384, "--no-binary"]
+    assert main(*args, "--out", tmp_path / "a") == cli.EXIT_BUDGET
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "constrained:\n  thresholds: {e: 2000000.0}\n```\n")
+    assert main(*args, "--out", tmp_path / "b") == 0
+    w = np.load(tmp_path / "b/weights.npy")
+    st = constrained.field_stats(w, bins=constrained.grid_bins(16384, 0))
+    assert len(w) == 2 and (st["n_above"] < 2e6).all()
+
+
 def test_info_lists_models_and_missing_config(run, capsys):
     assert main("info", run) == 0
     o = capsys.readouterr().out
@@ -206,6 +229,11 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["sample", "--run", "{run}", "--steps", "50", "--out", "{tmp}/o"], "give 1 ... 20 DDIM steps"),
     (["sample", "--run", "{run}", "--seed", "-1", "--out", "{tmp}/o"], "--seed must be >= 0"),
     (["sample", "--run", "{run}", "--candidates", "2", "--out", "{tmp}/o"], "give it with --image"),
+    (["sample", "--run", "{run}", "--guidance", "nan", "--out", "{tmp}/o"], "give a scale >= 0"),
+    (["sample", "--run", "{run}", "--guidance", "inf", "--out", "{tmp}/o"], "give a scale >= 0"),
+    (["sample", "--run", "{run}", "--batch", "0", "--out", "{tmp}/o"], "--batch 0: give a whole number >= 1"),
+    (["sample", "--run", "{run}", "--category", "diffuse", "--bins", "100", "--out", "{tmp}/o"],
+     "--bins 100: give at least 16200"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),

@@ -260,3 +260,39 @@ def test_field_stats_chunk_bound_keeps_the_statistics():
     one = C.field_stats(w, bins=bins)
     many = C.field_stats(w, bins=bins, points_per_pass=997)  # one field and 997 bins a pass
     pd.testing.assert_frame_equal(one, many, rtol=1e-9)
+
+
+def test_in_use_takes_the_config_and_needs_no_derivation_when_all_are_set():
+    """constrained.thresholds wins over the derived values, and with all five set a source
+    set too small to derive from works (the error's advice is followable)."""
+    st = C.field_stats(np.stack([constant_field(0.1)] * 3))
+    cfg = {"e": 8e4, "metallic_exceptions": 0, "mirror_peak": None, "mirror_body": None,
+           "plastic_sharpness": None, "high_peak": None, "medium_peak": None}
+    derive = {"mirror_quantile": 0.9, "plastic_quantile": 0.75, "specular_quantiles": [1 / 3, 2 / 3]}
+    with pytest.raises(ValueError, match="mirror_peak, mirror_body, plastic_sharpness"):
+        C.in_use(st, ["a", "b", "c"], derive, cfg)
+    full = {**cfg, "mirror_peak": 100, "mirror_body": 10, "plastic_sharpness": 50,
+            "high_peak": 20, "medium_peak": 5, "e": 7e4}
+    th, how = C.in_use(st, ["a", "b", "c"], derive, full)
+    assert th == C.Thresholds(e=7e4, metallic_exceptions=0, mirror_peak=100, mirror_body=10,
+                              plastic_sharpness=50, high_peak=20, medium_peak=5)
+    assert how["high_peak"] == "config constrained.thresholds"
+    specs = sm.make_specs(6, 0)
+    src = C.table_stats([sm.make_table(s) for s in specs], [s.name for s in specs])
+    derived, _ = C.derive_thresholds(src, [s.type for s in specs])
+    th, how = C.in_use(src, [s.type for s in specs], derive, {**cfg, "high_peak": 500.0})
+    assert th.high_peak == 500 and th.medium_peak == derived.medium_peak
+    assert how["high_peak"] == "config constrained.thresholds" and "quantile" in how["medium_peak"]
+
+
+def test_counts_stay_whole_numbers_in_a_tsv_with_a_nan_sample(tmp_path):
+    """A NaN sample's counts are missing, the others' exact: %.6g would write 1,096,216 bins
+    as 1.09622e+06, and a count just under n_valid as n_valid (metallic)."""
+    w = np.stack([constant_field(0.5), constant_field(0.1)])
+    w[1, 0] = np.nan
+    st = C.field_stats(w, bins=C.grid_bins(20_000, 0))
+    st.to_csv(tmp_path / "s.tsv", sep="\t", index=False, float_format="%.6g")
+    back = pd.read_csv(tmp_path / "s.tsv", sep="\t")
+    assert back.loc[0, "n_valid"] == 1_096_216 and back.loc[0, "n_above"] == 1_096_216
+    assert np.isnan(back.loc[1, "n_above"])
+    assert list(C.classify(back, C.Thresholds())) == ["metallic", ""]

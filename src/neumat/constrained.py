@@ -5,7 +5,7 @@ Every rule reads a handful of statistics of a BRDF over the MERL grid (90 x 90 x
 centres, above-horizon bins only), all in physical units (1/sr):
     mean_c, max_c   per-channel mean and max reflectance (c = R, G, B)
     n_above         number of bins whose max-channel reflectance ||f||_inf exceeds f_diffuse
-    n_valid         number of above-horizon bins (1,092,690 on the full grid)
+    n_valid         number of above-horizon bins (1,096,216 on the full grid)
 
 Paper eqs. 7-10 fix two categories: f_diffuse = 1/pi (a constant BRDF reflecting all incident
 energy), *diffuse* = fewer than e = 8e4 bins above f_diffuse (eq. 9), *metallic* = every bin
@@ -16,15 +16,15 @@ first that holds names the category, so every material has exactly one:
 
     metallic        n_above >= n_valid - metallic_exceptions                        (eq. 10)
     diffuse         n_above < e                                                      (eq. 9)
-    mirror          sharpness >= mirror_sharpness
-    plastic         body >= plastic_body  and  tint_peak <= plastic_tint
+    mirror          peak >= mirror_peak  and  body >= mirror_body
+    plastic         sharpness >= plastic_sharpness
     high-specular   peak >= high_peak
     medium-specular peak >= medium_peak
     low-specular    otherwise
 with peak = max_c max_c (the highlight), body = max_c mean_c (the average level),
-sharpness = peak / body (how much of the lobe is a spike), tint_peak = (max_c max_c -
-min_c max_c) / max_c max_c (a coloured highlight is a conductor's; a dielectric coat over a
-coloured base reflects white).
+sharpness = peak / body (how much of the lobe is a spike). `features` also gives tint_peak =
+(max_c max_c - min_c max_c) / max_c max_c, reported beside the categories, not used by a rule.
+Thresholds a config sets (constrained.thresholds) replace the derived ones (`in_use`).
 
 When a grid is subsampled (`bins` < all), n_above and n_valid are scaled to the full grid, so
 e keeps its meaning.
@@ -154,7 +154,9 @@ def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins:
     df = pd.concat(frames, ignore_index=True) if frames else _Accumulator(
         0, n_valid, len(bins), sw).frame([])
     bad = ~np.isfinite(weights).all(1)
-    df.loc[bad, STAT_COLUMNS] = np.nan
+    if bad.any():  # no statistics; the counts stay whole numbers (Int64 with NA), not floats
+        df[["n_above", "n_valid"]] = df[["n_above", "n_valid"]].astype("Int64")  # that a TSV's
+        df.loc[bad, STAT_COLUMNS] = np.nan  # %.6g would round (1,096,216 -> 1.09622e+06)
     return df
 
 
@@ -173,6 +175,11 @@ def table_stats(tables, names=None, bins: np.ndarray | None = None) -> pd.DataFr
     return pd.concat(frames, ignore_index=True)
 
 
+def _num(col: pd.Series) -> np.ndarray:
+    """A count column as float, NaN where missing (int64, nullable Int64 or float)."""
+    return col.astype(float).to_numpy()
+
+
 def features(stats: pd.DataFrame) -> pd.DataFrame:
     """peak, body, sharpness, tint_peak and share_above of each row of a statistics frame."""
     mean = stats[["mean_r", "mean_g", "mean_b"]].to_numpy(float)
@@ -182,7 +189,7 @@ def features(stats: pd.DataFrame) -> pd.DataFrame:
         return pd.DataFrame({  # a black material (all zero) has sharpness and tint 0
             "peak": peak, "body": body, "sharpness": np.where(peak > 0, peak / body, 0.0),
             "tint_peak": np.where(peak > 0, (peak - mx.min(1)) / peak, 0.0),
-            "share_above": stats["n_above"].to_numpy(float) / stats["n_valid"].to_numpy(float),
+            "share_above": _num(stats["n_above"]) / _num(stats["n_valid"]),
         }, index=stats.index)
 
 
@@ -226,7 +233,7 @@ def classify(stats: pd.DataFrame, th: Thresholds) -> np.ndarray:
     """Category of each row of a statistics frame (first rule in ORDER that holds; '' when the
     statistics are not finite, e.g. a sample with NaN weights)."""
     f = features(stats)
-    n_above, n_valid = stats["n_above"].to_numpy(float), stats["n_valid"].to_numpy(float)
+    n_above, n_valid = _num(stats["n_above"]), _num(stats["n_valid"])
     tests = {
         "metallic": n_above >= n_valid - th.metallic_exceptions,
         "diffuse": n_above < th.e,
@@ -239,7 +246,7 @@ def classify(stats: pd.DataFrame, th: Thresholds) -> np.ndarray:
     out = np.full(len(stats), "", dtype=object)
     for cat in reversed(ORDER):  # earlier rules overwrite later ones
         out[tests[cat]] = cat
-    finite = np.isfinite(stats[STAT_COLUMNS].to_numpy(float)).all(1) & np.isfinite(f["sharpness"].to_numpy())
+    finite = np.isfinite(stats[STAT_COLUMNS].astype(float).to_numpy()).all(1) & np.isfinite(f["sharpness"].to_numpy())
     out[~finite] = ""
     return out
 
@@ -257,8 +264,8 @@ def derive_thresholds(stats: pd.DataFrame, types, mirror_quantile: float = 0.9,
         medium_peak, high_peak   = specular_quantiles quantiles of the type medians of peak
     (quantiles of log values, i.e. geometric interpolation). Returns the thresholds and, per
     threshold, a sentence saying where it came from."""
-    f = features(stats).assign(type=list(types), n_above=stats["n_above"].to_numpy(float),
-                                n_valid=stats["n_valid"].to_numpy(float))
+    f = features(stats).assign(type=list(types), n_above=_num(stats["n_above"]),
+                                n_valid=_num(stats["n_valid"]))
     f = f[np.isfinite(f[["peak", "body", "sharpness"]]).all(axis=1) & (f["type"] != "")]
     med = f.groupby("type")[["peak", "body", "sharpness", "n_above", "n_valid"]].median()
     keep = (med["n_above"] >= e) & (med["n_above"] < med["n_valid"] - metallic_exceptions)
@@ -267,7 +274,7 @@ def derive_thresholds(stats: pd.DataFrame, types, mirror_quantile: float = 0.9,
         raise ValueError(f"deriving the category thresholds needs >= 2 material types that are "
                          f"neither diffuse nor metallic by eqs. 9-10; the source materials have "
                          f"{len(med)}: use more source materials (merl.subset / merl.synthetic.count) "
-                         f"or set every constrained.thresholds value in the config")
+                         f"or set constrained.thresholds {', '.join(DERIVED)} in the config")
 
     def q(col, p):
         return float(np.exp(np.quantile(np.log(med[col]), p)))
@@ -284,6 +291,26 @@ def derive_thresholds(stats: pd.DataFrame, types, mirror_quantile: float = 0.9,
            "plastic_sharpness": f"{plastic_quantile:g} quantile of type-median sharpness over {n}",
            "high_peak": f"{hi:g} quantile of type-median peak over {n}",
            "medium_peak": f"{lo:g} quantile of type-median peak over {n}"}
+    return th, how
+
+
+DERIVED = ("mirror_peak", "mirror_body", "plastic_sharpness", "high_peak", "medium_peak")
+
+
+def in_use(stats: pd.DataFrame, types, derive: dict, overrides: dict) -> tuple[Thresholds, dict]:
+    """The thresholds the rules use, and where each came from: every non-null value of
+    `overrides` (config constrained.thresholds; e and metallic_exceptions always), the rest
+    derived from the source materials (`derive_thresholds` with `derive`'s quantiles); nothing
+    is derived when the config sets all five, so a source set too small to derive from works."""
+    given = {k: float(v) for k, v in overrides.items() if v is not None}
+    if all(k in given for k in DERIVED):
+        return Thresholds(**given), {k: "config constrained.thresholds" for k in given}
+    th, how = derive_thresholds(stats, types, derive["mirror_quantile"], derive["plastic_quantile"],
+                                derive["specular_quantiles"], given.get("e", 8e4),
+                                given.get("metallic_exceptions", 0))
+    for k in set(given) & set(DERIVED):
+        setattr(th, k, given[k])
+        how[k] = "config constrained.thresholds"
     return th, how
 
 

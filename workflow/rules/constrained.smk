@@ -16,9 +16,8 @@ rule constrained_rules:
     params:
         names=MERL_NAMES,
         types=list(MERL["type"]),
-        derive=CONS["derive"],
-        e=CONS["thresholds"]["e"],
-        metallic_exceptions=CONS["thresholds"]["metallic_exceptions"],
+        derive=canon(CONS["derive"]),
+        thresholds=canon(CONS["thresholds"]),
     log:
         log("constrained_rules"),
     benchmark:

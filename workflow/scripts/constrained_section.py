@@ -61,7 +61,8 @@ with script_logging(snakemake) as log:
         fig = "No category was produced within the budget, so there is no gallery."
 
     md = ["## Constrained synthesis (M³ashy §4.5, Fig. 6)", RULES,
-          "Thresholds (`constrained/rules.tsv`; config `constrained.thresholds` overrides):",
+          "Thresholds in use (`constrained/rules.tsv`: derived from the source materials, or "
+          "set by config `constrained.thresholds`, as `derived_from` says):",
           report.md_table(rules), "Materials per category:", report.md_table(counts),
           "Source materials per category:", report.md_table(names),
           "How cleanly each type falls into one category (purity = share of the type's "

@@ -3,6 +3,7 @@ conditions, and write them with their renders and a Mitsuba scene."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -63,6 +64,14 @@ def _image_embedding(run: Run, path: str, dim: int | None) -> tuple[np.ndarray, 
     return image.embed(enc, img[None]), enc_path
 
 
+def constrained_min_bins() -> int:
+    """The fewest MERL bins --category's statistics may use: every theta_h-bin-0 bin (16,200,
+    the schema's minimum of constrained.bins)."""
+    from neumat.io import merl
+    valid = merl.valid_mask()
+    return int(valid[: merl.N_TD * merl.N_PD].sum())
+
+
 def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, float]:
     """--guidance S (every condition asked) and/or MOD=S (one modality; wins over S, whatever
     the order) -> {modality: scale}."""
@@ -73,7 +82,7 @@ def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, floa
             x = float(scale)
         except ValueError:
             x = -1.0
-        if x < 0 or (mod and mod not in MODALITIES):
+        if not (0 <= x < math.inf) or (mod and mod not in MODALITIES):  # NaN and inf too
             raise CLIError(f"--guidance {v!r}: give a scale >= 0 (S, for every condition asked) "
                            f"or MOD=S with MOD one of {', '.join(MODALITIES)}, e.g. --guidance text=3")
         if mod and mod not in asked:
@@ -250,7 +259,7 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
         cond, guidance = {}, {}
     with _progress(args.n, "refining" if args.refiner else "sampling from starts") as bar:
         w = sample(sampler, args.n, seed_for(args.seed, "cli_start"), cond, guidance, args.steps,
-                   0.0, args.batch, None, negative_step=neg, activation=args.activation,
+                   args.eta, args.batch, args.clip, negative_step=neg, activation=args.activation,
                    start=weights[got], strength=args.start, refit_steps=refit)
         bar.update(args.n)
     table = pd.DataFrame({"sample": range(args.n), "type": args.type or "",
@@ -318,8 +327,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
             w, table = _draw_from_start(args, run, base, fixed, scales, neg, refit)
             return w, table.assign(**info)
         info.update(start=name, strength=args.start, refiner=args.refiner)
-    cfg = {"steps": args.steps, "eta": 0.0, "guidance": scales.get("type", 1.0),
-           "batch_size": args.batch, "clip": None, "negative_step": neg, "refit_steps": refit}
+    cfg = {"steps": args.steps, "eta": args.eta, "guidance": scales.get("type", 1.0),
+           "batch_size": args.batch, "clip": args.clip, "negative_step": neg, "refit_steps": refit}
     if args.category:
         w, table = _draw_category(args, run, sampler, cfg)
         return w, table.assign(**info)
@@ -348,8 +357,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
             def at(step):  # a named stream per batch: --seed 8 does not redraw --seed 0's second
                 return sampler.sample(b, seed_for(args.seed, "cli_sample", s),  # batch of 8
                                       types[s:s + b] if types else None, args.steps,
-                                      0.0, 1.0 if prior else scales.get("type", 1.0), args.batch,
-                                      None, step, args.activation, refit_steps=refit,
+                                      args.eta, 1.0 if prior else scales.get("type", 1.0), args.batch,
+                                      args.clip, step, args.activation, refit_steps=refit,
                                       particle_step=particles)
             ws.append(at(neg))
             if look:
@@ -386,8 +395,8 @@ def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
         for s in range(0, len(idx), args.batch):
             b = min(args.batch, len(idx) - s)
             out.append(sampler.sample(b, seed_for(seed, "cli_sample", s),
-                                      [args.type] * b if args.type else None, args.steps, 0.0,
-                                      scales.get("type", 1.0), args.batch, None, negative_step,
+                                      [args.type] * b if args.type else None, args.steps, args.eta,
+                                      scales.get("type", 1.0), args.batch, args.clip, negative_step,
                                       args.activation, refit_steps=refit))
             bar.update(b)
         return np.concatenate(out)
@@ -412,7 +421,9 @@ def _draw_category(args, run: Run, sampler, cfg):
     if not rules.exists():
         raise CLIError(f"--category needs the category thresholds {rules}; build them with rule "
                        f"constrained_rules: `{run.target('constrained/rules.tsv')}`")
-    th = constrained.Thresholds.from_tsv(rules)
+    # the config's thresholds win, as in the workflow (runs whose rules.tsv predates
+    # constrained_rules writing the values in use hold only derived ones)
+    th = constrained.Thresholds.from_tsv(rules, run.setting("constrained", "thresholds"))
     if args.type:
         guide = [args.type]
     else:  # the types whose source materials fall into the category, when classified
@@ -486,6 +497,16 @@ def cmd_sample(args) -> int:
                            f"--category), as a whole number >= {low}")
         if v is None:  # the run's best of n
             setattr(args, flag, int(run.setting("conditions", "image", key)) if args.image else 0)
+    if args.batch < 1:
+        raise CLIError(f"--batch {args.batch}: give a whole number >= 1")
+    if args.category and args.bins < constrained_min_bins():
+        raise CLIError(f"--bins {args.bins}: give at least {constrained_min_bins()} (every "
+                       f"theta_h-bin-0 bin, where highlights peak, plus some of the rest; the "
+                       f"schema's minimum of constrained.bins)")
+    # DDIM's eta and the x0 clip of the run (diffusion.sample), as its workflow sampled
+    args.eta = float(run.setting("diffusion", "sample", "eta"))
+    clip = run.setting("diffusion", "sample", "clip")
+    args.clip = None if clip is None else float(clip)
     if args.render_step is not None and (not args.image or args.render_step < 0):
         raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
                        f">= 0 (0 = off)")
