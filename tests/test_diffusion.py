@@ -315,8 +315,10 @@ def test_learns_two_mode_distribution(tmp_path):
 
 def test_resume_after_kill_is_identical(tmp_path):
     w, labels, _ = _two_modes(64)
+    # log_every not dividing checkpoint_every: the checkpoint at 20 falls between logged
+    # steps (18, 21), so the loss summed since 18 must be resumed too
     cfg = TrainConfig(steps=30, batch_size=16, lr=1e-3, warmup_steps=5, checkpoint_every=10,
-                      log_every=5)
+                      log_every=3)
     mcfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=2)
     args = (w, labels, ["a", "b"], mcfg, TOY_SCHED, cfg)
     full = train(*args, tmp_path / "full.pt", tmp_path / "full_ck.pt", seed=3, device="cpu")

@@ -77,7 +77,7 @@ def _train_args(tmp_path, steps=12, tag="a"):
     bins = _bins(600)
     vals = _lambertian([[0.2, 0.5, 0.8], [0.9, 0.1, 0.3], [0.4, 0.4, 0.4]], bins)
     cfg = hb.HyperTrainConfig(steps=steps, lr=1e-3, materials_per_step=2, context=200,
-                              query=100, checkpoint_every=4, log_every=2)
+                              query=100, checkpoint_every=4, log_every=3)  # 4 between logs
     return (vals, bins, hb.bin_median(vals), SMALL, cfg, tmp_path / f"{tag}.pt",
             tmp_path / f"{tag}_ck.pt")
 

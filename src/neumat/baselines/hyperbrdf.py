@@ -45,6 +45,7 @@ from torch import nn
 
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 
@@ -246,21 +247,24 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     torch.manual_seed(seed)
     model = HyperBRDF(model_cfg).to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
-    gen = torch.Generator().manual_seed(seed)
-    step, history, elapsed = 0, [], 0.0
+    # the draws' own stream: seeded with `seed` too, they replayed the initial weights' numbers
+    gen = torch.Generator().manual_seed(seed_for(seed, "draws"))
+    step, history, elapsed, running = 0, [], 0.0, []
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, opt=opt, generator=gen)
     if ck is not None:
         step, elapsed = int(ck["step"]), float(ck["elapsed"])
         history = [tuple(r) for r in ck["history"]]
+        running = [list(r) for r in ck.get("running", [])]  # since the last logged step
 
     def checkpoint():
         save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
                                "opt": opt.state_dict(), "generator": gen.get_state(),
-                               "step": step, "history": history, "elapsed": elapsed})
+                               "step": step, "history": history, "elapsed": elapsed,
+                               "running": running})
 
     M, B = y_all.shape[:2]
     b = min(cfg.materials_per_step, M)
-    t0, running = time.perf_counter(), []
+    t0 = time.perf_counter()
     model.train()
     while step < cfg.steps:
         mats = torch.randint(0, M, (b,), generator=gen)

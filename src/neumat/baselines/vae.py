@@ -23,6 +23,7 @@ from torch import nn
 from neumat import nbrdf
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
+from neumat.seeds import seed_for
 
 
 def mlp(sizes, last_act=False) -> nn.Sequential:
@@ -191,7 +192,7 @@ def train_weight_vae(weights, *, latent, hidden, steps, batch_size, lr, beta, se
     torch.manual_seed(seed)
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
     model = WeightVAE(latent, hidden, w.mean(0), w.std(0).clamp_min(1e-6))
-    g = torch.Generator().manual_seed(seed)
+    g = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers
 
     def batch_loss(step):
         idx = torch.randint(len(w), (min(batch_size, len(w)),), generator=g)

@@ -17,6 +17,7 @@ from torch import nn
 from neumat.btf.directions import half_diff
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +141,7 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
     per-step losses of this run (from the resumed step on)."""
     opt = torch.optim.Adam(model.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=lr * 0.05)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers (_reset)
     start = 0
     ck = modelfile.resume(checkpoint, model=model, opt=opt, sched=sched, gen=gen) \
         if checkpoint else None

@@ -34,8 +34,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from neumat.render import sphere
 from neumat.io import images, modelfile
+from neumat.render import sphere
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 OBJECTIVES = ("weights", "text")
@@ -187,7 +188,7 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
                          "conditions.image.encoder.resolution")
     target = _targets(cfg, weights, text)
     torch.manual_seed(seed)
-    gen = torch.Generator().manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers
     model = ImageEncoder(cfg, target.shape[1])
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     n, k = views.shape[:2]

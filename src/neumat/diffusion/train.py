@@ -31,6 +31,7 @@ from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
+from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
 
@@ -159,7 +160,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     # implementation, so CPU results do not change
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay,
                             fused=True if dev.type == "cuda" else None)
-    gen = torch.Generator().manual_seed(seed)
+    # the batches' own stream: seeded with `seed` too, they replayed the initial weights' numbers
+    gen = torch.Generator().manual_seed(seed_for(seed, "draws"))
     diffusion = Diffusion(sched_cfg)
     step, history, elapsed = 0, [], 0.0
 
@@ -167,6 +169,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     if ck is not None:
         torch.set_rng_state(ck["torch_rng"])
         step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
+        # the loss summed since the last logged step: a resumed run logs the same history
+        run_sum, run_n = ck.get("running", (0.0, 0))
 
     x_all = norm.encode(torch.from_numpy(weights).to(dev))
     y_all = torch.from_numpy(labels).to(dev)
@@ -176,12 +180,15 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
                                "ema": ema.state_dict(), "opt": opt.state_dict(),
                                "generator": gen.get_state(), "torch_rng": torch.get_rng_state(),
-                               "step": step, "history": history, "elapsed": elapsed})
+                               "step": step, "history": history, "elapsed": elapsed,
+                               "running": (0.0 if running is None else running.item(), n_running)})
 
     model.train()
     # the running loss stays on the device and is read once per `log_every` steps: a .item()
     # per step would make the host wait for the GPU every step
     t0, running, n_running = time.perf_counter(), None, 0
+    if ck is not None and run_n:
+        running, n_running = torch.tensor(run_sum, dtype=torch.float64, device=dev), int(run_n)
     while step < cfg.steps:
         for g in opt.param_groups:
             g["lr"] = lr_at(step, cfg)
