@@ -287,3 +287,40 @@ def test_pca_gram_is_the_same_on_any_core_count():
         with threadpool_limits(n):
             grams.append(augment.row_gram(logs, src, perm))
     assert np.array_equal(grams[0], grams[1])
+
+
+def test_template_is_the_first_train_split_original():
+    """The template's fit starts every other: never a held-out source's (id 0 when its source
+    trains), and its manifest id is its row (the manifest's ids)."""
+    names = [f"m{i}-plastic" for i in range(6)]
+    seen = set()
+    for seed in range(8):
+        rows, pairs, man = _plan(names, size=60, seed=seed)
+        t = augment.template_id(rows)
+        r = man.loc[man["id"] == t].iloc[0]
+        assert r["split"] == "train" and r["operation"] == "original"
+        first = man[(man["split"] == "train") & (man["operation"] == "original")]["id"].min()
+        assert t == first
+        seen.add(t == 0)
+    assert seen == {True, False}  # some seeds hold out the first source
+    rows = augment.plan_rows(_catalog(names[:2]), True, {names[0]: "test", names[1]: "test"})
+    with pytest.raises(ValueError, match="no source material in the train split"):
+        augment.template_id(rows)
+
+
+def test_pca_cut_keeps_a_tied_pair_of_components_whole():
+    """Rows and their channel permutations make the Gram's eigenvalues come in equal pairs; a
+    cut inside a pair would keep whichever half LAPACK returned. k grows to the pair's end, and
+    the result is the interpolation in the (unique) subspace of both."""
+    rng = np.random.default_rng(4)
+    base = rng.random((2, 3, 20))
+    X = np.stack([augment.permute(b, p) for b in base for p in augment.PERMS]).reshape(12, -1)
+    G = X @ X.T
+    Xc = X - X.mean(0)
+    ev = np.sort(np.linalg.eigvalsh(Xc @ Xc.T))[::-1]
+    tied = [k for k in range(1, 10) if ev[k - 1] - ev[k] <= 1e-9 * ev[0] and ev[k] > 1e-9 * ev[0]]
+    assert tied, ev  # the symmetry does make pairs
+    k = tied[0]
+    coefs, stats = augment.mixing_weights(G, k, [(0, 7, 0.4)])
+    assert stats[0] == k + 1
+    np.testing.assert_allclose(coefs[0] @ X, _explicit_pca_interp(X, 0, 7, 0.4, k + 1), atol=1e-9)

@@ -71,6 +71,29 @@ def test_check_split():
         augment.check_split(["a"], 0.5)
     with pytest.raises(ValueError, match="test_fraction = 0"):
         augment.check_split(["a", "b"], 0)
+    # two sources without permutations: one row a split, nothing to interpolate
+    augment.check_split(["a", "b"], 0.5, permutations=False, size=2)
+    augment.check_split(["a", "b"], 0.5, permutations=True, size=40)
+    with pytest.raises(ValueError, match="augmerl.size = 8 .* augmerl.permutations is false"):
+        augment.check_split(["a", "b"], 0.5, permutations=False, size=8)
+
+
+def test_a_split_of_one_row_gets_no_interpolations():
+    """plan_pairs crashed (numpy: cannot take a larger sample than population) on a split of
+    one row; its share of the interpolations now goes to the splits that can mix."""
+    import pandas as pd
+    names = ["a", "b", "c", "d"]
+    cat = pd.DataFrame({"name": names, "sha256": "", "type": "t", "description": names,
+                        "colours": ""})
+    split = {"a": "test", "b": "train", "c": "train", "d": "train"}
+    rows = augment.plan_rows(cat, False, split)
+    pairs = augment.plan_pairs(rows, 10, 0)
+    assert len(pairs) == 10 and all(rows.at[a, "split"] == "train" == rows.at[b, "split"]
+                                    for a, b, _ in pairs)
+    one_each = augment.plan_rows(cat.iloc[:2], False, {"a": "test", "b": "train"})
+    assert augment.plan_pairs(one_each, 0, 0) == []
+    with pytest.raises(ValueError, match="no split has two rows"):
+        augment.plan_pairs(one_each, 3, 0)
 
 
 def test_catalogues_that_are_missing_or_not_text_name_key_and_file(tmp_path):

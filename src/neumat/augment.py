@@ -46,9 +46,11 @@ def permute(table: np.ndarray, perm: str) -> np.ndarray:
 # ----------------------------------------------------------------------------- plan
 
 
-def check_split(names: list[str], test_fraction: float, what: str = "merl.subset") -> None:
+def check_split(names: list[str], test_fraction: float, what: str = "merl.subset",
+                permutations: bool = True, size: int = 0) -> None:
     """DAG-time check: the run needs a train and a test split of its source materials
-    (split_sources gives each at least one when test_fraction > 0)."""
+    (split_sources gives each at least one when test_fraction > 0), and interpolations
+    (augmerl.size above the rows) need a split of two rows to mix."""
     if test_fraction <= 0:
         raise ValueError(f"config augmerl.test_fraction = {test_fraction}: must be > 0 (the "
                          "test split is Table 2's reference set)")
@@ -57,6 +59,11 @@ def check_split(names: list[str], test_fraction: float, what: str = "merl.subset
             f"config {what}: {len(names)} material(s) {list(names)} with augmerl.test_fraction = "
             f"{test_fraction} leave no train/test split; at least 2 source materials are needed "
             "(one for training, one for the test split)")
+    if not permutations and len(names) == 2 and size > 2:
+        raise ValueError(
+            f"config augmerl.size = {size} asks for interpolations, but {what} has 2 materials and "
+            "augmerl.permutations is false: each split holds one row, with nothing to mix; set "
+            "augmerl.permutations: true, add source materials, or set augmerl.size <= 2")
 
 
 def split_sources(names: list[str], test_fraction: float, seed: int) -> dict[str, str]:
@@ -86,6 +93,17 @@ def plan_rows(catalog: pd.DataFrame, permutations: bool, split: dict[str, str]) 
     return pd.DataFrame(rows)
 
 
+def template_id(rows: pd.DataFrame) -> int:
+    """Manifest id of the template material, whose fit initialises every other (paper §3.2):
+    the first original of the train split (plan_rows' rows lead the manifest, so a row's index
+    is its id). Not simply id 0: when that source falls in the test split, every training
+    field would start from a test material's fit."""
+    hit = np.flatnonzero(((rows["split"] == "train") & (rows["operation"] == "original")).to_numpy())
+    if not len(hit):
+        raise ValueError("no source material in the train split to fit the template from")
+    return int(hit[0])
+
+
 def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
     """Draw `n_interp` (row_a, row_b, weight_a) triples inside splits, in proportion to their size.
 
@@ -93,6 +111,13 @@ def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
     rng = np.random.default_rng(seed_for(seed, "augmerl_pairs"))
     splits = sorted(rows["split"].unique())
     sizes = np.array([(rows["split"] == s).sum() for s in splits])
+    sizes[sizes < 2] = 0  # a split of one row (one source, no permutations) has no pair
+    if n_interp > 0 and not sizes.any():
+        raise ValueError(f"{n_interp} interpolations asked (augmerl.size), but no split has two "
+                         f"rows to mix: set augmerl.permutations: true, add source materials, "
+                         f"or set augmerl.size <= {len(rows)}")
+    if not sizes.any():
+        return []
     counts = np.floor(n_interp * sizes / sizes.sum()).astype(int)
     counts[np.argmax(sizes)] += n_interp - counts.sum()
     pairs = []
@@ -242,6 +267,11 @@ def mixing_weights(G: np.ndarray, k: int, pairs_local) -> tuple[np.ndarray, np.n
     order = np.argsort(evals)[::-1]
     evals, U = np.clip(evals[order], 0, None), U[:, order]
     k = min(k, P - 1)
+    # a cut inside a degenerate eigenspace (RGB permutations make the Gram invariant under
+    # channel permutations, so its eigenvalues come in equal pairs) keeps an arbitrary part of
+    # it, whichever basis LAPACK returned: keep or drop a tie whole (here: keep)
+    while 0 < k < P - 1 and evals[k] > 1e-9 * evals[0] and evals[k - 1] - evals[k] <= 1e-9 * evals[0]:
+        k += 1
     Uk = U[:, :k]
     coefs = np.zeros((len(pairs_local), P))
     for i, (a, b, w) in enumerate(pairs_local):

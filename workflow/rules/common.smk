@@ -149,7 +149,7 @@ from neumat import augment as _augment  # noqa: E402
 
 _augment.check_split(MERL_NAMES, config["augmerl"]["test_fraction"],
                      "merl.synthetic.count" if config["merl"]["source"] == "synthetic"
-                     else "merl.subset")
+                     else "merl.subset", config["augmerl"]["permutations"], config["augmerl"]["size"])
 _MERL_SHA256 = dict(zip(MERL["name"], MERL["sha256"]))
 
 
@@ -176,6 +176,12 @@ def augmerl_count():
 
 
 AUG_SHARDS = [f"{i:03d}" for i in range(math.ceil(augmerl_count() / config["augmerl"]["shard_size"]))]
+# the template material (fit first; its weights start every other fit): the first train-split
+# original, from the split augmerl_pca draws (the same function, config and seed)
+TEMPLATE_ID = _augment.template_id(_augment.plan_rows(
+    MERL, config["augmerl"]["permutations"],
+    _augment.split_sources(MERL_NAMES, config["augmerl"]["test_fraction"], seed_for("augmerl"))))
+TEMPLATE_SHARD = f"{TEMPLATE_ID // config['augmerl']['shard_size']:03d}"
 
 
 def augmerl_shards():

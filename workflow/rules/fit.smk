@@ -11,10 +11,11 @@ FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch ord
 
 rule fit_template:
     input:
-        shard=out("augmerl/shards/000.npz"),
+        shard=out(f"augmerl/shards/{TEMPLATE_SHARD}.npz"),
     output:
         out("neumerl/template.npz"),
     params:
+        template=TEMPLATE_ID,
         cfg=FIT_SETTINGS,
         seed=FIT_SEED,
         checkpoint=out("neumerl/checkpoints/template.npz"),

@@ -1,5 +1,5 @@
-"""Fit the template material (manifest id 0) from a random init; its weights initialise every
-other fit (weight-symmetry alignment, paper §3.2)."""
+"""Fit the template material (the first train-split original: augment.template_id) from a
+random init; its weights initialise every other fit (weight-symmetry alignment, paper §3.2)."""
 from pathlib import Path
 
 import numpy as np
@@ -12,9 +12,10 @@ from neumat.logs import script_logging
 with script_logging(snakemake) as log:
     p = snakemake.params
     shard = augment.load_shard(snakemake.input.shard)
-    hit = np.flatnonzero(shard["ids"] == 0)
+    hit = np.flatnonzero(shard["ids"] == p.template)
     if not len(hit):
-        raise ValueError(f"{snakemake.input.shard}: holds no material with manifest id 0")
+        raise ValueError(f"{snakemake.input.shard}: holds no material with manifest id "
+                         f"{p.template}; rerun the workflow (augmerl_pca, augmerl_shard)")
     k = slice(hit[0], hit[0] + 1)
     # params hold what changes the result; speed-only keys come from the config (speed_keys.yaml)
     speed = {k: snakemake.config["fit"][k] for k in ("materials_per_batch", "checkpoint_every")}
@@ -25,5 +26,5 @@ with script_logging(snakemake) as log:
                        p.seed, resolve_device(snakemake.config["device"]), checkpoint=p.checkpoint)
     fit.save_fits(snakemake.output[0], res)
     Path(p.checkpoint).unlink(missing_ok=True)
-    log.info("template (id 0): train loss %.4g, val loss %.4g, %d steps in %.1f s",
+    log.info("template (id %d): train loss %.4g, val loss %.4g, %d steps in %.1f s", p.template,
              res["train_loss"][0], res["val_loss"][0], settings.steps, res["seconds"])

@@ -54,7 +54,8 @@ with script_logging(snakemake) as log:
         f"Adam, batch {cfg['batch']}, lr {cfg['lr']:g} → {cfg['lr_final']:g} (cosine), "
         f"{cfg['steps']} steps, "
         f"{1 - cfg['val_fraction']:.0%}/{cfg['val_fraction']:.0%} train/val split of each "
-        f"material's stored bins. Every fit starts from the template (manifest id 0, "
+        f"material's stored bins. Every fit starts from the template (manifest id "
+        f"{int(template['ids'][0])}, the first train-split original, "
         f"{cfg['template_steps']} steps, val loss {template['val_loss'][0]:.4g}).",
         f"Render PSNR (metric sphere view, {cfg['render_resolution']} px, sRGB, sphere pixels) "
         f"of each fit against its tabulated material: median **{q.median():.2f} dB**, "
