@@ -586,7 +586,9 @@ def test_image_start_is_the_workflows_retrieved_material(tiny_run, tmp_path):
     assert set(got["model"]) == {"refiner"} and (got["strength"] == 0.5).all()
     assert not [c for c in got if c.startswith("guidance_")]  # the refiner takes no condition
     # the tiny run's conditions.image: render_step 1, best of 2 constrained + 1 unconstrained
-    assert (got["render_step"] == 1).all() and got["candidate"].between(0, 2).all()
+    # (candidates index the 2 x 3 draws: 0-3 with the clamp constraint, 4-5 without)
+    assert (got["render_step"] == 1).all() and got["candidate"].between(0, 5).all()
+    assert (got["constrained"] == (got["candidate"] < 4)).all()
     np.testing.assert_array_equal(np.load(outs[0] / "weights.npy"), np.load(outs[1] / "weights.npy"))
     # without --refiner: the same start, denoised by the multimodal model under the image
     assert main("sample", "--run", run, "--image", ref, "--start", 0.5, "-n", 2, "--no-binary",

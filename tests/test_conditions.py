@@ -340,3 +340,10 @@ def test_render_psnr_is_image_scores_psnr():
     # w[1] is its own target: the MSE floor's PSNR; the others differ
     assert got[1] == pytest.approx(-10 * np.log10(distances.PSNR_FLOOR_MSE))
     assert (got[[0, 2]] < got[1]).all()
+
+
+def test_same_source_links_originals_permutations_and_mixtures():
+    from neumat.conditions import image
+    same = image.same_source(["a", "a", "b", "a@gbr|c@rgb", "c"])
+    assert same.tolist() == [[1, 1, 0, 1, 0], [1, 1, 0, 1, 0], [0, 0, 1, 0, 0],
+                             [1, 1, 0, 1, 1], [0, 0, 0, 1, 1]]

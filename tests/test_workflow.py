@@ -232,6 +232,9 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
     assert np.load(res / "conditions/text.npy").shape == (len(man), 384)
     prompts = pd.read_csv(res / "conditions/prompts.tsv", sep="\t", keep_default_na=False)
     assert {"test", "unseen"} == set(prompts["kind"]) and "red plastic" in set(prompts["prompt"])
+    # in_training: word for word a training description (as embedded), scored apart below
+    train_desc = set(man.loc[man["split"] == "train", "description"])
+    assert prompts["in_training"].tolist() == [q in train_desc for q in prompts["prompt"]]
     for s, n in (("text", 2 * len(prompts)), ("image", 2 * 3)):  # 2 test renders + 1 user PNG
         w = np.load(res / f"samples/{s}/weights.npy")
         assert w.shape == (n, 675) and np.isfinite(w).all(), s
@@ -247,7 +250,12 @@ def test_tiny_config_runs_text_and_image_conditioning(tiny_run):
     assert (t["constrained"] == (t["candidate"] < 4)).all()
     assert set(t["clamps"]) <= {True, False}
     summary = pd.read_csv(res / "conditions/eval_summary.tsv", sep="\t")
-    assert {"text", "image", "mm_type", "mm_uncond"} <= set(summary["set"])
+    assert {"text", "image", "mm_type", "mm_uncond", "text (unseen prompts)",
+            "text (test descriptions, none a training description)"} <= set(summary["set"])
+    per = pd.read_csv(res / "conditions/eval_per_sample.tsv", sep="\t", keep_default_na=False)
+    held = per[(per["set"] == "text") & (per["kind"] == "unseen")
+               & ~per["prompt"].isin(set(prompts.loc[prompts["in_training"], "prompt"]))]
+    assert summary.set_index("set").loc["text (unseen prompts)", "samples"] == len(held)
     # the image yardsticks: one row per test render (not the user's PNG)
     yard = summary.set_index("set").loc[["image: the conditioning materials themselves",
                                          "image: retrieval"]]

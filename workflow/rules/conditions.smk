@@ -236,7 +236,7 @@ rule sample_image:
         # best of n's penalty and the bins it checks for clamping: params only where used
         **({"clamp_penalty": COND["image"]["clamp_penalty"], "angles": DIFF["plausibility_angles"]}
            if IMAGE_DRAWS > 1 else {}),
-        resolution=config["report"]["sphere_resolution"],
+        resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
         activation=DIFF_ACTIVATION,
         mode="image",
         seed=cond_seed("image"),
@@ -327,6 +327,7 @@ rule conditions_eval:
         image_embeddings=out("conditions/image.npy"),
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
+        prompts=out("conditions/prompts.tsv"),
     output:
         per_sample=out("conditions/eval_per_sample.tsv"),
         image=out("conditions/eval_image.tsv"),
@@ -334,7 +335,7 @@ rule conditions_eval:
     params:
         bins=DIFF["nn_bins"],
         angles=DIFF["plausibility_angles"],
-        resolution=config["report"]["sphere_resolution"],
+        resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
         seed=cond_seed("eval"),
         activation=DIFF_ACTIVATION,
     log:

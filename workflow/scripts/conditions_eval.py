@@ -27,6 +27,8 @@ with script_logging(snakemake) as log:
     ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
     neg_seed = seed_for(p.seed, "negative_share")
     neg = lambda w: ev.negative_share(w, p.angles, neg_seed, p.activation)  # noqa: E731
+    prompts = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
+    in_training = set(prompts.loc[prompts["in_training"].astype(str) == "True", "prompt"])
     per, rows, sets = [], [], {}
     for wpath, tpath in zip(inp.samples, inp.tables):
         name = set_name(wpath)
@@ -38,8 +40,12 @@ with script_logging(snakemake) as log:
         rows.append(ev.summarise(df, name))
         if name in ("text", "mm_type", "mm_uncond"):  # the test-split descriptions alone
             rows.append(ev.summarise(df[df["kind"] == "test"], f"{name} (test descriptions)"))
-            if name == "text":
-                rows.append(ev.summarise(df[df["kind"] == "unseen"], "text (unseen prompts)"))
+            if name == "text":  # and the prompts held out as text: none a training description
+                held = ~df["prompt"].isin(in_training)
+                rows.append(ev.summarise(df[(df["kind"] == "test") & held],
+                                         "text (test descriptions, none a training description)"))
+                rows.append(ev.summarise(df[(df["kind"] == "unseen") & held],
+                                         "text (unseen prompts)"))
     per = pd.concat(per, ignore_index=True)
     per.to_csv(out.per_sample, sep="\t", index=False, float_format="%.6g")
 

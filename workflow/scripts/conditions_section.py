@@ -78,7 +78,9 @@ with script_logging(snakemake) as log:
         f"{ecfg['crop']} px, exposure jitter +-{ecfg['exposure_jitter']} stops, objective "
         f"`{ecfg['objective']}`, {ecfg['steps']} steps of {ecfg['batch_size']}. Test split: "
         "identification = a material's metric-view embedding is nearest to its own embedding "
-        "under another light; type hit = the nearest training material (metric view) has its type.",
+        "under another light; type hit = the nearest typed training material (metric view) "
+        "has its type, for a training material one of another source (its RGB permutations "
+        "share its type).",
         report.md_table(enc_eval),
         report.md_table(cost),
         *descriptions_note(getattr(inp, "descriptions", None)),

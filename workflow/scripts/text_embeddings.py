@@ -1,7 +1,10 @@
 """Embed every AugMERL description once (conditions/text.npy, manifest order) and the sampling
-prompts: test-split descriptions of typed materials plus config prompts never seen in training.
-Fails naming the package when the offline text encoder is not installed."""
+prompts: test-split descriptions of typed materials plus the config's prompts, meant to be
+unseen (prompts.tsv's in_training marks any prompt that is word for word a training
+description, as embedded). Fails naming the package when the offline text encoder is not
+installed."""
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -31,6 +34,12 @@ with script_logging(snakemake) as log:
         changed = sum(a != b for a, b in zip(descriptions, man["description"]))
         log.info("colour_words measured: %d of %d descriptions renamed by their metric-view "
                  "colour (%.1f s)", changed, len(man), time.perf_counter() - t0)
+    else:  # a measured run's descriptions.tsv left behind would name rows it no longer holds
+        stale = Path(out.text).with_name("descriptions.tsv")  # (neumat sample --text reads it)
+        if stale.exists():
+            stale.unlink()
+            log.info("removed %s: colour_words is now source, so text.npy embeds the manifest's "
+                     "descriptions", stale)
     t0 = time.perf_counter()
     save_npy(out.text, text.embed(descriptions))
     log.info("%d descriptions (%d distinct) embedded in %.1f s", len(man),
@@ -41,15 +50,18 @@ with script_logging(snakemake) as log:
     pick = np.unique(np.linspace(0, len(test) - 1, min(k, len(test))).round().astype(int)) \
         if len(test) else []
     test = test.iloc[pick]
-    seen = set(man.loc[man["split"] == "train", "description"])
-    unseen = [q for q in p.prompts if q in seen]
-    if unseen:
-        log.warning("config prompts %s occur as training descriptions", unseen)
+    # the descriptions training saw, as embedded (measured colour words included): a prompt
+    # word for word among them is not held out as text, whatever its kind
+    seen = {d for d, s in zip(descriptions, man["split"]) if s == "train"}
     prompts = pd.DataFrame({
         "prompt": list(test["description"]) + list(p.prompts),
         "kind": ["test"] * len(test) + ["unseen"] * len(p.prompts),
         "type": list(test["type"]) + [""] * len(p.prompts)})
     prompts["colour"] = [evaluate.colour_of(q) for q in prompts["prompt"]]
+    prompts["in_training"] = [q in seen for q in prompts["prompt"]]
+    for kind, g in prompts[prompts["in_training"]].groupby("kind"):
+        log.warning("%d %s prompt(s) occur word for word as training descriptions (scored "
+                    "apart in conditions/eval_summary.tsv): %s", len(g), kind, list(g["prompt"]))
     prompts.to_csv(out.prompts, sep="\t", index=False)
     save_npy(out.prompt_embeddings, text.embed(list(prompts["prompt"])))
     log.info("%d prompts (%d test-split descriptions)", len(prompts), len(test))

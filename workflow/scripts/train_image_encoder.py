@@ -36,10 +36,12 @@ with script_logging(snakemake) as log:
         other = e[:, -1] if e.shape[1] > 1 else e[:, 0]  # the last light
         d = ((q[:, None] - other[None]) ** 2).sum(-1)
         ident = float((d.argmin(1) == np.arange(len(q))).mean())
-        # type of the nearest training material (metric-view embeddings), other than itself
+        # type of the nearest training material (metric-view embeddings); for a training
+        # material, of another source (its RGB permutations share its type: leaving out only
+        # itself scored 0.95 on real40 against 0.36 leaving out its source, the test row 0.35)
         dt = ((q[:, None] - e_train[None, :, 0]) ** 2).sum(-1)
         if name == "train":
-            np.fill_diagonal(dt, np.inf)
+            dt[image.same_source(man["sources"].iloc[train].to_numpy())] = np.inf
         tt = man["type"].iloc[train].to_numpy()
         own = man["type"].iloc[idx].to_numpy()
         dt[:, tt == ""] = np.inf

@@ -294,9 +294,9 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.image:
         step = (float(run.setting("conditions", "image", "render_step"))
                 if args.render_step is None else args.render_step)
-        if step:  # the image as the metric view sees it, at the run's report resolution
+        if step:  # the image as the metric view sees it, at the run's render.resolution
             from neumat.conditions import image
-            render = (image.load_image(args.image, int(run.setting("report", "sphere_resolution"))),
+            render = (image.load_image(args.image, int(run.setting("render", "resolution"))),
                       step)
     start = None
     if args.image and args.start is not None:
@@ -386,7 +386,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
 def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
     """(weights, table columns): --image with --candidates / --unconstrained-candidates, as the
     workflow's sample_image: each sample the best of its draws by render PSNR against the image
-    (at the run's report resolution), less the run's clamp penalty for a clamping draw."""
+    (at the run's render.resolution, the metric view's), less the run's clamp penalty for a
+    clamping draw."""
     from neumat.conditions import image
     from neumat.seeds import seed_for
 
@@ -402,7 +403,7 @@ def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
         return np.concatenate(out)
 
     n, m = args.candidates, args.unconstrained_candidates
-    target = image.load_image(args.image, int(run.setting("report", "sphere_resolution")))
+    target = image.load_image(args.image, int(run.setting("render", "resolution")))
     with _progress(args.n * (n + m), f"sampling, best of {n + m}") as bar:
         w, free = image.draw_candidates(draw, 1, args.n, n, m, args.seed, neg)
     keep, psnr, clamps = image.choose(
