@@ -256,6 +256,16 @@ def _exact_moments(d, mu, s2, steps, eta):
     return mu + m, v
 
 
+def test_eps_prediction_with_an_x0_loss_is_refused():
+    """eps recovered as x0 divides by sqrt(alpha_bar): the loss would sit on the last step."""
+    d = Diffusion(ScheduleConfig(timesteps=1000, kind="cosine", prediction="eps"))
+    w = (1 - d.alpha_bar) / d.alpha_bar
+    assert w[-1] / w.sum() > 0.99  # 99.8 % of the x0 loss weight on t = T - 1
+    with pytest.raises(ValueError, match="prediction: eps with diffusion.schedule.loss: x0"):
+        Diffusion(ScheduleConfig(timesteps=1000, kind="cosine", prediction="eps", loss="x0"))
+    Diffusion(ScheduleConfig(timesteps=1000, kind="cosine", prediction="v", loss="x0"))
+
+
 @pytest.mark.parametrize("eta,steps", [(0.0, 200), (1.0, 200), (0.5, 50)])
 def test_ddim_recovers_gaussian_moments(eta, steps):
     """Sampling with the true posterior mean recovers the data's mean and variance (exactly

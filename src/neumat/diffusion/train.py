@@ -167,7 +167,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
 
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, ema=ema, opt=opt, generator=gen)
     if ck is not None:
-        torch.set_rng_state(ck["torch_rng"])
+        torch.set_rng_state(ck["torch_rng"].cpu())  # map_location put it on `dev`
         step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
         # the loss summed since the last logged step: a resumed run logs the same history
         run_sum, run_n = ck.get("running", (0.0, 0))

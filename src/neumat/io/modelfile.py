@@ -41,8 +41,8 @@ def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
         log.warning("ignoring %s: written for other data or settings", path)
         return None
     for name, obj in state.items():
-        if isinstance(obj, torch.Generator):
-            obj.set_state(ck[name])
+        if isinstance(obj, torch.Generator):  # a CPU state, wherever map_location put it
+            obj.set_state(ck[name].cpu())
         else:
             obj.load_state_dict(ck[name])
     log.info("resumed from %s at step %s", path, ck.get("step"))
