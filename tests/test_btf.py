@@ -169,6 +169,32 @@ def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path):
     m2 = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
     rest = train(m2, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=ck, checkpoint_every=300)
     assert len(rest) == 300 and rest[-1] == pytest.approx(losses[-1], rel=1e-4)
+    # the checkpoint of other settings is not resumed (it carried its own lr and schedule)
+    m3 = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
+    other = train(m3, tiny_btf, 600, 2048, 2e-2, seed=0, checkpoint=ck, checkpoint_every=300)
+    assert len(other) == 600
+
+
+def test_directions_beyond_the_outer_ring_are_continuous():
+    """A direction past the 75 deg ring takes the value at the ring along its own ray: the
+    weights just inside and just outside agree (pulling it onto the inscribed circle jumped
+    from 0.998 to 0.803 on the ring's direction)."""
+    from neumat.btf.grid import DirectionInterp
+    d = to_cartesian(ubo2014_angles())
+    interp = DirectionInterp(d)
+    ring = np.flatnonzero(np.isclose(np.degrees(ubo2014_angles()[:, 0]), 75.0))
+    for k in ring[:6]:
+        ray = d[k, :2] / np.linalg.norm(d[k, :2])
+        r0 = np.linalg.norm(d[k, :2])
+        w = []
+        for r in (r0 - 1e-6, r0 + 1e-6, r0 + 0.02):
+            xy = ray * r
+            w.append(torch.tensor([[xy[0], xy[1], np.sqrt(max(1 - r * r, 0.0))]]))
+        (i, a), (j, b), (_, c) = (interp(x) for x in w)
+        wa = dict(zip(i[0].tolist(), a[0].tolist()))
+        wb = dict(zip(j[0].tolist(), b[0].tolist()))
+        assert wa.get(k, 0) > 0.99 and wb.get(k, 0) > 0.99, (k, wa, wb)
+        assert float(c.sum()) == pytest.approx(1.0)
 
 
 def test_lock_file_records_then_verifies(tmp_path):

@@ -7,6 +7,8 @@ swamp the diffuse texture), queries return max(exp(y) - 1, 0).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
 import time
@@ -133,6 +135,18 @@ def _reset(model: nn.Module, seed: int, init_std: float):
             m.reset_parameters()
 
 
+def fingerprint(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
+                init_std: float) -> str:
+    """What a checkpoint must match to be resumed: the model's shape, the training settings
+    and the data (its file, crop and angular factors); checkpoint_every only sets when."""
+    h = hashlib.sha256(json.dumps([model.method, getattr(model, "kwargs", {}), steps, batch, lr,
+                                   seed, init_std, str(getattr(data, "path", "")), data.width,
+                                   data.height], sort_keys=True, default=str).encode())
+    for u in getattr(data, "U", []):
+        h.update(u.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
 def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
           checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 500,
           init_std: float = 0.1) -> list[float]:
@@ -143,7 +157,10 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, max(steps, 1), eta_min=lr * 0.05)
     gen = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers (_reset)
     start = 0
-    ck = modelfile.resume(checkpoint, model=model, opt=opt, sched=sched, gen=gen) \
+    # a checkpoint of other settings or data is ignored (logged), not resumed with its own
+    # learning rate and schedule
+    fp = fingerprint(model, data, steps, batch, lr, seed, init_std)
+    ck = modelfile.resume(checkpoint, fp, model=model, opt=opt, sched=sched, gen=gen) \
         if checkpoint else None
     if ck is not None:
         start = ck["step"]
@@ -163,7 +180,7 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
             log.info("%s step %d/%d loss %.5f (%.1fs)", model.method, step + 1, steps,
                      sum(losses[-50:]) / len(losses[-50:]), time.time() - t0)
         if checkpoint and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
-            save_torch(checkpoint, {"model": model.state_dict(), "opt": opt.state_dict(),
-                                    "sched": sched.state_dict(), "gen": gen.get_state(),
-                                    "step": step + 1})
+            save_torch(checkpoint, {"fingerprint": fp, "model": model.state_dict(),
+                                    "opt": opt.state_dict(), "sched": sched.state_dict(),
+                                    "gen": gen.get_state(), "step": step + 1})
     return losses
