@@ -267,3 +267,21 @@ def test_overhead_benchmark_work_dir(tmp_path):
     keep = tmp_path / "keep"
     (bench.work_dir(keep) / "old").write_text("x")
     assert bench.work_dir(keep) == keep and not any(keep.iterdir())
+
+
+def test_every_rule_that_runs_torch_on_the_config_device_can_ask_for_a_gpu():
+    """With `device: cuda` a job whose script resolves the config's device must ask Slurm for
+    a GPU (resources gpu), or it lands on a node without one and fails ('torch sees no CUDA
+    device'); six rules asked for none."""
+    scripts = {p.name for p in (ROOT / "workflow/scripts").glob("*.py")
+               if 'config["device"]' in p.read_text()}
+    missing, seen = [], 0
+    for smk in (ROOT / "workflow/rules").glob("*.smk"):
+        text = smk.read_text()
+        for m in re.finditer(r"^rule (\w+):(.*?)(?=^rule |\Z)", text, re.S | re.M):
+            script = re.search(r'script:\s*\n\s*"\.\./scripts/(\w+\.py)"', m.group(2))
+            if script and script.group(1) in scripts:
+                seen += 1
+                if not re.search(r"\n        gpu=", m.group(2)):
+                    missing.append(f"{smk.name}: {m.group(1)}")
+    assert seen >= 20 and not missing, missing

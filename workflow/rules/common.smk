@@ -33,6 +33,11 @@ OUT = f"results/{RUN}"
 SEED = config["seed"]
 
 
+# a job whose script runs torch on config `device` asks Slurm for a GPU when that is cuda
+# (with auto, the submitting host cannot know what a node has: none is asked for)
+GPU = 1 if config["device"] == "cuda" else 0
+
+
 def seed_for(stage, *items):
     """Seed of the named random stream `stage` (for `items`, e.g. a material) of this run; see
     neumat.seeds. Every stochastic rule takes its seed from here, never from SEED + offset."""

@@ -208,6 +208,7 @@ rule sample_text:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_conditions.py"
 
@@ -250,6 +251,7 @@ rule sample_image:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_conditions.py"
 
@@ -279,6 +281,7 @@ rule sample_multimodal:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_conditions.py"
 
@@ -314,6 +317,7 @@ rule sample_mm_type:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_conditions.py"
 
@@ -380,6 +384,7 @@ rule guidance_sweep:
     resources:
         mem_mb=3000,
         runtime=120,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/guidance_sweep.py"
 

@@ -86,6 +86,7 @@ rule sample_constrained:
     resources:
         mem_mb=3000,
         runtime=60,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_constrained.py"
 

@@ -84,6 +84,7 @@ rule sample_uncond:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_diffusion.py"
 
@@ -112,6 +113,7 @@ rule sample_plain:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_diffusion.py"
 
@@ -141,6 +143,7 @@ rule sample_type:
     resources:
         mem_mb=2500,
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/sample_diffusion.py"
 
@@ -314,5 +317,6 @@ rule diffusion_section:
     resources:
         mem_mb=3000,
         runtime=20,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/diffusion_section.py"

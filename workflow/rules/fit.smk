@@ -84,6 +84,7 @@ rule fit_eval:
     resources:
         mem_mb=2500 + 15 * len(MERL_NAMES),
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/fit_eval.py"
 
@@ -163,5 +164,6 @@ rule neumerl_section:
     resources:
         mem_mb=2500 + 15 * len(MERL_NAMES),
         runtime=20,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/neumerl_section.py"

@@ -91,6 +91,7 @@ rule hyperbrdf_eval:
     resources:
         mem_mb=3000 + 40 * len(MERL_NAMES),
         runtime=30,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/hyperbrdf_eval.py"
 

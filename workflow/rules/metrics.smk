@@ -43,6 +43,7 @@ rule metrics_reference:
     resources:
         mem_mb=METRICS_MEM_MB,
         runtime=60,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/metrics_reference.py"
 
@@ -74,6 +75,7 @@ rule metrics:
     resources:
         mem_mb=METRICS_MEM_MB,
         runtime=120 * DRAWS,
+        gpu=GPU,  # its script runs torch on config device
     script:
         "../scripts/metrics_eval.py"
 

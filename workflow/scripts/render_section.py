@@ -38,10 +38,10 @@ with script_logging(snakemake) as log:
         "## Rendering",
         f"**Metric renderer** (`neumat.render.sphere`): unit sphere, orthographic view, one point "
         f"light at {tuple(float(v) for v in sphere.LIGHT_POS)} (upper left, front) plus a dim uniform environment "
-        f"(radiance {sphere.AMBIENT}, integrated analytically on a fixed quadrature) - no Monte "
+        f"(radiance {sphere.AMBIENT}, integrated on a fixed numerical quadrature) - no Monte "
         f"Carlo noise; sRGB curve, exposure 0 (shown at {p.figure_resolution}², metrics use "
         f"{p.resolution}²). Rendered the {len(weights)} reference (test-split) fields at **{rate:.0f} renders/s** "
-        f"at {p.resolution}² ({snakemake.threads} threads, one batch).",
+        f"at {p.resolution}² ({snakemake.threads} threads, in chunks).",
         f"![reference fields](figures/{Path(out.fields).name})",
         "MERL-format tables of this run through the same renderer (nearest-bin lookup):",
         f"![MERL tables](figures/{Path(out.tables).name})",
