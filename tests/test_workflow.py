@@ -589,6 +589,28 @@ def test_type_guidance_reruns_no_text_or_image_sampling(tiny_run):
                 "guidance_sweep", "sample_uncond"} & set(jobs), jobs
 
 
+def test_each_conditioned_sampler_reruns_for_its_own_guidance_and_dropout(tiny_run):
+    """A sampler's guidance param is its own modality's scale, and none where its refiner
+    (which takes no condition) draws: in the tiny config every modality is refined, so
+    conditions.guidance.type reruns no sampler (each took the whole section: all four reran),
+    only the report section that prints it. diffusion.train.cond_drop is ours's dropout, not
+    the multimodal model's (conditions.cond_drop), so that one is not retrained."""
+    import yaml
+    base = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    assert all(base["conditions"][m]["refiner"] for m in ("type", "text", "image"))
+    cfg = yaml.safe_load(yaml.safe_dump(base))
+    _set(cfg, "conditions.guidance.type", 3.5)
+    (tiny_run / "config/mm_type_guidance.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/mm_type_guidance.yaml")
+    assert "conditions_section" in jobs and not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not [j for j in jobs if j.startswith("sample_")], jobs
+    cfg = yaml.safe_load(yaml.safe_dump(base))
+    _set(cfg, "diffusion.train.cond_drop", 0.3)
+    (tiny_run / "config/ours_cond_drop.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/ours_cond_drop.yaml")
+    assert "train_diffusion" in jobs and "train_multimodal" not in jobs, jobs
+
+
 @pytest.mark.slow
 def test_measured_colour_words_retrain_only_the_conditioning(tiny_run):
     """conditions.text.colour_words (neutral `source`) is a param of text_embeddings alone:

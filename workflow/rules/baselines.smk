@@ -24,9 +24,11 @@ rule baseline_pca:
     params:
         components=BASE["pca_a"]["components"],
         seeds=lambda wc: draw_seeds("sample", wc.model),
-        resolution=config["render"]["resolution"],
-        brdf_samples=METRICS["brdf_samples"],
-        brdf_seed=METRICS_SEED,
+        # PCA-A's tables at the metric bins and views; baseline_pca_n (which `use rule`
+        # inherits these params into) reads none of them, so they rerun nothing there
+        resolution=lambda wc: config["render"]["resolution"] if wc.model == "pca_a" else None,
+        brdf_samples=lambda wc: METRICS["brdf_samples"] if wc.model == "pca_a" else None,
+        brdf_seed=lambda wc: METRICS_SEED if wc.model == "pca_a" else None,
     log:
         log("baseline_pca/{model}"),
     benchmark:

@@ -32,8 +32,17 @@ COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 COND_SAMPLING = dict(
     sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditioned
     per_prompt=COND["per_condition"],
-    guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
 )
+
+
+def cond_guidance(name, refiner=False):
+    """The guidance param of the sampler conditioned on `name` (type, text or image; None for
+    mm_uncond): its own scale of conditions.guidance alone, none when its refiner (which takes
+    no condition) draws, so another modality's scale reruns nothing here."""
+    if name is None or refiner:
+        return {}
+    g = COND["guidance"]
+    return {name: g[name] if isinstance(g, dict) else g}
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
 COND_MEASURED = COND["text"]["colour_words"] == "measured"
@@ -126,8 +135,10 @@ rule train_multimodal:
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         history=out(f"diffusion/{COND_MODEL}/history.tsv"),
     params:
-        cfg=settings("diffusion", ["model", "schedule", "train"]),
-        cond_drop=COND["cond_drop"],
+        # ours's model, schedule and training, with the conditions' dropout (the one used:
+        # diffusion.train.cond_drop is ours's and reruns nothing here)
+        cfg=canon({**settings("diffusion", ["model", "schedule"]),
+                   "train": {**settings("diffusion.train"), "cond_drop": COND["cond_drop"]}}),
         class_names=DIFF_CLASSES,
         seed=cond_seed("train"),
         checkpoint=out(f"diffusion/{COND_MODEL}/checkpoint.pt"),
@@ -194,6 +205,7 @@ rule sample_text:
         timing=out("samples/text/timing.tsv"),
     params:
         **COND_SAMPLING,
+        guidance=cond_guidance("text", TEXT_REFINER),
         mode="text",
         seed=cond_seed("text"),
         activation=DIFF_ACTIVATION,
@@ -230,6 +242,7 @@ rule sample_image:
         embeddings=out("samples/image/conditioning_embeddings.npy"),
     params:
         **COND_SAMPLING,
+        guidance=cond_guidance("image", IMAGE_REFINER),
         test_images=COND["image"]["test_images"],
         strength=COND["image"]["strength"],
         **neutral_params("conditions.image", ["render_step", "refiner", "candidates",
@@ -268,6 +281,7 @@ rule sample_multimodal:
         timing=out("samples/mm_uncond/timing.tsv"),
     params:
         **COND_SAMPLING,
+        guidance=cond_guidance(None),
         mode="mm_uncond",
         seed=cond_seed("mm_uncond"),
         activation=DIFF_ACTIVATION,
@@ -303,6 +317,7 @@ rule sample_mm_type:
         timing=out("samples/mm_type/timing.tsv"),
     params:
         **COND_SAMPLING,
+        guidance=cond_guidance("type", TYPE_REFINER),
         mode="mm_type",
         seed=cond_seed("mm_type"),
         activation=DIFF_ACTIVATION,

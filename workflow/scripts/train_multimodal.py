@@ -19,7 +19,7 @@ with script_logging(snakemake) as log:
     mcfg = DenoiserConfig(**cfg["model"], n_classes=len(p.class_names),
                           vector_conditions={"text": text.shape[-1], "image": img.shape[-1]})
     speed = snakemake.config["diffusion"]["train"]  # speed-only keys: not in params
-    tcfg = TrainConfig(**{**cfg["train"], "cond_drop": p.cond_drop,
+    tcfg = TrainConfig(**{**cfg["train"],  # cond_drop: conditions.cond_drop (the rule's params)
                           "checkpoint_every": speed["checkpoint_every"], "compile": speed["compile"]})
     log.info("multimodal: %d training materials (%d typed), text %s, image %s", len(rows),
              int((labels >= 0).sum()), text.shape, img.shape)
