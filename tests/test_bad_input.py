@@ -36,6 +36,13 @@ def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+def test_eps_prediction_with_an_x0_loss_fails_when_the_dag_is_built(tmp_path):
+    rc, text = _dry_run(tmp_path, {"diffusion": {"schedule": {"prediction": "eps", "loss": "x0"}}},
+                        "config/tiny.yaml")
+    assert rc != 0 and "prediction: eps with diffusion.schedule.loss: x0" in text
+    assert not (tmp_path / "results").exists()
+
+
 def test_start_keys_without_a_start_fail_when_the_dag_is_built(tmp_path):
     """conditions.text.start_match picks a start material: at strength 1 there is none. The
     check (neumat.conditions.starts.check; each key: test_start_keys_need_a_strength_below_one)

@@ -6,6 +6,9 @@
 #   diffusion_plausibility, export_samples -> diffusion_section
 
 DIFF = config["diffusion"]
+from neumat.diffusion.schedule import check_pairing as _check_pairing  # noqa: E402
+
+_check_pairing(DIFF["schedule"]["prediction"], DIFF["schedule"]["loss"])  # before any job runs
 DIFF_MODELS = ["ours", "merl100"]
 # Class names of the type condition: every type of this run's MERL catalogue (48 for MERL).
 DIFF_CLASSES = sorted(set(MERL["type"]))

@@ -59,6 +59,16 @@ def make_betas(cfg: ScheduleConfig) -> torch.Tensor:
     raise ValueError(f"diffusion.schedule.kind: unknown schedule {cfg.kind!r}; choose from {SCHEDULES}")
 
 
+def check_pairing(prediction: str, loss: str) -> None:
+    """Refuse prediction eps with an x0 loss (also at DAG time, workflow/rules/diffusion.smk):
+    x0 = (x_t - sqrt(1 - ab) eps) / sqrt(ab), so the x0 error weights each step by
+    (1 - ab) / ab, 99.8 % of the total on the last step of the cosine schedule."""
+    if prediction == "eps" and loss == "x0":
+        raise ValueError("diffusion.schedule.prediction: eps with diffusion.schedule.loss: x0 "
+                         "weights the loss by (1 - alpha_bar) / alpha_bar, almost all of it on "
+                         "the last timestep; use loss: prediction, or prediction: x0 or v")
+
+
 class Diffusion:
     """Schedule tensors + forward process, loss and DDIM sampling for one ScheduleConfig."""
 
@@ -70,12 +80,7 @@ class Diffusion:
             raise ValueError(f"diffusion.schedule.loss: {cfg.loss!r} is not one of {LOSSES}")
         if cfg.timesteps < 1:
             raise ValueError("diffusion.schedule.timesteps must be >= 1")
-        if cfg.prediction == "eps" and cfg.loss == "x0":
-            # x0 = (x_t - sqrt(1 - ab) eps) / sqrt(ab): the x0 error weights each step by
-            # (1 - ab) / ab, 99.8 % of the total on the last step of the cosine schedule
-            raise ValueError("diffusion.schedule.prediction: eps with diffusion.schedule.loss: x0 "
-                             "weights the loss by (1 - alpha_bar) / alpha_bar, almost all of it on "
-                             "the last timestep; use loss: prediction, or prediction: x0 or v")
+        check_pairing(cfg.prediction, cfg.loss)
         self.cfg = cfg
         self.T = cfg.timesteps
         self.betas = make_betas(cfg)
