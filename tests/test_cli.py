@@ -152,23 +152,37 @@ def test_render_binary_and_weights(run, tmp_path):
     merl.write_merl(tmp_path / "t.binary", nbrdf.evaluate_grid(torch.as_tensor(w[:1]))[0])
     assert main("render", tmp_path / "t.binary", "--out", tmp_path / "t.png", "--resolution", 32) == 0
     from PIL import Image
-    assert Image.open(tmp_path / "t.png").size == (32, 32)
+    t = np.asarray(Image.open(tmp_path / "t.png").convert("RGB"), np.float64)
+    assert t.shape == (32, 32, 3) and t.max() > 20  # a lit sphere, not a black image
+    # the first field alone and its table: the same material through the same renderer
+    np.save(tmp_path / "w1.npy", w[:1])
+    assert main("render", tmp_path / "w1.npy", "--out", tmp_path / "w1.png", "--resolution", 32) == 0
+    f = np.asarray(Image.open(tmp_path / "w1.png").convert("RGB"), np.float64)
+    assert f.shape == (32, 32, 3)
+    psnr = 10 * np.log10(255 ** 2 / np.mean((f - t) ** 2))
+    assert psnr > 30, psnr
 
 
-def test_category_round_trip(run, tmp_path):
+def test_category_round_trip(run, tmp_path, capsys):
+    """What --category keeps falls into the category by the run's rules (diffuse: the
+    miniature model makes it), and a category it does not make within --budget (metallic)
+    exits with EXIT_BUDGET, says so and writes no weights."""
     (run / "constrained").mkdir(exist_ok=True)
     th = constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9,
                                 high_peak=1e9, medium_peak=1e9)
     th.to_frame().to_csv(run / "constrained/rules.tsv", sep="\t", index=False)
+    common = ["-n", 2, "--steps", 3, "--budget", 4, "--batch", 4, "--bins", 16384, "--no-binary"]
     out = tmp_path / "c"
-    rc = main("sample", "--run", run, "--category", "metallic", "-n", 2, "--steps", 3, "--budget", 4,
-              "--batch", 4, "--bins", 16384, "--no-binary", "--out", out)
-    w = np.load(out / "weights.npy") if (out / "weights.npy").exists() else np.zeros((0, 675))
-    # whatever the model made, what was kept is metallic by the rules, and a shortfall says so
-    if len(w):
-        st = constrained.field_stats(w, bins=constrained.grid_bins(16384, 0))
-        assert set(constrained.classify(st, th)) == {"metallic"}
-    assert rc == (0 if len(w) == 2 else cli.EXIT_BUDGET)
+    assert main("sample", "--run", run, "--category", "diffuse", *common, "--out", out) == 0
+    w = np.load(out / "weights.npy")
+    st = constrained.field_stats(w, bins=constrained.grid_bins(16384, 0))
+    assert len(w) == 2 and set(constrained.classify(st, th)) == {"diffuse"}
+    capsys.readouterr()
+    none = tmp_path / "m"
+    rc = main("sample", "--run", run, "--category", "metallic", *common, "--out", none)
+    err = capsys.readouterr().err
+    assert rc == cli.EXIT_BUDGET and not (none / "weights.npy").exists()
+    assert "no sample of category 'metallic' within --budget 4" in err
 
 
 def test_category_takes_the_runs_threshold_overrides(run, tmp_path):

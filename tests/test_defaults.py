@@ -90,6 +90,24 @@ def test_speed_and_cosmetic_keys_are_schema_keys():
         assert entry.get("why") and "try" in entry, key
 
 
+def test_every_key_to_try_differs_from_the_tiny_config():
+    """The caching test (tests/test_workflow.py) sets each speed or cosmetic key to its `try`
+    on the tiny run: a `try` equal to the tiny config's value (or its default) tests nothing."""
+    root = Path(__file__).resolve().parents[1]
+    kinds = yaml.safe_load((root / "config/speed_keys.yaml").read_text())
+    tiny = yaml.safe_load((root / "config/tiny.yaml").read_text())
+    same = []
+    for key, entry in {**kinds["speed"], **kinds["cosmetic"]}.items():
+        node, cfg = SCHEMA, tiny
+        for part in key.split("."):
+            node = node["properties"][part]
+            cfg = cfg.get(part, {}) if isinstance(cfg, dict) else {}
+        value = cfg if cfg != {} else node.get("default")
+        if entry["try"] == value:
+            same.append(key)
+    assert not same, same
+
+
 def test_neutral_keys_default_to_their_neutral_value():
     """A neutral key leaves params only at the value that reproduces results made before it
     existed, and that value is its default: a config that does not set it reruns nothing."""

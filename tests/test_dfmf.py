@@ -48,8 +48,24 @@ def test_colour_model_11_inverse():
     rgb = np.array([[0.2, 0.5, 0.1], [1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [0.03, 0.01, 0.2]])
     back = dfmf.to_rgb(dfmf.from_rgb(rgb, 11), 11)
     np.testing.assert_allclose(back, rgb, atol=1e-5)
-    # known answer: luminance channel is log(Y + 1e-5) with Y = 0.299 R + 0.587 G + 0.114 B
-    assert dfmf.from_rgb(rgb[1:2], 11)[0, 0] == pytest.approx(np.log(1.0 + 1e-5), abs=1e-5)
+    # known answers, from BT.601's analog YUV (not from the code's matrix): Y = 0.299 R +
+    # 0.587 G + 0.114 B, U = -0.14713 R - 0.28886 G + 0.436 B, V = 0.615 R - 0.51499 G -
+    # 0.10001 B; model 11 stores log(Y + 1e-5), U / (Y + 1e-5), V / (Y + 1e-5). (White alone,
+    # as before, gives Y = 1 whatever U and V's coefficients are.)
+    bt601 = np.array([[0.299, 0.587, 0.114], [-0.14713, -0.28886, 0.436],
+                      [0.615, -0.51499, -0.10001]])
+    for c in np.eye(3):
+        y, u, v = bt601 @ c
+        raw = dfmf.from_rgb(c[None], 11)[0]
+        np.testing.assert_allclose(raw, [np.log(y + 1e-5), u / (y + 1e-5), v / (y + 1e-5)],
+                                   rtol=2e-4, atol=1e-6)
+    # and decoding a hand-made raw value: R = Y + 1.13983 V, G = Y - 0.39465 U - 0.5806 V,
+    # B = Y + 2.03211 U with U, V scaled back by Y + 1e-5
+    y, ud, vd = 0.5, 0.2, -0.1
+    u, v = ud * (y + 1e-5), vd * (y + 1e-5)
+    np.testing.assert_allclose(dfmf.to_rgb(np.array([[np.log(y + 1e-5), ud, vd]]), 11)[0],
+                               [y + 1.13983 * v, y - 0.39465 * u - 0.5806 * v, y + 2.03211 * u],
+                               rtol=1e-6)
 
 
 def test_roi_maps_texels(tmp_path):
