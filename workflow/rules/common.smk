@@ -38,6 +38,16 @@ SEED = config["seed"]
 GPU = 1 if config["device"] == "cuda" else 0
 
 
+def cond_guidance(name, refiner=False):
+    """The guidance param of the sampler conditioned on `name` (type, text or image; None for
+    mm_uncond): its own scale of conditions.guidance alone, none when its refiner (which takes
+    no condition) draws, so another modality's scale reruns nothing there."""
+    if name is None or refiner:
+        return {}
+    g = config["conditions"]["guidance"]
+    return {name: g[name] if isinstance(g, dict) else g}
+
+
 def seed_for(stage, *items):
     """Seed of the named random stream `stage` (for `items`, e.g. a material) of this run; see
     neumat.seeds. Every stochastic rule takes its seed from here, never from SEED + offset."""

@@ -34,15 +34,6 @@ COND_SAMPLING = dict(
     per_prompt=COND["per_condition"],
 )
 
-
-def cond_guidance(name, refiner=False):
-    """The guidance param of the sampler conditioned on `name` (type, text or image; None for
-    mm_uncond): its own scale of conditions.guidance alone, none when its refiner (which takes
-    no condition) draws, so another modality's scale reruns nothing here."""
-    if name is None or refiner:
-        return {}
-    g = COND["guidance"]
-    return {name: g[name] if isinstance(g, dict) else g}
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
 COND_MEASURED = COND["text"]["colour_words"] == "measured"
