@@ -340,6 +340,7 @@ def test_evaluation_and_section_take_any_number_of_lights(tmp_path, lights):
     from neumat.btf import models
     from neumat.btf.synthesis import stage
     path = tmp_path / "tp.pt"
+    torch.manual_seed(0)  # the MLP's init: 8 % of seeds give a black render (ACF undefined)
     models.save(_plane_model(), path)
     render = {"width": 8, "height": 8, "spp": 1, "scales": [1, 3]}
     stage.evaluate("m", {"triple_plane": path}, {}, render, {"scale": 2, "px_per_tile": 8},
