@@ -343,7 +343,7 @@ def test_render_psnr_is_image_scores_psnr():
 
 
 def test_same_source_links_originals_permutations_and_mixtures():
-    from neumat.conditions import image
-    same = image.same_source(["a", "a", "b", "a@gbr|c@rgb", "c"])
+    from neumat.diffusion import dataset
+    same = dataset.same_source(["a", "a", "b", "a@gbr|c@rgb", "c"])
     assert same.tolist() == [[1, 1, 0, 1, 0], [1, 1, 0, 1, 0], [0, 0, 1, 0, 0],
                              [1, 1, 0, 1, 1], [0, 0, 0, 1, 1]]

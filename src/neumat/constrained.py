@@ -64,6 +64,12 @@ def _inputs(key: bytes) -> torch.Tensor:
                            dtype=torch.float32)
 
 
+def n_peak_bins() -> int:
+    """Above-horizon bins at theta_h bin 0, where highlights (mirrors') peak: 16,200. Every
+    subsample keeps them (`grid_bins`), so it is also the fewest bins a subsample may have."""
+    return int(merl.valid_mask()[: merl.N_TD * merl.N_PD].sum())
+
+
 def grid_bins(bins: int | None = None, seed: int = 0) -> np.ndarray:
     """Flat indices of the above-horizon MERL bins used for the statistics: all of them, or
     `bins` drawn without replacement (sorted) with `seed`. The highlight bins (theta_h bin 0,
@@ -71,7 +77,7 @@ def grid_bins(bins: int | None = None, seed: int = 0) -> np.ndarray:
     valid = np.flatnonzero(merl.valid_mask())
     if bins is None or bins >= len(valid):
         return valid
-    n_peak = int(np.searchsorted(valid, merl.N_TD * merl.N_PD))  # theta_h bin 0: a prefix
+    n_peak = n_peak_bins()  # theta_h bin 0: a prefix of the sorted valid bins
     peak, rest = valid[:n_peak], valid[n_peak:]  # (valid is sorted: no set difference needed)
     rng = np.random.default_rng(seed)
     pick = rng.choice(rest, size=max(bins - len(peak), 0), replace=False)
@@ -112,7 +118,7 @@ def _stratified_weights(bins: np.ndarray) -> np.ndarray:
     """Weights that make a subsample with all theta_h-bin-0 bins kept unbiased for the full
     grid: the kept peak bins count once, the random rest counts for the bins it stands for."""
     valid = merl.valid_mask()
-    n_peak = int(valid[: merl.N_TD * merl.N_PD].sum())
+    n_peak = n_peak_bins()
     n_rest_full = int(valid.sum()) - n_peak
     is_peak = bins < merl.N_TD * merl.N_PD
     n_rest = int((~is_peak).sum())

@@ -42,10 +42,7 @@ def cond_guidance(name, refiner=False):
     """The guidance param of the sampler conditioned on `name` (type, text or image; None for
     mm_uncond): its own scale of conditions.guidance alone, none when its refiner (which takes
     no condition) draws, so another modality's scale reruns nothing there."""
-    if name is None or refiner:
-        return {}
-    g = config["conditions"]["guidance"]
-    return {name: g[name] if isinstance(g, dict) else g}
+    return {} if name is None or refiner else {name: config["conditions"]["guidance"][name]}
 
 
 def seed_for(stage, *items):

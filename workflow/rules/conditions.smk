@@ -27,13 +27,12 @@ if COND["image"]["images"]:  # a missing or broken image would fail only its job
 
     _images.check_images(COND["image"]["images"], "conditions.image.images")
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
-# the sampling params every conditioned sampler shares: diffusion.sample's settings with
-# conditions.guidance in place of its guidance
+# the sampling params every conditioned sampler shares: diffusion.sample's settings without
+# its guidance (each sampler takes its own scale of conditions.guidance: cond_guidance)
 COND_SAMPLING = dict(
     sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditioned
     per_prompt=COND["per_condition"],
 )
-
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
 COND_MEASURED = COND["text"]["colour_words"] == "measured"

@@ -41,7 +41,7 @@ with script_logging(snakemake) as log:
         # itself scored 0.95 on real40 against 0.36 leaving out its source, the test row 0.35)
         dt = ((q[:, None] - e_train[None, :, 0]) ** 2).sum(-1)
         if name == "train":
-            dt[image.same_source(man["sources"].iloc[train].to_numpy())] = np.inf
+            dt[dataset.same_source(man["sources"].iloc[train].to_numpy())] = np.inf
         tt = man["type"].iloc[train].to_numpy()
         own = man["type"].iloc[idx].to_numpy()
         dt[:, tt == ""] = np.inf

@@ -64,14 +64,6 @@ def _image_embedding(run: Run, path: str, dim: int | None) -> tuple[np.ndarray, 
     return image.embed(enc, img[None]), enc_path
 
 
-def constrained_min_bins() -> int:
-    """The fewest MERL bins --category's statistics may use: every theta_h-bin-0 bin (16,200,
-    the schema's minimum of constrained.bins)."""
-    from neumat.io import merl
-    valid = merl.valid_mask()
-    return int(valid[: merl.N_TD * merl.N_PD].sum())
-
-
 def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, float]:
     """--guidance S (every condition asked) and/or MOD=S (one modality; wins over S, whatever
     the order) -> {modality: scale}."""
@@ -500,8 +492,9 @@ def cmd_sample(args) -> int:
             setattr(args, flag, int(run.setting("conditions", "image", key)) if args.image else 0)
     if args.batch < 1:
         raise CLIError(f"--batch {args.batch}: give a whole number >= 1")
-    if args.category and args.bins < constrained_min_bins():
-        raise CLIError(f"--bins {args.bins}: give at least {constrained_min_bins()} (every "
+    from neumat.constrained import n_peak_bins
+    if args.category and args.bins < n_peak_bins():
+        raise CLIError(f"--bins {args.bins}: give at least {n_peak_bins()} (every "
                        f"theta_h-bin-0 bin, where highlights peak, plus some of the rest; the "
                        f"schema's minimum of constrained.bins)")
     # DDIM's eta and the x0 clip of the run (diffusion.sample), as its workflow sampled

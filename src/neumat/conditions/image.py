@@ -215,17 +215,6 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
             "seed": seed}
 
 
-def same_source(sources) -> np.ndarray:
-    """(N, N) bool: rows i, j share a MERL source material (manifest `sources`: 'name' for an
-    original or its permuted copy, 'a@rgb|b@gbr' for a mixture), the diagonal included."""
-    names = [{c.split("@")[0] for c in str(s).split("|")} for s in sources]
-    index = {n: i for i, n in enumerate(sorted(set().union(*names)))}
-    A = np.zeros((len(names), len(index)), np.float32)  # row x source incidence
-    for i, ns in enumerate(names):
-        A[i, [index[n] for n in ns]] = 1
-    return (A @ A.T) > 0
-
-
 def load(bundle) -> ImageEncoder:
     """An encoder from a `train` bundle or its file (weights_only: tensors and plain values)."""
     if not isinstance(bundle, dict):

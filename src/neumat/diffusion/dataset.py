@@ -108,3 +108,14 @@ def nearest(a: torch.Tensor, b: torch.Tensor, chunk: int = 256) -> tuple[np.ndar
         idx.append(m.indices.numpy())
         dist.append(m.values.numpy())
     return np.concatenate(idx), np.concatenate(dist)
+
+
+def same_source(sources) -> np.ndarray:
+    """(N, N) bool: rows i, j share a MERL source material (manifest `sources`: 'name' for an
+    original or its permuted copy, 'a@rgb|b@gbr' for a mixture), the diagonal included."""
+    names = [{c.split("@")[0] for c in str(s).split("|")} for s in sources]
+    index = {n: i for i, n in enumerate(sorted(set().union(*names)))}
+    A = np.zeros((len(names), len(index)), np.float32)  # row x source incidence
+    for i, ns in enumerate(names):
+        A[i, [index[n] for n in ns]] = 1
+    return (A @ A.T) > 0
