@@ -99,12 +99,43 @@ def test_view_directions_are_unit_and_above_the_horizon():
     for d in (v.wi, v.wo):
         torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(d)))
         assert (d[:, 2] > 0).all()
-    assert (v.weight > 0).all() and len(v.pixel) == v.n_lit
+    assert (v.weight[:v.n_lit] > 0).all() and len(v.pixel) == v.n_lit
+    # the albedo nodes: none below the horizon weighs; each view angle's weights integrate
+    # AMBIENT cos(theta_i) to AMBIENT pi
+    amb = v.weight[v.n_lit:].double().reshape(v.n_theta, -1)
+    assert (amb >= 0).all()
+    np.testing.assert_allclose(amb.sum(1).numpy(), sphere.AMBIENT * np.pi, rtol=1e-6)
     # cos(theta_o) of a lit pixel is the z of its normal (orthographic camera along -z)
     r = v.resolution
     c = (np.arange(r) + 0.5) / r * 2 - 1
     x, y = c[v.pixel.numpy() % r], -c[v.pixel.numpy() // r]
     np.testing.assert_allclose(v.wo[:v.n_lit, 2].numpy(), np.sqrt(1 - x ** 2 - y ** 2), rtol=1e-5)
+
+
+def _ggx(wi, wo, alpha):
+    """Isotropic GGX with Smith's G1 and no Fresnel: a lobe as sharp as MERL's metals."""
+    h = wi + wo
+    h = h / np.linalg.norm(h, axis=-1, keepdims=True)
+    a2 = alpha * alpha
+    d = a2 / (np.pi * (h[..., 2] ** 2 * (a2 - 1) + 1) ** 2)
+
+    def g1(w):
+        c = np.clip(w[..., 2], 1e-9, 1)
+        return 2 / (1 + np.sqrt(1 + a2 * (1 - c * c) / (c * c)))
+    return d * g1(wi) * g1(wo) / (4 * np.clip(wi[..., 2], 1e-9, None) * np.clip(wo[..., 2], 1e-9, None))
+
+
+@pytest.mark.parametrize("alpha", [0.02, 0.05, 0.1, 0.3])
+def test_albedo_of_sharp_lobes_matches_a_dense_quadrature(alpha):
+    """The environment term's albedo quadrature (AMB_TH x AMB_PHI half vectors) integrates a
+    GGX lobe within 0.5 % of a 400 x 400 grid at every view angle; the cosine-weighted 16 x 16
+    grid it replaced missed roughness 0.05 by 0.83 (a highlight ring on every glossy sphere)."""
+    theta_o, wi, wo, w = sphere.albedo_quadrature()
+    got = (_ggx(wi, wo, alpha) * w).reshape(len(theta_o), -1).sum(1)
+    dwi, dwo, dw = sphere.half_vector_nodes(theta_o, 400, 400, half=True)
+    ref = (_ggx(dwi, dwo, alpha) * dw).sum(1)
+    assert ref.min() > 0.5  # the lobe is there at every angle
+    np.testing.assert_allclose(got, ref, rtol=5e-3)
 
 
 def test_tonemap_srgb_curve():

@@ -17,29 +17,18 @@ import torch
 
 from neumat import nbrdf
 from neumat.io import merl
+from neumat.render.sphere import half_vector_nodes
 
 
 def albedo_quadrature(n_theta_o: int = 8, n_theta_h: int = 64, n_phi_h: int = 64):
     """Directions and weights: x (n_o, M, 6) NBRDF inputs, w (n_o, M) quadrature weights
-    (including cos(theta_i), the Jacobian and the below-horizon mask), theta_o (n_o,)."""
+    (including cos(theta_i), the Jacobian and the below-horizon mask), theta_o (n_o,): the
+    metric renderer's half-vector nodes (`sphere.half_vector_nodes`), phi_h over [0, 2 pi]."""
     theta_o = (np.arange(n_theta_o) + 0.5) / n_theta_o * (np.pi / 2)
-    u = (np.arange(n_theta_h) + 0.5) / n_theta_h
-    th = u ** 2 * (np.pi / 2)  # theta_h = (pi/2) u^2: dense near the specular peak
-    dth = 2 * u * (np.pi / 2) / n_theta_h
-    ph = (np.arange(n_phi_h) + 0.5) / n_phi_h * 2 * np.pi
-    TH, PH = np.meshgrid(th, ph, indexing="ij")
-    h = np.stack([np.sin(TH) * np.cos(PH), np.sin(TH) * np.sin(PH), np.cos(TH)], -1).reshape(-1, 3)
-    dwh = (np.sin(TH) * dth[:, None] * (2 * np.pi / n_phi_h)).reshape(-1)
-    xs, ws = [], []
-    for to in theta_o:
-        wo = np.broadcast_to([np.sin(to), 0.0, np.cos(to)], h.shape)
-        oh = np.sum(wo * h, -1)
-        wi = 2 * oh[:, None] * h - wo
-        valid = (wi[:, 2] > 0) & (oh > 0)
-        th_, td_, pd_ = merl.dirs_to_half_diff(wi, wo)
-        xs.append(merl.half_diff_cartesian(th_, td_, pd_))
-        ws.append(np.where(valid, np.clip(wi[:, 2], 0, None) * 4 * oh * dwh, 0.0))
-    return np.stack(xs), np.stack(ws), theta_o
+    wi, wo, w = half_vector_nodes(theta_o, n_theta_h, n_phi_h, half=False)
+    th_, td_, pd_ = merl.dirs_to_half_diff(wi.reshape(-1, 3), wo.reshape(-1, 3))
+    x = merl.half_diff_cartesian(th_, td_, pd_).reshape(n_theta_o, -1, 6)
+    return x, w, theta_o
 
 
 @torch.no_grad()
