@@ -33,6 +33,8 @@ def random_dirs(n, seed):
 
 
 def test_variant_follows_libllvm():
+    with pytest.raises(ValueError, match="render.mitsuba.variant"):
+        mb.select_variant("cuda_rgb")
     assert VARIANT == ("llvm_ad_rgb" if mb.find_libllvm() else "scalar_rgb")
     # where the packaged libLLVM is installed (the project's dependency), it must be found:
     # else everything above holds with scalar_rgb, the JIT tests skip, and the run is slow
@@ -44,8 +46,40 @@ def test_variant_follows_libllvm():
         return
     if sys.platform.startswith("linux"):
         assert mb.find_libllvm() is not None and VARIANT == "llvm_ad_rgb"
-    with pytest.raises(ValueError, match="render.mitsuba.variant"):
-        mb.select_variant("cuda_rgb")
+        assert mb.llvm_version(mb.find_libllvm())[0] >= 16
+
+
+def test_a_foreign_or_old_libllvm_in_the_environment_is_passed_over():
+    """DRJIT_LIBLLVM_PATH naming a library that is not a libLLVM >= 16 (LLVM 14 and 15 crash
+    Dr.Jit's kernels; here a Python extension module) is not given to Dr.Jit: a warning, the
+    search goes on, and the variable then names what was found, or is removed."""
+    import _ctypes
+    import os
+    import subprocess
+    import sys
+    foreign = os.path.realpath(_ctypes.__file__)
+    assert mb.llvm_version(foreign) is None
+    code = ("import os, neumat.render.mitsuba_bsdf as m; "
+            "print(m._LIBLLVM); print(os.environ.get('DRJIT_LIBLLVM_PATH'))")
+    r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "DRJIT_LIBLLVM_PATH": foreign},
+                       capture_output=True, text=True, check=True)
+    lib, env = r.stdout.splitlines()[:2]
+    assert foreign not in (lib, env) and "is not a libLLVM >= 16" in r.stderr
+    assert env == lib if lib != "None" else env == "None"
+    assert lib == str(mb.find_libllvm())  # what the search finds without the variable
+
+
+def test_renders_keep_to_the_jobs_threads():
+    """A workflow job's OMP_NUM_THREADS (neumat.logs.limit_threads, its rule's threads) also
+    bounds Dr.Jit's thread pool, which otherwise takes every CPU the process may use."""
+    import os
+    import subprocess
+    import sys
+    code = ("import neumat.render.mitsuba_bsdf as m, drjit as dr; m.select_variant('auto'); "
+            "print(dr.thread_count())")
+    r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "OMP_NUM_THREADS": "1"},
+                       capture_output=True, text=True, check=True)
+    assert r.stdout.split()[-1] == "1"
 
 
 def test_fit_lobe_recovers_ggx_roughness():

@@ -63,7 +63,11 @@ def find_libllvm(min_version: int = 16) -> str | None:
     gives Mitsuba its fast variant; a system libLLVM still wins)."""
     env = os.environ.get("DRJIT_LIBLLVM_PATH")
     if env and os.path.exists(env):
-        return _with_runtime(env)
+        lib = _with_runtime(env)
+        if llvm_version(lib) is not None:  # >= 16 (below it has no LLVMGetVersion)
+            return lib
+        log.warning("DRJIT_LIBLLVM_PATH=%s is not a libLLVM >= %d (Dr.Jit's kernels crash on "
+                    "LLVM 14 and 15): looking for another", env, min_version)
     prefixes = [p for p in (os.environ.get("CONDA_PREFIX"), sys.prefix) if p]
     local = [f"{p}/lib/libLLVM-{{v}}.so*" for p in prefixes] + [f"{p}/lib/libLLVM.so.{{v}}*" for p in prefixes]
     for patterns in (_LLVM_GLOBS, local):
@@ -73,6 +77,21 @@ def find_libllvm(min_version: int = 16) -> str | None:
                 if hits:
                     return _with_runtime(hits[0])
     return None
+
+
+def llvm_version(lib: str) -> tuple[int, int, int] | None:
+    """(major, minor, patch) of the libLLVM at `lib` by its LLVMGetVersion, which LLVM has
+    from 16 on; None for an older LLVM or a library that is not one (loaded RTLD_LOCAL, as
+    `_with_runtime`)."""
+    import ctypes
+
+    try:
+        get = ctypes.CDLL(lib, mode=ctypes.RTLD_LOCAL).LLVMGetVersion
+    except (OSError, AttributeError):
+        return None
+    v = [ctypes.c_uint() for _ in range(3)]
+    get(*(ctypes.byref(x) for x in v))
+    return tuple(x.value for x in v)
 
 
 def _with_runtime(lib: str) -> str:
@@ -98,6 +117,8 @@ _DRJIT_FIRST = "drjit" in sys.modules and not os.environ.get("DRJIT_LIBLLVM_PATH
 _LIBLLVM = None if _DRJIT_FIRST else find_libllvm()
 if _LIBLLVM:
     os.environ["DRJIT_LIBLLVM_PATH"] = _LIBLLVM
+elif not _DRJIT_FIRST:  # an older LLVM named there would crash Dr.Jit's kernels: none at all
+    os.environ.pop("DRJIT_LIBLLVM_PATH", None)
 
 
 def select_variant(preference: str = "auto") -> str:
@@ -120,7 +141,20 @@ def select_variant(preference: str = "auto") -> str:
             variant = "scalar_rgb"
     import mitsuba as mi
 
-    mi.set_variant(variant)
+    try:
+        mi.set_variant(variant)
+    except Exception as e:  # e.g. Dr.Jit's LLVM backend would not start with this library
+        if variant == "scalar_rgb" or preference == "llvm_ad_rgb":
+            raise RuntimeError(f"render.mitsuba.variant = {preference}: Mitsuba's {variant} "
+                               f"does not start ({type(e).__name__}: {e})") from e
+        log.warning("Mitsuba's llvm_ad_rgb does not start with %s (%s: %s): falling back to the "
+                    "slow scalar_rgb variant", _LIBLLVM, type(e).__name__, e)
+        variant = "scalar_rgb"
+        mi.set_variant(variant)
+    threads = os.environ.get("OMP_NUM_THREADS", "")  # a workflow job's share (neumat.logs.limit_threads)
+    if threads.isdigit() and int(threads) > 0:  # else Dr.Jit starts a thread per CPU it may use
+        import drjit as dr
+        dr.set_thread_count(int(threads))
     register()
     return variant
 
