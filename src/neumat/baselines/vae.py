@@ -210,14 +210,18 @@ def train_set_vae(values, x6, cos_i, *, latent, hidden, steps, batch_size, conte
     v = torch.as_tensor(np.asarray(values), dtype=torch.float32).transpose(1, 2)  # (n, B, 3)
     x6 = torch.as_tensor(np.asarray(x6), dtype=torch.float32)
     cos_i = torch.as_tensor(np.asarray(cos_i), dtype=torch.float32).clamp_min(0)
-    model = SetVAE(latent, hidden, seed)
-    g = torch.Generator().manual_seed(seed)
     n_bins = v.shape[1]
+    if context + queries > n_bins:  # the queries are other bins than the context's
+        raise ValueError(f"VAE-A: context {context} + queries {queries} bins exceed the {n_bins} "
+                         f"stored per table; lower baselines.vae_a.context or .queries, or raise "
+                         f"baselines.vae_a.bins")
+    model = SetVAE(latent, hidden, seed)
+    g = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers
 
     def batch_loss(step):
         idx = torch.randint(len(v), (min(batch_size, len(v)),), generator=g)
         perm = torch.randperm(n_bins, generator=g)
-        ctx, q = perm[:min(context, n_bins)], perm[-min(queries, n_bins):]
+        ctx, q = perm[:context], perm[-queries:]
         return model.loss(x6[ctx], v[idx][:, ctx], x6[q], v[idx][:, q], cos_i[q], beta,
                           activation, g)
 
