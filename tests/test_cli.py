@@ -208,6 +208,26 @@ def test_category_takes_the_runs_threshold_overrides(run, tmp_path):
     assert len(w) == 2 and (st["n_above"] < 2e6).all()
 
 
+def test_category_draws_as_the_runs_config(run, tmp_path, capsys):
+    """Without --budget, --batch and --bins, --category draws as the run's workflow does: its
+    constrained.budget, batch and bins (here 3, 3 and 16384), not fixed numbers."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "constrained").mkdir(exist_ok=True)
+    constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
+                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
+                                                              index=False)
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "constrained:\n  budget: 3\n  batch: 3\n  bins: 16384\n```\n")
+    capsys.readouterr()
+    rc = main("sample", "--run", rec, "--category", "metallic", "-n", 2, "--steps", 3, "--no-binary",
+              "--out", tmp_path / "m")
+    assert rc == cli.EXIT_BUDGET
+    assert "no sample of category 'metallic' within --budget 3" in capsys.readouterr().err
+
+
 def test_info_lists_models_and_missing_config(run, capsys):
     assert main("info", run) == 0
     o = capsys.readouterr().out

@@ -123,7 +123,7 @@ class FakeSampler:
 
 def test_sample_category_guides_and_reports_budget():
     th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
-    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None}
+    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None, "negative_step": 0.0}
     bins = C.grid_bins(16384, 0)
     r = C.sample_category(FakeSampler(), "diffuse", th, 5, 40, 4, 0, cfg, ["felt"], bins,
                           guidance_step=0)
@@ -138,7 +138,7 @@ def test_sample_category_guides_and_reports_budget():
 
 def test_sample_category_with_category_guidance():
     th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
-    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None}
+    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None, "negative_step": 0.0}
     bins = C.grid_bins(16384, 0)
     fake = FakeSampler()
     r = C.sample_category(fake, "diffuse", th, 5, 40, 4, 0, cfg, None, bins, guidance_step=10)

@@ -362,7 +362,7 @@ def _draw(sampler, n, seed, mode, sample_cfg, activation="relu"):
     extra = {"category": mode["category"], "category_step": mode["step"]} if mode["category"] else {}
     return sampler.sample(n, seed, ts, sample_cfg["steps"], sample_cfg["eta"], guidance,
                           sample_cfg["batch_size"], sample_cfg["clip"],
-                          sample_cfg.get("negative_step", 0.0), activation,
+                          sample_cfg["negative_step"], activation,
                           refit_steps=sample_cfg.get("refit_steps", 0), **extra)
 
 

@@ -34,7 +34,7 @@ def render(w, p):
 
 
 def clamp_note(s: dict) -> str:
-    step, refit = s.get("negative_step", 0.0), s.get("refit_steps", 0)  # refit: neutral 0
+    step, refit = s["negative_step"], s.get("refit_steps", 0)  # refit: neutral 0, absent from params
     if not step and not refit:
         return ("Clamp-aware constraint and refit off (diffusion.sample.negative_step = 0, "
                 "refit_steps = 0).")

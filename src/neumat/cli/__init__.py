@@ -75,8 +75,11 @@ def parser() -> argparse.ArgumentParser:
                         "repeatable (--guidance text=3 --guidance image=1.5). Default: the run's "
                         "config, conditions.guidance.<MOD> for the multimodal model and "
                         "diffusion.sample.guidance for a type-only model such as ours")
-    s.add_argument("--batch", type=int, default=64, help="samples per batch (default 64)")
-    s.add_argument("--budget", type=int, default=512, help="--category: most draws before giving up (default 512)")
+    s.add_argument("--batch", type=int,
+                   help="samples per batch (default: the run's diffusion.sample.batch_size, or "
+                        "with --category its constrained.batch)")
+    s.add_argument("--budget", type=int,
+                   help="--category: most draws before giving up (default: the run's constrained.budget)")
     s.add_argument("--category-step", type=float, metavar="S",
                    help="--category diffuse/metallic: category guidance step, 0 = off (default: the "
                         "run's constrained.guidance_step)")
@@ -108,7 +111,8 @@ def parser() -> argparse.ArgumentParser:
                         "(diffusion/refiner/model.pt, rule train_refiner), unconditionally, as "
                         "the workflow's conditions.<m>.refiner (--image: render guidance and "
                         "best of n still follow the image)")
-    s.add_argument("--bins", type=int, default=65536, help="--category: MERL bins the statistics use (default 65536)")
+    s.add_argument("--bins", type=int,
+                   help="--category: MERL bins the statistics use (default: the run's constrained.bins)")
     s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
     s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")
     s.add_argument("--no-binary", action="store_true", help="skip the MERL .binary files (35 MB each)")

@@ -490,6 +490,14 @@ def cmd_sample(args) -> int:
                            f"--category), as a whole number >= {low}")
         if v is None:  # the run's best of n
             setattr(args, flag, int(run.setting("conditions", "image", key)) if args.image else 0)
+    # batch, budget and bins as the run's workflow drew (--category: rule sample_constrained)
+    if args.batch is None:
+        args.batch = int(run.setting("constrained", "batch") if args.category
+                         else run.setting("diffusion", "sample", "batch_size"))
+    if args.budget is None:
+        args.budget = int(run.setting("constrained", "budget"))
+    if args.bins is None:
+        args.bins = int(run.setting("constrained", "bins"))
     if args.batch < 1:
         raise CLIError(f"--batch {args.batch}: give a whole number >= 1")
     from neumat.constrained import n_peak_bins
