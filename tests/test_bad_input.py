@@ -29,6 +29,25 @@ def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
     return res.returncode, res.stdout + res.stderr
 
 
+def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
+    rc, text = _dry_run(tmp_path, {"ubo2014": {"synthetic": {"kinds": []}}}, "config/tiny.yaml")
+    assert rc != 0 and "bad config (ubo2014.synthetic.kinds): [] names no BTF material" in text
+    assert not (tmp_path / "results").exists()
+
+
+@pytest.mark.parametrize("extra, says", [
+    ({"diffusion": {"model": {"width": 60, "heads": 8}}}, "diffusion.model.width 60 is not a multiple of diffusion.model.heads 8"),
+    ({"diffusion": {"sample": {"steps": 500}, "schedule": {"timesteps": 100}}}, "diffusion.sample.steps 500 exceeds diffusion.schedule.timesteps 100"),
+    ({"conditions": {"image": {"encoder": {"crop": 40, "resolution": 32}}}}, "conditions.image.encoder.crop 40 exceeds"),
+    ({"metrics": {"models": ["training_set", "ourss"]}}, "metrics.models ['ourss']: not Table 2 models"),
+    ({"diffusion": {"types": ["nonexistent_type"]}}, "diffusion.types ['nonexistent_type']: no material"),
+])
+def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
+    rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
+    assert rc != 0 and "bad config: " in text and says in text, text[-2000:]
+    assert not (tmp_path / "results").exists()
+
+
 def test_subset_of_one_material_fails_when_the_dag_is_built(tmp_path):
     rc, text = _dry_run(tmp_path, {"merl": {"subset": ["alum-bronze"]}})
     assert rc != 0
@@ -199,6 +218,15 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     ({"augmerl": {"pca_dim": 3}}, "augmerl", "'pca_dim' was unexpected"),
     ({"fit": {"steps": "many"}}, "fit.steps", "'many' is not of type 'integer'"),
     ({"btf": {"tiling": {"lights": []}}}, "btf.tiling.lights", "[] should be non-empty"),
+    # each of these passed the DAG and failed late: NaN weights written without an error, a
+    # TypeError, an IndexError, an empty concatenation
+    ({"diffusion": {"schedule": {"kind": "linear", "beta_end": 1.5}}}, "diffusion.schedule.beta_end",
+     "1.5 is greater than or equal to the maximum of 1"),
+    ({"diffusion": {"sample": {"clip": 0}}}, "diffusion.sample.clip", "less than or equal to the minimum of 0"),
+    ({"metrics": {"brdf_samples": "everything"}}, "metrics.brdf_samples", "'everything' is not valid"),
+    ({"augmerl": {"figure_pair": ["nickel"]}}, "augmerl.figure_pair", "['nickel'] is not valid"),
+    ({"btf": {"methods": []}}, "btf.methods", "[] should be non-empty"),
+    ({"constrained": {"categories": []}}, "constrained.categories", "[] should be non-empty"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

@@ -52,6 +52,19 @@ def test_pca_n_shapes_determinism_and_round_trip():
     assert np.abs(big.mean(0) - w.mean(0)).max() < 0.05
 
 
+def test_pca_keeps_to_the_rank_of_its_data():
+    """Components beyond the data's rank are dropped: rank-2 rows (30 x 300) asked for 29
+    components give 2, and samples within the data's range (a round-off eigenvalue had divided
+    a component by ~1e-150: samples near 1e273)."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(30, 2)) @ rng.normal(size=(2, 300))
+    g = pca.GaussianPCA(29).fit(X)
+    assert g.components.shape == (2, 300)
+    np.testing.assert_allclose(g.decode(g.encode(X)), X, atol=1e-9)
+    s = g.decode(pca.CoefficientGaussian(g.encode(X)).sample(50, 0))
+    assert np.isfinite(s).all() and np.abs(s).max() < 10 * np.abs(X).max()
+
+
 def test_vae_n_trains_and_samples_deterministically(tmp_path):
     w = nbrdf.init_weights(40, torch.Generator().manual_seed(0)).numpy()
     kw = dict(latent=4, hidden=16, steps=30, batch_size=16, lr=1e-3, beta=1.0)

@@ -146,6 +146,8 @@ def test_classical_fits_are_accurate(tiny_btf):
     # full-rank PCA (components = texels) reproduces the data
     full = PCA.fit(tiny_btf, 64, 64)
     assert torch.allclose(full(u, wi, wo), y, atol=1e-3)
+    with pytest.raises(ValueError, match=r"btf.pca.components 65: more than the 64 texels fitted"):
+        PCA.fit(tiny_btf, 65, 64)
 
 
 def _psnr(a, b):

@@ -64,6 +64,21 @@ def test_subset_and_override(cat):
     assert sub.set_index("name").at["alum-bronze", "sha256"] == cat.set_index("name").at["alum-bronze", "sha256"]
 
 
+def test_sha256_as_sha256sum_prints_it(tmp_path):
+    """Upper case or padded hashes (PowerShell's Get-FileHash) are read as sha256sum prints them
+    (Snakemake's ensure() compares the text, and deletes a verified file on a mismatch); a
+    value that is no sha256 is refused naming the key; blanks are listed as unpinned."""
+    text = TSV.read_text().splitlines()
+    name, sha = text[1].split("\t")[:2]
+    rows = [text[0], text[1].replace(sha, " " + sha.upper() + " "), text[2].replace(text[2].split("\t")[1], "")]
+    (tmp_path / "c.tsv").write_text("\n".join(rows) + "\n")
+    cat = catalog.load_catalog(tmp_path / "c.tsv")
+    assert cat.at[0, "sha256"] == sha and catalog.unpinned(cat) == [rows[2].split("\t")[0]]
+    (tmp_path / "d.tsv").write_text("\n".join([text[0], text[1].replace(sha, sha[:20])]) + "\n")
+    with pytest.raises(ValueError, match=rf"merl.materials: .*d.tsv: sha256 of {name} is not 64"):
+        catalog.load_catalog(tmp_path / "d.tsv")
+
+
 def test_unknown_subset_names_error():
     with pytest.raises(ValueError, match=r"merl\.subset.*\['chrom', 'nope'\]"):
         catalog.load_catalog(TSV, subset=["chrome", "nope", "chrom"])

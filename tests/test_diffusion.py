@@ -341,7 +341,12 @@ def test_resume_after_kill_is_identical(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=3, device="cpu", on_step=kill)
     assert not (tmp_path / "r.pt").exists()
-    resumed = train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=3, device="cpu")
+    # resumed with another checkpoint_every (a speed key): the same run
+    later = TrainConfig(**{**cfg.__dict__, "checkpoint_every": 7})
+    ran = []
+    resumed = train(*args[:-1], later, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=3, device="cpu",
+                    on_step=lambda step, loss: ran.append(step))
+    assert ran[0] == 21  # from the checkpoint at 20, not from the start
     for k, v in full["ema"].items():
         assert torch.equal(v, resumed["ema"][k]), k
     assert full["history"] == resumed["history"]

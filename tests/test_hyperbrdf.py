@@ -94,7 +94,11 @@ def test_resume_after_kill_is_identical(tmp_path):
     with pytest.raises(Kill):
         hb.train(*args, seed=5, on_step=kill)
     assert args[-1].exists() and not args[-2].exists()
-    resumed = hb.train(*args, seed=5)
+    # resumed with another checkpoint_every (a speed key): the same run
+    later = hb.HyperTrainConfig(**{**args[4].__dict__, "checkpoint_every": 5})
+    ran = []
+    resumed = hb.train(*args[:4], later, *args[5:], seed=5, on_step=lambda step, loss: ran.append(step))
+    assert ran[0] == 5  # from the checkpoint at 4, not from the start
     for k, v in full["state"].items():
         assert torch.equal(v, resumed["state"][k]), k
     assert full["history"] == resumed["history"]

@@ -186,6 +186,10 @@ def test_inception_state_dict_and_features(tmp_path):
         load_fid_inception(tmp_path / "bad.pth")
     with pytest.raises(FileNotFoundError, match="metrics.inception_weights"):
         load_fid_inception(tmp_path / "absent.pth")
+    (tmp_path / "cut.pth").write_bytes((tmp_path / "w.pth").read_bytes()[:4096])  # truncated
+    with pytest.raises(ValueError, match=r"cut.pth \(metrics.inception_weights\): not a weights file") as e:
+        load_fid_inception(tmp_path / "cut.pth")
+    assert "weights_only" not in str(e.value)  # not torch's advice to load it unsafely
 
 
 def test_packaged_weights_match_the_torchscript_model():

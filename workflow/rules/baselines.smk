@@ -37,8 +37,7 @@ rule baseline_pca:
         CONDA_ENV
     threads: BASE["threads"]
     resources:
-        # training tables at the metric bins (float32) + their float64 log mapping
-        mem_mb=3000 + 60 * len(MERL_NAMES),
+        mem_mb=lambda wc: pca_a_mem_mb() if wc.model == "pca_a" else 3000,
         runtime=60,
     script:
         "../scripts/baseline_pca.py"

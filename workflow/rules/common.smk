@@ -157,6 +157,9 @@ def merl_catalog():
 
 MERL = merl_catalog()
 MERL_NAMES = list(MERL["name"])
+if config["merl"]["source"] != "synthetic" and config["merl"]["verify_sha256"] and _catalog.unpinned(MERL):
+    raise ValueError(f"config merl.materials: no sha256 for {', '.join(_catalog.unpinned(MERL)[:5])}; give "
+                     f"it (merl.sha256_override) or set merl.verify_sha256: false")
 from neumat import augment as _augment  # noqa: E402
 
 _augment.check_split(MERL_NAMES, config["augmerl"]["test_fraction"],
@@ -188,6 +191,19 @@ def augmerl_count():
 
 
 AUG_SHARDS = [f"{i:03d}" for i in range(math.ceil(augmerl_count() / config["augmerl"]["shard_size"]))]
+
+
+def pca_a_mem_mb():
+    """Memory of PCA-A's fit (baseline_pca): its training tables at the metric bins, about
+    38 bytes per stored value at the peak (float32 tables, their float64 log mapping, the centred
+    copy, and a second mapping for the coefficients: max_rss 17,012 MB for 1,920 tables x 3 x
+    78,985 bins on real40, 2026-11-28), on an upper bound of the bins (the BRDF-L1 bins plus
+    every row of the metric view), + 3 GB."""
+    brdf = config["metrics"]["brdf_samples"]
+    res = config["render"]["resolution"]
+    bins = min(1_096_216, (1_096_216 if brdf == "all" else brdf) + math.pi / 4 * res ** 2 + 24 * 32 * 16)
+    tables = augmerl_count() * (1 - config["augmerl"]["test_fraction"])
+    return int(3000 + 38 * 3 * tables * bins / 1e6)
 # the template material (fit first; its weights start every other fit): the first train-split
 # original, from the split augmerl_pca draws (the same function, config and seed)
 TEMPLATE_ID = _augment.template_id(_augment.plan_rows(
@@ -258,6 +274,37 @@ MODEL_WEIGHTS = {
 REFERENCE_WEIGHTS = out("samples/reference/weights.npy")
 
 
+def check_cross_keys():
+    """Config values the schema accepts one by one that do not go together, refused before any
+    job runs (each failed in a job: after training, after the NeuMERL fits, or as Snakemake's
+    MissingInputException naming a file, not the key)."""
+    d, enc = config["diffusion"], config["conditions"]["image"]["encoder"]
+    errors = []
+    if d["model"]["width"] % d["model"]["heads"]:
+        errors.append(f"diffusion.model.width {d['model']['width']} is not a multiple of "
+                      f"diffusion.model.heads {d['model']['heads']}")
+    if d["sample"]["steps"] > d["schedule"]["timesteps"]:
+        errors.append(f"diffusion.sample.steps {d['sample']['steps']} exceeds "
+                      f"diffusion.schedule.timesteps {d['schedule']['timesteps']}")
+    if enc["crop"] > enc["resolution"]:
+        errors.append(f"conditions.image.encoder.crop {enc['crop']} exceeds its resolution "
+                      f"{enc['resolution']}")
+    models = set(config["metrics"]["models"])
+    unknown = sorted((models - set(MODEL_WEIGHTS)) | (models & {"reference_halves"}))
+    if unknown:
+        errors.append(f"metrics.models {unknown}: not Table 2 models; known: "
+                      f"{sorted(set(MODEL_WEIGHTS) - {'reference_halves'})}")
+    missing = sorted(set(d["types"]) - set(MERL["type"]))
+    if missing:
+        errors.append(f"diffusion.types {missing}: no material of this run has that type "
+                      f"(config/merl_materials.tsv's `type` column)")
+    if errors:
+        raise ValueError("bad config: " + "; ".join(errors))
+
+
+check_cross_keys()
+
+
 DRAWS = config["metrics"]["draws"]
 
 
@@ -315,6 +362,9 @@ if UBO["source"] == "synthetic":
 else:
     UBO_CAT = _ubo2014.load_catalog(UBO["catalog"], UBO["materials"]).set_index("name")
     BTF_NAMES = list(UBO["materials"])
+if not BTF_NAMES:  # the BTF section and its tables need one material (they failed at the last job)
+    raise ValueError(f"bad config (ubo2014.{'synthetic.kinds' if UBO['source'] == 'synthetic' else 'materials'}): "
+                     f"[] names no BTF material; give at least one")
 
 
 def btf_file(name):

@@ -214,7 +214,10 @@ def loss_terms(model: HyperBRDF, x_ctx, y_ctx, x_q, y_q, cos_q, cfg: HyperTrainC
 def fingerprint(y: np.ndarray, bins: np.ndarray, seed: int, *cfgs) -> str:
     h = hashlib.sha256(np.ascontiguousarray(y, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
-    h.update(json.dumps([asdict(c) for c in cfgs] + [seed], sort_keys=True).encode())
+    # checkpoint_every sets when steps are saved, not what they compute (a speed key): a run
+    # resumes across it
+    d = [{k: v for k, v in asdict(c).items() if k != "checkpoint_every"} for c in cfgs]
+    h.update(json.dumps(d + [seed], sort_keys=True).encode())
     return h.hexdigest()
 
 

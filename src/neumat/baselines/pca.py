@@ -13,11 +13,14 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from neumat.io import merl
 from neumat.linalg import one_blas_thread
 
+log = logging.getLogger(__name__)
 EPS = 0.001  # Nielsen et al.'s offset in the log mapping
 COS_FLOOR = 0.01
 
@@ -39,6 +42,12 @@ class GaussianPCA:
         k = min(self.k, n - 1 if n > 1 else 1, X.shape[1])
         with one_blas_thread():  # the same bits on any core count
             evals, U = np.linalg.eigh(Xc @ Xc.T)  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
+            # the rank first: a round-off eigenvalue would divide a component by ~1e-150 (rows
+            # repeat under RGB permutations, so a small AugMERL can have fewer than k)
+            rank = int(np.sum(evals > n * np.finfo(np.float64).eps * max(evals.max(), 1e-300)))
+            if rank < k:
+                log.warning("PCA of rank %d: %d components, not %d", rank, max(rank, 1), k)
+                k = max(rank, 1)
             order = np.argsort(evals)[::-1][:k]
             s = np.sqrt(np.clip(evals[order], 1e-300, None))
             self.components = (U[:, order].T @ Xc) / s[:, None]  # rows = V^T, orthonormal

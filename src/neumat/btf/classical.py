@@ -54,6 +54,12 @@ class PCA(GridBTF):
     @classmethod
     @torch.no_grad()
     def fit(cls, data, components=5, fit_texels=4096, chunk=256, seed=0):
+        n = min(fit_texels, data.n_texels)
+        if components > min(n, len(data.light_dirs) * len(data.view_dirs)):
+            raise ValueError(f"btf.pca.components {components}: more than the {n} texels fitted "
+                             f"(btf.pca.fit_texels, btf.crop) or the "
+                             f"{len(data.light_dirs) * len(data.view_dirs)} light-view pairs; "
+                             f"lower it or fit more texels")
         m = cls(data.width, data.height, data.light_dirs, data.view_dirs, components)
         gen = torch.Generator().manual_seed(seed)
         sub = torch.randperm(data.n_texels, generator=gen)[:fit_texels].sort().values

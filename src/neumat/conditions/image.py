@@ -109,16 +109,23 @@ def augment(img: torch.Tensor, crop: int, jitter: float, gen: torch.Generator) -
     return torch.stack(out)
 
 
+def norm(c: int) -> nn.GroupNorm:
+    """GroupNorm over c channels, batch-size independent (single images): groups of gcd(8, c),
+    so any conditions.image.encoder.width works (8 groups failed for c = 12, 20, ...) and the
+    widths that worked keep their groups."""
+    return nn.GroupNorm(math.gcd(8, c), c)
+
+
 class BasicBlock(nn.Module):
     def __init__(self, cin: int, cout: int, stride: int):
         super().__init__()
         self.c1 = nn.Conv2d(cin, cout, 3, stride, 1, bias=False)
-        self.n1 = nn.GroupNorm(min(8, cout), cout)  # batch-size independent (single images)
+        self.n1 = norm(cout)
         self.c2 = nn.Conv2d(cout, cout, 3, 1, 1, bias=False)
-        self.n2 = nn.GroupNorm(min(8, cout), cout)
+        self.n2 = norm(cout)
         self.skip = (nn.Identity() if stride == 1 and cin == cout else
                      nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False),
-                                   nn.GroupNorm(min(8, cout), cout)))
+                                   norm(cout)))
 
     def forward(self, x):
         h = F.relu(self.n1(self.c1(x)))
@@ -133,7 +140,7 @@ class ImageEncoder(nn.Module):
         super().__init__()
         self.cfg = cfg
         w = cfg.width
-        self.stem = nn.Sequential(nn.Conv2d(3, w, 3, 1, 1, bias=False), nn.GroupNorm(min(8, w), w),
+        self.stem = nn.Sequential(nn.Conv2d(3, w, 3, 1, 1, bias=False), norm(w),
                                   nn.ReLU())
         layers, cin = [], w
         for i, cout in enumerate((w, 2 * w, 4 * w)):

@@ -61,7 +61,20 @@ def load_catalog(path: str | Path, subset=(), sha256_override=None) -> pd.DataFr
     cat = cat.copy()
     for name, sha in sha256_override.items():
         cat.loc[cat["name"] == name, "sha256"] = sha
+    # as sha256sum prints them: Snakemake's ensure() compares the text, and on a mismatch it
+    # deletes the file it has just verified (PowerShell's Get-FileHash prints upper case)
+    cat["sha256"] = cat["sha256"].str.strip().str.lower()
+    bad = cat[(cat["sha256"] != "") & ~cat["sha256"].str.fullmatch(r"[0-9a-f]{64}")]
+    if len(bad):
+        raise ValueError(f"config merl.materials: {path}: sha256 of {', '.join(bad['name'][:5])} is "
+                         f"not 64 hexadecimal digits ({bad['sha256'].iloc[0]!r}); fix the column "
+                         f"or give merl.sha256_override")
     return cat.reset_index(drop=True)
+
+
+def unpinned(cat: pd.DataFrame) -> list[str]:
+    """Materials of a catalogue without a sha256 (blank), which merl.verify_sha256 cannot check."""
+    return list(cat.loc[cat["sha256"] == "", "name"])
 
 
 def synthetic_catalog(count: int, seed: int) -> pd.DataFrame:

