@@ -83,8 +83,10 @@ rule btf_eval:
         models=expand(out("btf/models/{{material}}/{method}.pt"), method=BTF["methods"]),
     output:
         metrics=out("btf/eval/{material}/metrics.tsv"),
-        textures=out("report/figures/btf_{material}_textures.png"),
-        tiling=out("report/figures/btf_{material}_tiling.png"),
+        textures=report(out("report/figures/btf_{material}_textures.png"),
+                        caption="../report/btf_textures.rst", category="BTF"),
+        tiling=report(out("report/figures/btf_{material}_tiling.png"),
+                      caption="../report/btf_tiling.rst", category="BTF"),
     params:
         methods=BTF["methods"],
         roi=lambda w: btf_roi(w.material),

@@ -262,8 +262,10 @@ rule diffusion_mitsuba:
         types_nearest=out("samples/ours_type/nearest.tsv"),
         weights=out("neumerl/weights.npy"),
     output:
-        ours=report(out("report/figures/diffusion_mitsuba_ours.png"), category="Diffusion"),
-        types=report(out("report/figures/diffusion_mitsuba_types.png"), category="Diffusion"),
+        ours=report(out("report/figures/diffusion_mitsuba_ours.png"), category="Diffusion",
+                    caption="../report/diffusion_mitsuba_ours.rst"),
+        types=report(out("report/figures/diffusion_mitsuba_types.png"), category="Diffusion",
+                     caption="../report/diffusion_mitsuba_types.rst"),
         info=out("render/mitsuba/diffusion.json"),
     params:
         cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
@@ -300,11 +302,15 @@ rule diffusion_section:
         mitsuba=out("render/mitsuba/diffusion.json"),
     output:
         section=out("report/sections/40_diffusion.md"),
-        loss=report(out("report/figures/diffusion_loss.png"), category="Diffusion"),
-        gallery=report(out("report/figures/diffusion_gallery.png"), category="Diffusion"),
+        loss=report(out("report/figures/diffusion_loss.png"), category="Diffusion",
+                    caption="../report/diffusion_loss.rst"),
+        gallery=report(out("report/figures/diffusion_gallery.png"), category="Diffusion",
+                       caption="../report/diffusion_gallery.rst"),
         gallery_merl100=report(out("report/figures/diffusion_gallery_merl100.png"),
-                               category="Diffusion"),
-        types=report(out("report/figures/diffusion_types.png"), category="Diffusion"),
+                               category="Diffusion",
+                               caption="../report/diffusion_gallery_merl100.rst"),
+        types=report(out("report/figures/diffusion_types.png"), category="Diffusion",
+                     caption="../report/diffusion_types.rst"),
     params:
         cfg=settings("diffusion", ["model", "schedule", "train", "sample", "per_type", "gallery_types",
                                    "gallery_count", "explode_factor"]),

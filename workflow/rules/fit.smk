@@ -147,9 +147,12 @@ rule neumerl_section:
         exports=expand(out("neumerl/merl/{augmerl}.binary"), augmerl=FIT["export"]),
     output:
         section=out("report/sections/20_neumerl.md"),
-        quality=report(out("report/figures/neumerl_quality.png"), category="NeuMERL"),
-        best=report(out("report/figures/neumerl_best.png"), category="NeuMERL"),
-        worst=report(out("report/figures/neumerl_worst.png"), category="NeuMERL"),
+        quality=report(out("report/figures/neumerl_quality.png"), category="NeuMERL",
+                       caption="../report/neumerl_quality.rst"),
+        best=report(out("report/figures/neumerl_best.png"), category="NeuMERL",
+                    caption="../report/neumerl_best.rst"),
+        worst=report(out("report/figures/neumerl_worst.png"), category="NeuMERL",
+                     caption="../report/neumerl_worst.rst"),
     params:
         cfg=settings("fit", ["report_examples", "activation", "batch", "lr", "lr_final", "steps",
                              "template_steps", "val_fraction", "render_resolution"]),

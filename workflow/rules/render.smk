@@ -44,9 +44,12 @@ rule render_section:
         infos=expand(out("render/mitsuba/{scene}.json"), scene=MITSUBA_SCENES),
     output:
         section=out("report/sections/30_rendering.md"),
-        fields=report(out("report/figures/render_reference_fields.png"), category="Rendering"),
-        tables=report(out("report/figures/render_merl_tables.png"), category="Rendering"),
-        mitsuba=report(out("report/figures/render_mitsuba.png"), category="Rendering"),
+        fields=report(out("report/figures/render_reference_fields.png"), category="Rendering",
+                      caption="../report/render_reference_fields.rst"),
+        tables=report(out("report/figures/render_merl_tables.png"), category="Rendering",
+                      caption="../report/render_merl_tables.rst"),
+        mitsuba=report(out("report/figures/render_mitsuba.png"), category="Rendering",
+                       caption="../report/render_mitsuba.rst"),
     params:
         names=RENDER_MERL,
         resolution=RENDER["resolution"],
