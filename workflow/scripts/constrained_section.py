@@ -45,16 +45,25 @@ with script_logging(snakemake) as log:
 
     # Fig. 6: a row per produced category
     variant = mb.select_variant(p.mitsuba["variant"])
-    picks, labels = [], []
+    picks, rows = [], []
     for cat in p.categories:
         idx = np.flatnonzero(table["category"] == cat)[:p.gallery_count]
         picks += idx.tolist()
-        labels += [f"{cat} #{i}" for i in idx]
+        if len(idx):
+            rows.append((cat, idx))
     if picks:
-        imgs = scenes.render_spheres(weights[picks], [f"c{i}" for i in picks], p.mitsuba,
-                                     p.activation, p.seed)
-        title = "not produced within budget: " + (", ".join(missing) if missing else "none")
-        gallery(imgs, labels, out.gallery, ncols=p.gallery_count, title=title)
+        imgs = dict(zip(picks, scenes.render_spheres(weights[picks], [f"c{i}" for i in picks],
+                                                     p.mitsuba, p.activation, p.seed)))
+        blank = np.full_like(next(iter(imgs.values())), 255)
+        cells, labels = [], []
+        for cat, idx in rows:  # a row per category, a short one padded with blank cells
+            cells += [imgs[i] for i in idx] + [blank] * (p.gallery_count - len(idx))
+            labels += [f"{cat} #{i}" for i in idx] + [""] * (p.gallery_count - len(idx))
+        none = [c for c in missing if c not in dict(rows)]
+        part = [c for c in missing if c in dict(rows)]
+        title = "not produced within budget: " + (", ".join(none) or "none") + (
+            "; fewer than asked: " + ", ".join(part) if part else "")
+        gallery(cells, labels, out.gallery, ncols=p.gallery_count, title=title)
         fig = "![Constrained synthesis gallery](figures/constrained_gallery.png)"
     else:
         gallery([np.full((32, 32, 3), 255, np.uint8)], ["no category produced"], out.gallery)

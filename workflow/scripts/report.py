@@ -8,8 +8,9 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    footer = ("## Configuration of this run\n\nDefaults filled in; speed-only keys (config/speed_keys.yaml) left out.\n\n```yaml\n"
-              + yaml.safe_dump(dict(p.config), sort_keys=False) + "```")
+    footer = ("## Configuration of this run\n\nDefaults filled in; left out (config/speed_keys.yaml): "
+              "the speed-only keys, and the neutral keys at their neutral value (the schema's "
+              "default).\n\n```yaml\n" + yaml.safe_dump(dict(p.config), sort_keys=False) + "```")
     md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", footer)
     Path(snakemake.output.md).write_text(md)
     Path(snakemake.output.html).write_text(html)
