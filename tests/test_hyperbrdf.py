@@ -111,7 +111,7 @@ def test_training_rejects_bad_input(tmp_path):
     vals, bins, med, mcfg, cfg, out, ck = _train_args(tmp_path)
     with pytest.raises(ValueError, match="values must be"):
         hb.train(vals[:, :2], bins, med, mcfg, cfg, out, ck, seed=0)
-    with pytest.raises(ValueError, match="fewer than context"):
+    with pytest.raises(ValueError, match=r"\(hyperbrdf.train_bins\), fewer than hyperbrdf.train.context"):
         hb.train(vals[:, :, :150], bins[:150], med[:150], mcfg, cfg, out, ck, seed=0)
 
 

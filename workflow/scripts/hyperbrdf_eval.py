@@ -30,6 +30,10 @@ with script_logging(snakemake) as log:
         bins = sh["bins"]
         for r in np.flatnonzero(np.isin(sh["ids"], ids)):
             stored[int(sh["ids"][r])] = sh["values"][r]
+    absent = [n for i, n in zip(ids, names) if i not in stored]
+    if absent:
+        raise ValueError(f"test material(s) {absent[:5]} in none of the AugMERL shards "
+                         f"{', '.join(map(str, inp.shards))[:200]}: rebuild them (rule augmerl_shard)")
     values = np.stack([stored[i] for i in ids])
     median = np.load(inp.median)
     aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)

@@ -28,7 +28,11 @@ with script_logging(snakemake) as log:
         values, pick = [], None
         for f in inp.shards:
             s = augment.load_shard(f)
+            if pick is not None and not np.array_equal(s["bins"], first):
+                raise ValueError(f"{f}: stores other MERL bins than {inp.shards[0]}; rebuild the "
+                                 f"AugMERL shards with one augmerl.bins")
             if pick is None:
+                first = s["bins"]
                 pick = np.sort(rng.choice(len(s["bins"]), min(c["bins"], len(s["bins"])), replace=False))
                 bins = s["bins"][pick]
             keep = np.isin(s["ids"], list(ids))

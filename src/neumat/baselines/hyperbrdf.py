@@ -237,7 +237,8 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     if not np.isfinite(values).all():
         raise ValueError("training values contain NaN or inf")
     if len(bins) < max(cfg.context, cfg.query):
-        raise ValueError(f"{len(bins)} bins per material, fewer than context={cfg.context} or "
+        raise ValueError(f"{len(bins)} bins per material (hyperbrdf.train_bins), fewer than "
+                         f"hyperbrdf.train.context={cfg.context} or "
                          f"query={cfg.query} samples per step")
     from neumat.device import resolve_device
 
