@@ -79,14 +79,17 @@ def test_vae_n_trains_and_samples_deterministically(tmp_path):
     assert not np.array_equal(s, vae.prior_samples(back, 6, seed=6))
 
 
-def test_vae_a_is_deterministic_and_refuses_overlapping_bins():
-    """Two trainings with one seed give the same model; the data draws come from the seed's
-    stream "draws", not the init's numbers (another init seed, same draws: other weights but
-    the same batches, so a model trained 0 steps differs only by its init); context + queries
-    more than the stored bins is refused, naming the keys."""
-    t = _tables(4, BINS).astype(np.float32)
+def _set_data(n):
+    """n tables at BINS, with the bins' NBRDF inputs and cos(theta_i), for VAE-A."""
     th, td, pd_ = (a[BINS] for a in merl.grid_angles())
-    x6, cos = merl.half_diff_cartesian(th, td, pd_), merl.cos_theta_i(th, td, pd_)
+    return (_tables(n, BINS).astype(np.float32), merl.half_diff_cartesian(th, td, pd_),
+            merl.cos_theta_i(th, td, pd_))
+
+
+def test_vae_a_is_deterministic_and_refuses_overlapping_bins():
+    """Two trainings with one seed give the same model; context + queries more than the stored
+    bins (the queries are meant to be other bins) is refused, naming the keys."""
+    t, x6, cos = _set_data(4)
     kw = dict(latent=4, hidden=16, batch_size=2, context=32, queries=32, lr=3e-3, beta=0.1)
     a, _ = vae.train_set_vae(t, x6, cos, steps=5, **kw, seed=3)
     b, _ = vae.train_set_vae(t, x6, cos, steps=5, **kw, seed=3)
@@ -97,9 +100,7 @@ def test_vae_a_is_deterministic_and_refuses_overlapping_bins():
 
 
 def test_vae_a_outputs_nbrdf_fields_and_learns(tmp_path):
-    t = _tables(6, BINS).astype(np.float32)
-    th, td, pd_ = (a[BINS] for a in merl.grid_angles())
-    x6, cos = merl.half_diff_cartesian(th, td, pd_), merl.cos_theta_i(th, td, pd_)
+    t, x6, cos = _set_data(6)
     kw = dict(latent=8, hidden=32, batch_size=4, context=64, queries=128, lr=3e-3, beta=0.1)
     _, short = vae.train_set_vae(t, x6, cos, steps=1, **kw, seed=0)
     net, hist = vae.train_set_vae(t, x6, cos, steps=150, **kw, seed=0)
