@@ -41,6 +41,7 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     ({"conditions": {"image": {"encoder": {"crop": 40, "resolution": 32}}}}, "conditions.image.encoder.crop 40 exceeds"),
     ({"metrics": {"models": ["training_set", "ourss"]}}, "metrics.models ['ourss']: not Table 2 models"),
     ({"diffusion": {"types": ["nonexistent_type"]}}, "diffusion.types ['nonexistent_type']: no material"),
+    ({"fit": {"export": ["mix9999"]}}, "fit.export ['mix9999']: not AugMERL materials of this run"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")

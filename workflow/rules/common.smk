@@ -294,6 +294,15 @@ def check_cross_keys():
     if unknown:
         errors.append(f"metrics.models {unknown}: not Table 2 models; known: "
                       f"{sorted(set(MODEL_WEIGHTS) - {'reference_halves'})}")
+    perms = _augment.PERMS if config["augmerl"]["permutations"] else _augment.PERMS[:1]
+    rows = {n if q == "rgb" else f"{n}@{q}" for n in MERL_NAMES for q in perms}
+    n_mix = augmerl_count() - len(rows)
+    rows |= {f"mix{k:04d}" for k in range(n_mix)}  # augment.build_manifest's names
+    absent = [n for n in config["fit"]["export"] if n not in rows]
+    if absent:
+        errors.append(f"fit.export {absent[:5]}: not AugMERL materials of this run (a material's "
+                      f"name, <name>@<permutation>, or " + (f"mix0000 to mix{n_mix - 1:04d}" if n_mix
+                                                           else "no mixNNNN: augmerl.size adds none") + ")")
     missing = sorted(set(d["types"]) - set(MERL["type"]))
     if missing:
         errors.append(f"diffusion.types {missing}: no material of this run has that type "
