@@ -69,19 +69,6 @@ def test_a_foreign_or_old_libllvm_in_the_environment_is_passed_over():
     assert lib == str(mb.find_libllvm())  # what the search finds without the variable
 
 
-def test_renders_keep_to_the_jobs_threads():
-    """A workflow job's OMP_NUM_THREADS (neumat.logs.limit_threads, its rule's threads) also
-    bounds Dr.Jit's thread pool, which otherwise takes every CPU the process may use."""
-    import os
-    import subprocess
-    import sys
-    code = ("import neumat.render.mitsuba_bsdf as m, drjit as dr; m.select_variant('auto'); "
-            "print(dr.thread_count())")
-    r = subprocess.run([sys.executable, "-c", code], env={**os.environ, "OMP_NUM_THREADS": "1"},
-                       capture_output=True, text=True, check=True)
-    assert r.stdout.split()[-1] == "1"
-
-
 def test_fit_lobe_recovers_ggx_roughness():
     for alpha in (0.05, 0.2):
         a, p = mb.fit_lobe(mb.Material(f"ggx{alpha}", table=ggx_table(alpha)))

@@ -151,10 +151,6 @@ def select_variant(preference: str = "auto") -> str:
                     "slow scalar_rgb variant", _LIBLLVM, type(e).__name__, e)
         variant = "scalar_rgb"
         mi.set_variant(variant)
-    threads = os.environ.get("OMP_NUM_THREADS", "")  # a workflow job's share (neumat.logs.limit_threads)
-    if threads.isdigit() and int(threads) > 0:  # else Dr.Jit starts a thread per CPU it may use
-        import drjit as dr
-        dr.set_thread_count(int(threads))
     register()
     return variant
 
