@@ -157,9 +157,10 @@ def merl_catalog():
 
 MERL = merl_catalog()
 MERL_NAMES = list(MERL["name"])
-if config["merl"]["source"] != "synthetic" and config["merl"]["verify_sha256"] and _catalog.unpinned(MERL):
-    raise ValueError(f"config merl.materials: no sha256 for {', '.join(_catalog.unpinned(MERL)[:5])}; give "
-                     f"it (merl.sha256_override) or set merl.verify_sha256: false")
+_UNPINNED = _catalog.unpinned(MERL) if config["merl"]["source"] != "synthetic" else []
+if config["merl"]["verify_sha256"] and _UNPINNED:
+    raise ValueError(f"config merl.materials: no sha256 for {', '.join(_UNPINNED[:5])}; give it "
+                     f"(merl.sha256_override) or set merl.verify_sha256: false")
 from neumat import augment as _augment  # noqa: E402
 
 _augment.check_split(MERL_NAMES, config["augmerl"]["test_fraction"],

@@ -55,9 +55,12 @@ def half_vector_nodes(theta_o, n_h: int, n_phi: int, half: bool):
     the normal, a valid direction that weighs nothing).
 
     In the cosine-weighted (sin^2 theta_i, phi_i) grid the metric renderer used before, 16 x 16
-    nodes missed a GGX lobe of roughness 0.1 by up to 0.51 in albedo (0.05: 0.83); this grid of
-    32 x 16 is within 0.0017 of a dense one for roughness 0.02 to 0.5 and Lambertian, all 24
-    view angles (tests/test_render.py)."""
+    nodes missed a GGX lobe of roughness 0.1 by up to 0.52 in albedo (0.05: 0.83); the metric
+    renderer's 32 x 16 of these (`albedo_quadrature`) is within 0.0019 of a 400 x 400 grid for
+    roughness 0.02 to 0.1 (0.3: 0.0039, 0.5: 0.0066) at all 24 view angles, and exact for a
+    Lambertian BRDF
+    (benchmarks/metric_renderer_ab.py --albedo-only, AMD EPYC AVX-512, 2026-11-29;
+    tests/test_render_sphere.py holds it to 0.5 %)."""
     theta_o = np.asarray(theta_o, np.float64)
     t = (np.arange(n_h) + 0.5) / n_h
     th, dth = t ** 2 * (np.pi / 2), 2 * t * (np.pi / 2) / n_h
@@ -82,8 +85,7 @@ def albedo_quadrature(n_theta: int = N_THETA_O, n_h: int = AMB_TH, n_phi: int = 
 
     Returns theta_o (n_theta,), wi, wo (n_theta * n_h * n_phi, 3) local directions, and the
     quadrature weight per node (n_theta * n_h * n_phi,), scaled at each view angle so that the
-    weights integrate cos(theta_i) to pi exactly: a Lambertian albedo is exact (the grid alone is
-    within 0.0017 of it)."""
+    weights integrate cos(theta_i) to pi exactly: a Lambertian albedo is exact."""
     theta_o = (np.arange(n_theta) + 0.5) / n_theta * np.pi / 2
     wi, wo, weight = half_vector_nodes(theta_o, n_h, n_phi, half=True)
     weight = weight * (np.pi / weight.sum(1, keepdims=True))
@@ -109,8 +111,9 @@ class SphereView:
         """`light`: point-light position (default the metric view's LIGHT_POS; other positions
         give extra views of the same sphere, e.g. Table 3's grazing light), intensity as for
         LIGHT_POS: pi (|light| - 1)^2, irradiance pi at the sphere point nearest the light.
-        `quadrature`: (n_theta, n_h, n_phi) of the albedo term (`albedo_quadrature`); coarser than the metric's for a
-        cheap approximate render (particle guidance, neumat.diffusion.constraints)."""
+        `quadrature`: (n_theta, n_h, n_phi) of the albedo term (`albedo_quadrature`); coarser
+        than the metric's for a cheap approximate render (particle guidance,
+        neumat.diffusion.constraints)."""
         if resolution < 2:
             raise ValueError(f"sphere resolution must be >= 2, got {resolution}")
         self.resolution, self.device = resolution, torch.device(device)
