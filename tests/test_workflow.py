@@ -634,3 +634,47 @@ def test_every_model_file_loads_with_weights_only(tiny_run):
     assert len(files) >= 10, files  # diffusion, baselines, hyperbrdf, encoders, BTF models
     for f in files:
         torch.load(f, map_location="cpu", weights_only=True)
+
+
+def _download_config(wd: Path, names, url_dir: Path, verify: bool, pins: dict) -> str:
+    import yaml
+    cfg = {"run": "dl", "merl": {"source": "download", "subset": list(names),
+                                 "url": f"file://{url_dir}/{{name}}.binary", "retries": 0,
+                                 "verify_sha256": verify, "sha256_override": pins}}
+    (wd / "config/dl.yaml").write_text(yaml.safe_dump(cfg))
+    return "config/dl.yaml"
+
+
+@pytest.mark.slow
+def test_new_merl_url_keeps_pinned_downloads(tmp_path):
+    """A file pinned by its sha256 is the same from any mirror: a new merl.url reruns (and so
+    deletes) no verified download. Unpinned (verify_sha256: false) the URL is a param: the file
+    from another address may differ."""
+    import hashlib
+    from neumat.io.merl import write_merl
+    wd = tmp_path / "wd"
+    wd.mkdir()
+    _copy_workflow(wd)
+    names = ["alum-bronze", "blue-acrylic"]  # catalogue names, synthetic contents
+    mirrors = [tmp_path / "mirror_a", tmp_path / "mirror_b"]
+    pins = {}
+    for i, name in enumerate(names):
+        table = np.full((3, 90, 90, 180), 0.1 + 0.1 * i)
+        for m in mirrors:
+            m.mkdir(exist_ok=True)
+            write_merl(m / f"{name}.binary", table)
+        pins[name] = hashlib.sha256((mirrors[0] / f"{name}.binary").read_bytes()).hexdigest()
+    targets = [f"resources/merl/{n}.binary" for n in names]
+
+    def planned(cfg):
+        res = _snakemake(wd, *targets, "--dry-run", "--quiet", "rules", "--configfile", cfg)
+        text = res.stdout + res.stderr
+        return [] if "Nothing to be done" in text else re.findall(r"^(\w+)\s+\d+$", text, re.M)
+
+    _snakemake(wd, *targets, "--configfile", _download_config(wd, names, mirrors[0], True, pins))
+    first = {t: (wd / t).stat().st_mtime_ns for t in targets}
+    assert planned(_download_config(wd, names, mirrors[1], True, pins)) == []
+    assert {t: (wd / t).stat().st_mtime_ns for t in targets} == first
+    # unpinned: the same files, downloaded without a sha256, rerun for a new address
+    _snakemake(wd, *targets, "--configfile", _download_config(wd, names, mirrors[0], False, {}))
+    assert "download_merl" in planned(_download_config(wd, names, mirrors[1], False, {}))

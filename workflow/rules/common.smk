@@ -250,6 +250,11 @@ def merl_checked(path):
     return path
 
 
+def merl_url(name):
+    """Where download_merl fetches a material (merl.url with {name} replaced)."""
+    return config["merl"]["url"].format(name=name)
+
+
 def merl_expected_sha256(wildcards):
     """The sha256 a data rule's script checks ('' = size/header only)."""
     return merl_sha256(wildcards.merl) if config["merl"]["verify_sha256"] else ""

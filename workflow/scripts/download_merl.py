@@ -4,7 +4,9 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p = snakemake.params
-    log.info("%s -> %s (sha256 %s)", p.url, snakemake.output[0], p.sha256 or "not checked")
-    merl_files.download(p.url, snakemake.output[0], p.sha256 or None,
+    # from the config, not params: params.url is blank where a sha256 pins the file
+    url = snakemake.config["merl"]["url"].format(name=snakemake.wildcards.merl)
+    log.info("%s -> %s (sha256 %s)", url, snakemake.output[0], p.sha256 or "not checked")
+    merl_files.download(url, snakemake.output[0], p.sha256 or None,
                         snakemake.config["merl"]["retries"])  # speed-only: not a param
     log.info("ok")
