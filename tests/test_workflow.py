@@ -678,3 +678,36 @@ def test_new_merl_url_keeps_pinned_downloads(tmp_path):
     # unpinned: the same files, downloaded without a sha256, rerun for a new address
     _snakemake(wd, *targets, "--configfile", _download_config(wd, names, mirrors[0], False, {}))
     assert "download_merl" in planned(_download_config(wd, names, mirrors[1], False, {}))
+
+
+@pytest.mark.slow
+def test_new_ubo2014_url_keeps_locked_downloads(tmp_path):
+    """The lock file pins each BTF from its first good copy, so a new ubo2014.url (a mirror)
+    reruns (and deletes) no download."""
+    import yaml
+    from neumat.btf.directions import ubo2014_angles
+    from neumat.io.dfmf import write_dfmf
+    wd = tmp_path / "wd"
+    wd.mkdir()
+    _copy_workflow(wd)
+    name, file = "wood06", "wood06_resampled_W400xH400_L151xV151.btf"
+    ang = ubo2014_angles()  # a 400 x 400 x 151 x 151 DFMF of rank 1: 1 MB
+    for m in ("mirror_a", "mirror_b"):
+        (tmp_path / m).mkdir()
+        write_dfmf(tmp_path / m / file, [np.ones((len(ang) ** 2, 1))] * 3,
+                   [np.full((400 * 400, 1), 0.5)] * 3, ang, ang, 400, 400)
+    target = f"resources/ubo2014/{file}"
+
+    def config(mirror):
+        cfg = {"run": "dl", "merl": {"source": "synthetic"},
+               "ubo2014": {"source": "download", "materials": [name],
+                           "url": f"file://{tmp_path / mirror}/{{file}}"}}
+        (wd / f"config/{mirror}.yaml").write_text(yaml.safe_dump(cfg))
+        return f"config/{mirror}.yaml"
+
+    _snakemake(wd, target, "--configfile", config("mirror_a"))
+    assert name in (wd / "resources/ubo2014/sha256.lock.tsv").read_text()
+    before = (wd / target).stat().st_mtime_ns
+    res = _snakemake(wd, target, "--dry-run", "--configfile", config("mirror_b"))
+    assert "Nothing to be done" in res.stdout + res.stderr, res.stdout[-2000:]
+    assert (wd / target).stat().st_mtime_ns == before

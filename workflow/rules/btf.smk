@@ -33,7 +33,8 @@ else:
         output:
             f"resources/ubo2014/{{material}}{BTF_SUFFIX}",
         params:
-            url=lambda w: UBO["url"].format(name=w.material, **UBO_CAT.loc[w.material]),
+            # no url: the lock file pins each BTF's sha256 from its first good copy, so a new
+            # mirror gives the same file and must not rerun (so delete) a good download
             local_dir=UBO["local_dir"] if UBO["source"] == "local" else None,
             lock_file=UBO["lock_file"],
         log:
