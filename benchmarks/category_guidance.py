@@ -28,8 +28,9 @@ from neumat import machine, nbrdf
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion import constraints as K
 from neumat.diffusion.plausibility import plausibility
-from neumat.diffusion.schedule import guided
+from neumat.diffusion.schedule import RowNoise, guided
 from neumat.metrics import distances
+from neumat.seeds import seed_for
 
 
 def main():
@@ -71,12 +72,13 @@ def main():
     def sample(category, step, margin):
         """Sampler.sample's draw (100 DDIM steps, no type guidance, negative_step 30), with the
         category guidance's margin open."""
-        gen = torch.Generator().manual_seed(a.seed)
+        rows = RowNoise(seed_for(a.seed, "ddim"), nbrdf.N_PARAMS)  # Sampler.sample's noise
         hook = K.chain(K.NegativeConstraint(sampler.norm, 30.0, a.seed),
                        K.CategoryConstraint(sampler.norm, category, step, a.seed, margin=margin)
                        if step else None)
         z = sampler.diffusion.ddim_sample(guided(sampler.model, None, 1.0), (a.n, nbrdf.N_PARAMS),
-                                          100, 0.0, gen, "cpu", constrain=hook)
+                                          100, 0.0, None, "cpu", constrain=hook,
+                                          noise=rows.batch(0, a.n))
         return sampler.norm.decode(z).float().numpy()
 
     def draw(category, step, margin):

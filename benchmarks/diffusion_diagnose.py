@@ -54,6 +54,7 @@ import torch
 from neumat import machine, nbrdf
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, dataset, plausibility
 from neumat.diffusion.model import Normalizer
+from neumat.diffusion.schedule import RowNoise
 from neumat.io import modelfile
 from neumat.metrics import distances, evaluate, materials
 from neumat.seeds import seed_for
@@ -252,9 +253,9 @@ def hybrid_sample(sampler, train_w, n, seed, cfg, activation):
         eps = (xt - a_ * x0) / s2 ** 0.5
         return {"x0": x0, "eps": eps, "v": a_ * eps - s2 ** 0.5 * x0}[kind]
 
-    gen = torch.Generator().manual_seed(seed)
-    z = sampler.diffusion.ddim_sample(predict, (n, nbrdf.N_PARAMS), cfg["steps"], cfg["eta"], gen,
-                                      "cpu", clip=cfg["clip"],
+    rows = RowNoise(seed_for(seed, "ddim"), nbrdf.N_PARAMS)  # Sampler.sample's noise
+    z = sampler.diffusion.ddim_sample(predict, (n, nbrdf.N_PARAMS), cfg["steps"], cfg["eta"], None,
+                                      "cpu", clip=cfg["clip"], noise=rows.batch(0, n),
                                       constrain=constraint_for(sampler, cfg["negative_step"],
                                                                seed, activation))
     return sampler.norm.decode(z).float().numpy()

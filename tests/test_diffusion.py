@@ -13,6 +13,8 @@ from neumat.diffusion import (Denoiser, DenoiserConfig, Diffusion, Normalizer, S
                               ScheduleConfig, TrainConfig, guided, train)
 from neumat.diffusion.model import TENSOR_SIZES, token_sizes
 from neumat.diffusion.plausibility import albedo_quadrature, directional_albedo, plausibility
+from neumat.diffusion.schedule import RowNoise
+from neumat.seeds import seed_for
 
 pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
@@ -636,12 +638,39 @@ def test_negative_constraint_step_lowers_the_penalty():
         NegativeConstraint(s.norm, -1.0, seed=3)
 
 
+@pytest.mark.parametrize("eta", [0.0, 0.5])
+def test_samples_do_not_depend_on_the_batch_size(eta):
+    """diffusion.sample.batch_size is a memory knob: the same seed gives the same samples in
+    batches of 8, 20 or all 20 at once (to float rounding of the batched model), at eta 0 and
+    with step noise (eta > 0); one generator consumed batch by batch had moved rows past the
+    first batch by up to 0.014."""
+    from neumat.diffusion.sample import sample
+    s = _tiny_sampler()
+    kw = dict(steps=10, eta=eta, negative_step=0.0)
+    one = s.sample(20, 5, guidance=1.0, batch_size=20, **kw)
+    for b in (8, 13):
+        np.testing.assert_allclose(s.sample(20, 5, guidance=1.0, batch_size=b, **kw), one,
+                                   rtol=0, atol=1e-5)
+        np.testing.assert_allclose(sample(s, 20, 5, batch_size=b, **kw), one, rtol=0, atol=1e-5)
+    assert not np.allclose(s.sample(20, 6, guidance=1.0, batch_size=20, **kw), one, atol=1e-3)
+
+
+def test_row_noise_blocks_are_independent_of_the_slicing():
+    from neumat.diffusion.schedule import RowNoise
+    r = RowNoise(7, 5)
+    whole = r(0, 0, 150)
+    assert whole.shape == (150, 5)
+    assert torch.equal(torch.cat([r(0, 0, 10), r(0, 10, 100), r(0, 110, 40)]), whole)
+    assert not torch.equal(r(1, 0, 150), whole)  # each stage its own noise
+    assert abs(whole.mean()) < 0.2 and abs(whole.std() - 1) < 0.1
+
+
 def test_constrained_sampling_fewer_negative_bins_and_off_is_unchanged():
     s = _tiny_sampler()
     kw = dict(steps=10, guidance=1.0)
     plain = s.sample(16, 5, negative_step=0.0, **kw)
     z = s.diffusion.ddim_sample(lambda x, t: s.model(x, t, None), (16, nbrdf.N_PARAMS), 10,
-                                generator=torch.Generator().manual_seed(5))  # no hook at all
+                                noise=RowNoise(seed_for(5, "ddim"), nbrdf.N_PARAMS).batch(0, 16))  # no hook at all
     assert np.array_equal(s.norm.decode(z).numpy(), plain)
     on = s.sample(16, 5, negative_step=20.0, **kw)
     assert np.array_equal(s.sample(16, 5, negative_step=20.0, **kw), on)  # deterministic

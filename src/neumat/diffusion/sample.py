@@ -27,7 +27,9 @@ import torch
 from neumat import nbrdf
 from neumat.diffusion.constraints import RenderConstraint, chain, constraint_for
 from neumat.diffusion.refit import clamp_refit
+from neumat.diffusion.schedule import RowNoise
 from neumat.diffusion.train import Sampler
+from neumat.seeds import seed_for
 
 def guided_multi(model, cond: dict, scales: dict) -> Callable:
     """Per-modality classifier-free guidance: predict(x_t, t) -> guided model output."""
@@ -151,7 +153,7 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
         raise ValueError(f"{len(start)} start vectors for {n} samples")
     if not isinstance(guidance, dict):
         guidance = {k: 1.0 if guidance is None else float(guidance) for k in cond}
-    gen = torch.Generator().manual_seed(seed)
+    rows = RowNoise(seed_for(seed, "ddim"), nbrdf.N_PARAMS)  # the same draws at any batch_size
 
     def render_hook(s, b):  # per batch: its samples' target images
         if render_targets is None or not render_step:
@@ -168,10 +170,10 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
         x0 = None if start is None else sampler.norm.encode(
             torch.as_tensor(np.asarray(start[s:s + b], np.float32)).to(sampler.device))
         z = sampler.diffusion.ddim_sample(guided_multi(sampler.model, c, guidance),
-                                          (b, nbrdf.N_PARAMS), steps, eta, gen, sampler.device,
+                                          (b, nbrdf.N_PARAMS), steps, eta, None, sampler.device,
                                           clip=clip, x0_start=x0, constrain=chain(
                                               constrain, render_hook(s, b)),
-                                          strength=strength)
+                                          strength=strength, noise=rows.batch(s, b))
         out.append(sampler.norm.decode(z).float().cpu().numpy())
     w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
     return clamp_refit(w, refit_steps, seed, activation=activation, device=sampler.device)

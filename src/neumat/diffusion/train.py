@@ -28,7 +28,7 @@ from neumat.device import resolve_device, to_device
 from neumat.diffusion.constraints import constraint_for
 from neumat.diffusion.refit import clamp_refit
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
-from neumat.diffusion.schedule import Diffusion, ScheduleConfig, guided
+from neumat.diffusion.schedule import Diffusion, RowNoise, ScheduleConfig, guided
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
 from neumat.seeds import seed_for
@@ -291,7 +291,7 @@ class Sampler:
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
-        gen = torch.Generator().manual_seed(seed)
+        rows = RowNoise(seed_for(seed, "ddim"), nbrdf.N_PARAMS)  # the same draws at any batch_size
         constrain = constraint_for(self, negative_step, seed, activation, category, category_step,
                                    particle_step)
         out = []
@@ -299,8 +299,8 @@ class Sampler:
             b = min(batch_size, n - s)
             cond = {"type": labels[s:s + b].to(self.device)} if labels is not None else None
             z = self.diffusion.ddim_sample(guided(self.model, cond, guidance),
-                                           (b, nbrdf.N_PARAMS), steps, eta, gen, self.device,
-                                           clip=clip, constrain=constrain)
+                                           (b, nbrdf.N_PARAMS), steps, eta, None, self.device,
+                                           clip=clip, constrain=constrain, noise=rows.batch(s, b))
             out.append(self.norm.decode(z).float().cpu().numpy())
         w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
         return clamp_refit(w, refit_steps, seed, activation=activation, device=self.device)
