@@ -139,6 +139,12 @@ def test_cfg_null_path_per_modality():
         sc = {"type": 1.5, "text": 2.0, "image": 0.5}
         want = uncond + sum(s * (m(x, t, {k: cond[k]}) - uncond) for k, s in sc.items())
         assert torch.allclose(guided_multi(m, cond, sc)(x, t), want, atol=1e-5)
+        # every scale 1 ("no guidance"): the model given all conditions, not that composition
+        both = {k: cond[k] for k in ("type", "text")}
+        joint = m(x, t, both)
+        assert torch.equal(guided_multi(m, both, {"type": 1.0, "text": 1.0})(x, t), joint)
+        composed = uncond + sum(m(x, t, {k: v}) - uncond for k, v in both.items())
+        assert not torch.allclose(composed, joint, atol=1e-5)
 
 
 @pytest.mark.slow

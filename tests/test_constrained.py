@@ -296,3 +296,15 @@ def test_counts_stay_whole_numbers_in_a_tsv_with_a_nan_sample(tmp_path):
     assert back.loc[0, "n_valid"] == 1_096_216 and back.loc[0, "n_above"] == 1_096_216
     assert np.isnan(back.loc[1, "n_above"])
     assert list(C.classify(back, C.Thresholds())) == ["metallic", ""]
+
+
+def test_the_workflow_knows_the_guided_categories():
+    """workflow/rules/constrained.smk makes constrained.guidance_step a param only where
+    category guidance can act, by a literal copy of GUIDED_CATEGORIES (the DAG does not import
+    torch): the two must agree."""
+    import re
+    from pathlib import Path
+    from neumat.diffusion.constraints import GUIDED_CATEGORIES
+    smk = (Path(__file__).parents[1] / "workflow/rules/constrained.smk").read_text()
+    literal = re.search(r"CON_STEP = .*?\{([^}]*)\}", smk).group(1)
+    assert {w.strip(' "') for w in literal.split(",")} == set(GUIDED_CATEGORIES)

@@ -57,3 +57,16 @@ def test_truncated_file_names_it(tmp_path):
 def test_missing_file_names_it(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nope\.pt"):
         modelfile.load(tmp_path / "nope.pt")
+
+
+@pytest.mark.parametrize("loader, kind", [(Sampler, "a diffusion model"),
+                                          ("image", "an image encoder")])
+def test_a_model_file_of_another_kind_names_the_file_and_the_rule(tmp_path, loader, kind):
+    """A loadable file of the wrong kind (here a bare state dict) is refused by name, not with
+    a KeyError from inside the loader."""
+    if loader == "image":
+        from neumat.conditions import image
+        loader = image.load
+    torch.save({"a": torch.zeros(2)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match=rf"other\.pt: not {kind} \(rule.*lacks"):
+        loader(tmp_path / "other.pt")

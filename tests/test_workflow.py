@@ -608,6 +608,14 @@ def test_each_conditioned_sampler_reruns_for_its_own_guidance_and_dropout(tiny_r
     (tiny_run / "config/ours_cond_drop.yaml").write_text(yaml.safe_dump(cfg))
     jobs = _planned_jobs(tiny_run, "config/ours_cond_drop.yaml")
     assert "train_diffusion" in jobs and "train_multimodal" not in jobs, jobs
+    # a retrained multimodal model reruns its own samples, not the refined ones (the refiner
+    # draws them; each sampler had the multimodal model as an input and reran to the same bytes)
+    cfg = yaml.safe_load(yaml.safe_dump(base))
+    _set(cfg, "conditions.cond_drop", 0.3)
+    (tiny_run / "config/mm_cond_drop.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/mm_cond_drop.yaml")
+    assert {"train_multimodal", "sample_multimodal"} <= set(jobs), jobs
+    assert not {"sample_text", "sample_image", "sample_mm_type"} & set(jobs), jobs
 
 
 @pytest.mark.slow

@@ -183,7 +183,8 @@ rule sample_text:
     training materials whose descriptions are nearest each prompt, refined by the refiner with
     conditions.text.refiner."""
     input:
-        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        # the refiner draws in place of the multimodal model, which is then not read
+        model=[] if TEXT_REFINER else out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
         prompt_embeddings=out("conditions/prompts.npy"),
         **({"weights": out("neumerl/weights.npy"), "manifest": out("neumerl/manifest.tsv"),
@@ -217,7 +218,8 @@ rule sample_text:
 
 rule sample_image:
     input:
-        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        # the refiner draws in place of the multimodal model, which is then not read
+        model=[] if IMAGE_REFINER else out(f"diffusion/{COND_MODEL}/model.pt"),
         encoder=out("conditions/image_encoder.pt"),
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
@@ -296,7 +298,8 @@ rule sample_mm_type:
     (conditions.type.strength < 1) from a training material of the type, refined by the
     refiner with conditions.type.refiner."""
     input:
-        model=out(f"diffusion/{COND_MODEL}/model.pt"),
+        # the refiner draws in place of the multimodal model, which is then not read
+        model=[] if TYPE_REFINER else out(f"diffusion/{COND_MODEL}/model.pt"),
         prompts=out("conditions/prompts.tsv"),
         manifest=out("neumerl/manifest.tsv"),
         **({"weights": out("neumerl/weights.npy")} if TYPE_START else {}),
@@ -451,6 +454,9 @@ rule conditions_section:
                      caption="../report/conditions_guidance.rst"),
     params:
         guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
+        # modalities whose samples the refiner drew (no condition, so no guidance)
+        refined=[m for m, on in (("type", TYPE_REFINER), ("text", TEXT_REFINER),
+                                 ("image", IMAGE_REFINER)) if on],
         image_sampling=image_sampling(),
     log:
         log("conditions_section"),

@@ -60,6 +60,13 @@ rule constrained_classify:
         "../scripts/constrained_classify.py"
 
 
+# guidance_step acts only where category guidance can (guide auto, diffuse or metallic among
+# the categories: neumat.diffusion.constraints.GUIDED_CATEGORIES), diffusion.sample.guidance only
+# with guide types (guide auto): elsewhere a change of either reran sampling to the same samples
+CON_GUIDE = config["constrained"]["guide"] == "auto"
+CON_STEP = CON_GUIDE and bool({"diffuse", "metallic"} & set(config["constrained"]["categories"]))
+
+
 rule sample_constrained:
     input:
         model=out("diffusion/ours/model.pt"),
@@ -72,8 +79,11 @@ rule sample_constrained:
         acceptance=out("constrained/acceptance.tsv"),
     params:
         cfg=settings("constrained", ["categories", "per_category", "budget", "batch", "guide",
-                                     "guidance_step", "bins", "thresholds"]),
-        sample=settings("diffusion.sample", drop=OURS_UNCOND_ONLY),  # its draws keep their channel order
+                                     *(["guidance_step"] if CON_STEP else []), "bins",
+                                     "thresholds"]),
+        # its draws keep their channel order
+        sample=settings("diffusion.sample",
+                        drop=OURS_UNCOND_ONLY + ([] if CON_GUIDE else ["guidance"])),
         seed=seed_for("sample_constrained"),
         activation=config["fit"]["activation"],
     log:

@@ -67,9 +67,11 @@ rule sample_uncond:
     params:
         # unguided; diffusion.sample.rgb_permute, type_prior, keep_look and particle_step for
         # `ours` only (OURS_UNCOND_ONLY)
-        # keep_look compares metric-view renders: their size, only where it is on
+        # keep_look compares metric-view renders: their size, only where it is on; it acts
+        # only with the clamp step (negative_step), so without it keep_look is no param either
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            [] if wc.model == "ours" else OURS_UNCOND_ONLY)),
+            [] if wc.model == "ours" else OURS_UNCOND_ONLY) + (
+            [] if DIFF["sample"]["negative_step"] else ["keep_look"])),
             **({"look_resolution": config["render"]["resolution"]} if wc.model == "ours"
                and DIFF["sample"]["keep_look"] and DIFF["sample"]["negative_step"] else {})},
         mode="uncond",

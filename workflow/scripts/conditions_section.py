@@ -15,6 +15,13 @@ from neumat import report  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 
+def guidance_text(scales, refined) -> str:
+    """Each modality's guidance scale, or that the refiner (which takes no condition) drew its
+    samples, so no scale applied (the guidance sweep still uses the multimodal model)."""
+    return ", ".join(f"{k}: none, its samples drawn by the refiner without a condition"
+                     if k in refined else f"{k} {v}" for k, v in scales.items())
+
+
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
 
@@ -71,7 +78,7 @@ with script_logging(snakemake) as log:
         f"{ecfg['embed_dim']}-d); each condition was dropped independently "
         f"(p = {model['train_cfg']['cond_drop']}) in training, and sampling guides each modality "
         "with its own scale (compositional classifier-free guidance). Guidance: "
-        + ", ".join(f"{k} {v}" for k, v in p.guidance.items()) + ".",
+        + guidance_text(p.guidance, p.refined) + ".",
         "### Encoders and training cost",
         f"Image encoder: ResNet width {ecfg['width']}, {ecfg['blocks']} block(s) per stage, "
         f"{ecfg['resolution']} px renders under {ecfg['n_lights']} lights, crops of "

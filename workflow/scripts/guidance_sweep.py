@@ -18,7 +18,10 @@ with script_logging(snakemake) as log:
     p, inp = snakemake.params, snakemake.input
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
-    ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, p.seed), p.activation)
+    # its own stream: the sampling seed also draws the clamp step's bins, which the scoring
+    # bins must not be (at nn_bins 4096 they were the same bins)
+    ts = ev.TrainingSet(weights, man, distances.brdf_sample(p.bins, seed_for(p.seed, "nn_bins")),
+                        p.activation)
     prompts = pd.read_csv(inp.prompts, sep="\t", keep_default_na=False)
     # conditions whose type some training material has (the others cannot score a hit); when
     # there are none (e.g. the tiny config), all test conditions, and the hits are n/a

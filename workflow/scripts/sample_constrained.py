@@ -24,7 +24,8 @@ with script_logging(snakemake) as log:
     # embeddings never trained (types only held-out sources have)
     trained = dataset.training_types(dataset.read_manifest(inp.manifest))
     bins = constrained.grid_bins(cfg["bins"], p.seed)
-    step = cfg["guidance_step"] if cfg["guide"] == "auto" else 0.0  # none: the paper's setting
+    # a param only where it acts (guide auto, a guided category listed); none: the paper's setting
+    step = cfg.get("guidance_step", 0.0)
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:
         types = [t for t in guides[cat] if t in sampler.class_names and t in trained] \

@@ -224,8 +224,11 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
 
 def load(bundle) -> ImageEncoder:
     """An encoder from a `train` bundle or its file (weights_only: tensors and plain values)."""
+    source = bundle if not isinstance(bundle, dict) else "the encoder bundle"
     if not isinstance(bundle, dict):
         bundle = modelfile.load(bundle)
+    modelfile.require(bundle, ("cfg", "head_dim", "state"), source,
+                      "an image encoder (rule train_image_encoder: conditions/image_encoder.pt)")
     model = ImageEncoder(ImageEncoderConfig(**bundle["cfg"]), bundle["head_dim"])
     model.load_state_dict(bundle["state"])
     return model.eval()

@@ -5,7 +5,7 @@ Guidance with several conditions is compositional classifier-free guidance (Liu 
     out = u + sum_m s_m (c_m - u),
 with u the all-null output and c_m the output given condition m alone. Each modality has its
 own scale; with one modality this is ordinary CFG (`schedule.guided`). All passes run as one
-batch. The model was trained with every condition dropped independently, so each c_m and u are
+batch. Every scale 1 means no guidance: one pass of the model given all the conditions. The model was trained with every condition dropped independently, so each c_m and u are
 in-distribution.
 
 Library entry point for the workflow and the CLI:
@@ -36,8 +36,10 @@ def guided_multi(model, cond: dict, scales: dict) -> Callable:
     names = [k for k in cond if scales.get(k, 1.0) != 0.0]
     if not names:
         return lambda x, t: model(x, t, None)
-    if len(names) == 1 and scales.get(names[0], 1.0) == 1.0:
-        return lambda x, t: model(x, t, {names[0]: cond[names[0]]})
+    if all(scales.get(k, 1.0) == 1.0 for k in names):  # no guidance: the joint conditional
+        # model p(x | c_1, ..., c_m), not the product of the single-condition models that the
+        # composition gives at scale 1 when m > 1
+        return lambda x, t: model(x, t, {k: cond[k] for k in names})
 
     def predict(x, t):
         b, m = x.shape[0], len(names)

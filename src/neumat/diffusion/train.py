@@ -255,8 +255,12 @@ class Sampler:
     """A trained model (EMA weights) ready to sample weight vectors."""
 
     def __init__(self, bundle: dict | str | os.PathLike, device: str = "auto"):
+        source = bundle if not isinstance(bundle, dict) else "the model bundle"
         if not isinstance(bundle, dict):
             bundle = modelfile.load(bundle)
+        modelfile.require(bundle, ("class_names", "model_cfg", "ema", "normalizer", "sched_cfg"),
+                          source, "a diffusion model (rules train_diffusion, train_multimodal, "
+                          "train_refiner: diffusion/<model>/model.pt)")
         self.device = resolve_device(device)
         self.class_names = bundle["class_names"]
         self.model = Denoiser(DenoiserConfig.from_dict(bundle["model_cfg"]))

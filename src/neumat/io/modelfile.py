@@ -24,6 +24,17 @@ def load(path: str | Path, map_location="cpu"):
             "rule that writes it.") from e
 
 
+def require(bundle, keys, source, kind: str) -> dict:
+    """`bundle` if it is a dict holding every one of `keys`, else an error that names the file
+    (`source`) and the kind of model file expected (e.g. "a diffusion model (rule
+    train_diffusion)"), rather than a KeyError from deep inside the loader."""
+    missing = [k for k in keys if not isinstance(bundle, dict) or k not in bundle]
+    if missing:
+        raise ValueError(f"{source}: not {kind}: it lacks {', '.join(missing)}. Pass the file "
+                         f"that rule writes, or rebuild it with that rule.")
+    return bundle
+
+
 def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
            **state) -> dict | None:
     """A training checkpoint at `path`, loaded into `state` (name -> object with
