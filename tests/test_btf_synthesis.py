@@ -359,3 +359,180 @@ def test_evaluation_and_section_take_any_number_of_lights(tmp_path, lights):
     table = [line for line in md.splitlines() if line.startswith("|")]
     assert table[0].count("dmean L") == n and f"dmean L{n + 1}" not in table[0]
     assert len({line.count("|") for line in table}) == 1  # header, rule and rows line up
+
+
+def test_hpb_torch_path_is_independent_of_the_batch():
+    """The torch path (the reference and the fallback) is a pure function of (u, seed) to the
+    bit: no BLAS call whose kernel, and rounding, changes with the number of rows (addmm did
+    for fewer than 8)."""
+    s = syn.build(_plane_model(), "hpb", 7)
+    u = torch.rand(700, 2, generator=torch.Generator().manual_seed(1), dtype=torch.float64) * 40
+    full = s.torch_features(u)
+    for n in (1, 2, 3, 5, 7, 8, 9, 17):
+        for i in range(0, 120, n):
+            assert torch.equal(full[i:i + n], s.torch_features(u[i:i + n])), (n, i)
+    perm = torch.randperm(700, generator=torch.Generator().manual_seed(2))
+    assert torch.equal(full[perm], s.torch_features(u[perm]))
+    # still mean + basis q, the C kernel's features to float32 rounding
+    from neumat.btf.synthesis import kernel
+    if kernel.available():
+        assert (s(u) - full).abs().max() < 1e-4 * full.std()
+
+
+@pytest.mark.parametrize("method", ["tiling", "linear", "hpb", "hextile", "quilting"])
+def test_no_queries_give_empty_answers(method):
+    m = _plane_model()
+    s = syn.build(m, method, 3, {"scale": 2, "block": 8} if method == "quilting" else None)
+    u, d = torch.zeros(0, 2, dtype=torch.float64), torch.zeros(0, 3)
+    C = m.f_u.shape[-1]
+    assert s(u).shape == (0, C)
+    if method == "hpb":
+        assert s.torch_features(u).shape == (0, C)
+    w = syn.Synthesized(m, s)
+    assert w(u, d, d).shape == (0, 3) and w.torch_forward(u, d, d).shape == (0, 3)
+
+
+@pytest.mark.parametrize("method, settings, match", [
+    ("hpb", {"lut_sz": 64}, r"unknown hpb setting.*'lut_sz'.*\['lut_size'\]"),
+    ("hpb", {"lut_size": 1}, r"'lut_size' must be an integer >= 2"),
+    ("hpb", {"lut_size": 0}, r"'lut_size' must be an integer >= 2"),
+    ("hpb", {"lut_size": 64.5}, r"'lut_size' must be an integer >= 2"),
+    ("hpb", {"lut_size": True}, r"'lut_size' must be an integer >= 2"),
+    ("hextile", {"gain": 1.0}, r"'gain' must be a number in \(0, 1\)"),
+    ("hextile", {"gain": 0}, r"'gain' must be a number in \(0, 1\)"),
+    ("hextile", {"gian": 0.9}, r"unknown hextile setting.*'gian'"),
+    ("hextile", {"contrast": 1.5}, r"'contrast' must be a number in \[0, 1\]"),
+    ("hextile", {"exponent": 0}, r"'exponent' must be a number in \(0, 32\]"),
+    ("hextile", {"exponent": 100.0}, r"'exponent' must be a number in \(0, 32\]"),
+    ("hextile", {"rotation": float("nan")}, r"'rotation' must be a number >= 0"),
+    ("hextile", {"rotation": "1"}, r"'rotation' must be a number >= 0"),
+    ("quilting", {"tolerance": 0.5}, r"'tolerance' must be a number >= 1"),
+    ("quilting", {"scale": 0}, r"'scale' must be an integer >= 1"),
+    ("quilting", {"block": 0}, r"'block' must be a number > 0"),
+    ("tiling", {"scale": 2}, r"unknown tiling setting.*it takes no settings"),
+    ("linear", {"lut_size": 2}, r"unknown linear setting"),
+])
+def test_bad_settings_are_refused_naming_the_key_and_range(method, settings, match):
+    m = _plane_model()
+    with pytest.raises(ValueError, match=match):
+        syn.build(m, method, 1, settings)
+    cls = syn.SYNTHS[method]
+    good = {"scale": 2, "block": 8} if method == "quilting" else {}
+    state = syn.build(m, method, 1, good).state()
+    with pytest.raises(ValueError, match=match):  # a saved file's settings: the same checks
+        cls.from_state(m.f_u.detach(), 1, state, settings)
+
+
+def test_good_settings_are_taken_whole_numbers_as_integers():
+    m = _plane_model()
+    s = syn.build(m, "hpb", 1, {"lut_size": 64.0})
+    assert s.lut.shape == (m.f_u.shape[-1], 64)
+    h = syn.build(m, "hextile", 1, {"exponent": 32, "contrast": 1, "gain": 0.999, "rotation": 0})
+    assert h.s == {"rotation": 0.0, "contrast": 1.0, "exponent": 32.0, "gain": 0.999}
+    q = syn.build(m, "quilting", 1, {"scale": 2.0, "block": 8, "tolerance": 1})
+    assert q.s["scale"] == 2 and isinstance(q.s["scale"], int) and q.quilted.shape[0] == 48
+
+
+def test_library_ranges_are_the_schema_ranges():
+    """config/schema.yaml (the workflow's check) and neumat.btf.synthesis.settings (the
+    library's) allow the same keys, types, bounds and defaults."""
+    import yaml
+    from pathlib import Path
+    from neumat.btf.synthesis import settings
+    schema = yaml.safe_load((Path(__file__).parents[1] / "config/schema.yaml").read_text())
+    props = schema["properties"]["btf_synthesis"]["properties"]
+    for method in ("hpb", "hextile", "quilting"):
+        sch, spec = props[method]["properties"], settings.SPECS[method]
+        assert props[method]["additionalProperties"] is False
+        assert set(sch) == set(spec), method
+        for key, r in spec.items():
+            p = sch[key]
+            assert p["type"] == ("integer" if r.integer else "number"), (method, key)
+            assert p["default"] == r.default, (method, key)
+            lo = p.get("exclusiveMinimum", p.get("minimum"))
+            hi = p.get("exclusiveMaximum", p.get("maximum"))
+            assert (lo, "exclusiveMinimum" in p) == ((r.lo, r.lo_open) if r.lo is not None
+                                                     else (None, False)), (method, key)
+            assert (hi, "exclusiveMaximum" in p) == ((r.hi, r.hi_open) if r.hi is not None
+                                                     else (None, False)), (method, key)
+
+
+def test_the_kernel_refuses_a_lut_of_fewer_than_two_entries():
+    """Backstop below the settings check: an HPB whose LUT was cut after the build is refused
+    before the C kernel reads it (L = 0 crashed it, L = 1 read the entry before the row)."""
+    from neumat.btf import query
+    from neumat.btf.synthesis import kernel
+    m = _plane_model()
+    s = syn.build(m, "hpb", 1)
+    s.lut = s.lut[:, :1].contiguous()
+    u = torch.rand(10, 2, dtype=torch.float64)
+    d = torch.tensor([[0.0, 0.0, 1.0]]).expand(10, 3)
+    with pytest.raises(ValueError, match=r"L >= 2 entries \(setting lut_size\)"):
+        kernel.hpb_features(u, s)
+    with torch.no_grad(), pytest.raises(ValueError, match=r"L >= 2 entries"):
+        query.query(m, u, d, d, features_u=s)
+
+
+@pytest.mark.parametrize("settings", [{"exponent": 32.0}, {"exponent": 32.0, "gain": 0.5},
+                                      {"exponent": 31.5, "contrast": 1.0}])
+def test_hextile_largest_exponent_stays_finite_and_kernel_equals_torch(settings):
+    """At the largest allowed exponent the weights stay normal floats in the torch path (at
+    100 all three underflowed: 0 / 0), and the fused C query equals it."""
+    m = _plane_model()
+    s = syn.build(m, "hextile", 3, settings)
+    g = torch.Generator().manual_seed(4)
+    u = torch.rand(3000, 2, generator=g, dtype=torch.float64) * 3 + 1e5
+    wi = torch.nn.functional.normalize(torch.rand(3000, 3, generator=g) + torch.tensor([0, 0, 1.0]), dim=1)
+    f = s(u)
+    assert torch.isfinite(f).all() and (f.abs().sum(1) > 0).all()
+    w = syn.Synthesized(m, s)
+    ref = w.torch_forward(u, wi, wi)
+    torch.testing.assert_close(w(u, wi, wi), ref, rtol=1e-4, atol=1e-5 * ref.abs().max().item())
+
+
+def test_hextile_black_taps_at_contrast_1_give_equal_weights_in_both_paths():
+    """contrast 1 and luminance 0 at all three taps: every blend weight is 0 before Gain3.
+    Gain3's floored power (the C kernel's powk floor, hextile.POW_FLOOR) makes them 1/3 each in
+    the torch path as in C (it was 0 / 0 = NaN in torch), the plain average of the taps: that
+    of weights w^exponent = 1 (a tiny exponent) without luminance weighting. Without Gain3 both
+    paths give features 0."""
+    from neumat.btf.synthesis import hextile
+    m = _plane_model()
+    u = torch.rand(2000, 2, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 3
+    wi = torch.nn.functional.normalize(torch.rand(2000, 3) + torch.tensor([0, 0, 1.0]), dim=1)
+    dark = {"luminance": torch.zeros(m.f_u.shape[:2])}
+    plane = m.f_u.detach()
+    s = hextile.HexTile.from_state(plane, 3, dark, {"contrast": 1.0, "gain": 0.7})
+    f = s(u)
+    assert torch.isfinite(f).all()
+    flat = hextile.HexTile.from_state(plane, 3, dark, {"contrast": 0.0, "exponent": 1e-9})
+    torch.testing.assert_close(f, flat(u), rtol=1e-5, atol=1e-7)
+    w = syn.Synthesized(m, s)
+    ref = w.torch_forward(u, wi, wi)
+    assert torch.isfinite(ref).all()
+    torch.testing.assert_close(w(u, wi, wi), ref, rtol=1e-4, atol=1e-5 * ref.abs().max().item())
+    none = hextile.HexTile.from_state(plane, 3, dark, {"contrast": 1.0, "gain": 0.5})
+    assert torch.equal(none(u), torch.zeros_like(f))
+    w = syn.Synthesized(m, none)
+    torch.testing.assert_close(w(u, wi, wi), w.torch_forward(u, wi, wi))
+
+
+@pytest.mark.parametrize("method", ["hpb", "hextile", "quilting"])
+def test_load_refuses_a_state_of_another_model(tmp_path, method):
+    """A saved state belongs to the plane it was built from: another plane's shape is an error
+    naming the file and the model, not a bare torch.cat error or HPB answering silently from
+    its stored exemplar."""
+    st = {"scale": 2, "block": 8} if method == "quilting" else {}
+    m = _plane_model()
+    path = tmp_path / f"{method}.pt"
+    syn.save(path, method, 4, st, {"triple_plane": syn.build(m, method, 4, st)})
+    others = [_plane_model(size=20), TriplePlane(24, 20)]
+    if method != "hextile":  # its state is a luminance per texel: (H, W) only
+        others.append(TriplePlane(24, 24, u_channels=6))
+    for other in others:
+        with pytest.raises(ValueError, match=rf"{method}\.pt: the {method} state of "
+                                             r"'triple_plane' does not fit the given"):
+            syn.load(path, {"triple_plane": other})
+    u = torch.rand(50, 2, dtype=torch.float64) * 3
+    assert torch.equal(syn.load(path, {"triple_plane": m})["triple_plane"].synth(u),
+                       syn.build(m, method, 4, st)(u))

@@ -45,7 +45,8 @@ def fetch(plane: torch.Tensor, xy: torch.Tensor, wrap: bool) -> torch.Tensor:
     # backward sums in a fixed order (tests/test_threads.py)
     idx = torch.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], 1)
     w = torch.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], 1)
-    taps = plane.reshape(H * W, -1).index_select(0, idx.reshape(-1)).view(*idx.shape, -1)
+    C = plane.shape[-1]  # not -1: a view of no queries (N = 0) would be ambiguous
+    taps = plane.reshape(H * W, C).index_select(0, idx.reshape(-1)).view(*idx.shape, C)
     return torch.bmm(w[:, None, :], taps)[:, 0]
 
 

@@ -78,6 +78,14 @@ def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
     return torch.stack([lut, slope], -1).contiguous()
 
 
+def check_lut(lut: torch.Tensor, channels: int) -> None:
+    """HPB's inverse LUT must be (channels, L) with L >= 2 (the kernel interpolates entry k
+    with k + 1: L = 1 reads before the row, L = 0 crashes); ValueError otherwise."""
+    if lut.dim() != 2 or lut.shape[0] != channels or lut.shape[1] < 2:
+        raise ValueError(f"HPB's inverse LUT must be ({channels}, L) with L >= 2 entries "
+                         f"(setting lut_size), got shape {tuple(lut.shape)}")
+
+
 def hpb_plane(hpb) -> torch.Tensor:
     """HPB's Gaussianised plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C) float16,
     wrapped by one row and column, so a bilinear footprint is one offset (struct hpb). float16
@@ -149,6 +157,8 @@ def _hpb(features_u):
     if method not in ("hpb", "hextile"):
         return None
     H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
+    if method == "hpb":
+        check_lut(features_u.lut, C)
     # int32 offsets: HPB's in elements of hpb_plane's (H + 1, W + 1, C), hex-tiling's in texels
     # (the bound is strict for those)
     return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None

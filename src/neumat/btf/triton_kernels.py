@@ -371,10 +371,14 @@ def power(x, e, IE: tl.constexpr):
 
 @triton.jit
 def gain3(x, k):
-    """hextile.gain3's per-weight gain (before its renormalisation)."""
+    """hextile.gain3's per-weight gain (before its renormalisation). Its power is floored as
+    hextile.POW_FLOOR's, one binade higher (2^-125), so that 0.25 m p stays a normal float
+    where a GPU flushes subnormals: where all three weights are 0 (hextile's docstring) they
+    still come out 1/3 each; elsewhere a floored weight is invisible beside the others."""
     s = tl.where(x >= 0.5, 2.0, 0.0)
     m = 2.0 * (1 - s)
-    return 0.5 * s + 0.25 * m * tl.exp(k * tl.log(tl.maximum(s + x * m, 1e-30)))
+    p = tl.maximum(tl.exp(k * tl.log(tl.maximum(s + x * m, 1e-30))), 2.3509887e-38)
+    return 0.5 * s + 0.25 * m * p
 
 
 @triton.jit

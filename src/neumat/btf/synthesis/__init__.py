@@ -5,6 +5,8 @@ decode(Syn(f_U, u), wi, wo), so only the 2-D positional plane is synthesised.
 Registry: method -> class with `build(plane, seed, settings, luminance)`, `state()`,
 `from_state(plane, seed, state, settings)` and `__call__(u) -> (N, C)` features.
 Dynamic methods are pure functions of (u, seed): their state depends on the exemplar only.
+`build` and `from_state` check the settings (keys and ranges: neumat.btf.synthesis.settings)
+and `from_state` that the state fits the plane; both raise ValueError.
 `Synthesized(model, synth)` answers the shared `btf(u, wi, wo)` query API."""
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from neumat.btf import query
 from neumat.btf.synthesis.hextile import HexTile, luminance
 from neumat.btf.synthesis.hpb import HPB
 from neumat.btf.synthesis.quilting import Quilting
+from neumat.btf.synthesis.settings import check as check_settings
 from neumat.btf.synthesis.tiling import LinearBlend, Tiling
 from neumat.io import modelfile
 from neumat.io.atomic import save_torch
@@ -29,6 +32,7 @@ def build(model, method: str, seed: int, settings: dict | None = None):
     """Synthesis `method` on `model`'s positional plane f_U."""
     if method not in SYNTHS:
         raise ValueError(f"unknown synthesis method {method!r}; choose from {list(SYNTHS)}")
+    check_settings(method, settings)  # before hex-tiling's luminance pass over the plane
     lum = luminance(model) if method == "hextile" else None
     return SYNTHS[method].build(model.f_u.detach(), seed, settings or {}, lum)
 
@@ -80,7 +84,20 @@ def load(path, plane_models: dict) -> dict:
     if missing:
         raise ValueError(f"{path}: holds synthesis states for {sorted(missing)} but those "
                          "models were not given; pass their model files")
-    return {name: Synthesized(plane_models[name],
-                              cls.from_state(plane_models[name].f_u.detach().float().contiguous(),
-                                             ck["seed"], st, ck["settings"]))
-            for name, st in ck["planes"].items()}
+    try:
+        check_settings(ck["method"], ck["settings"])
+    except ValueError as e:
+        raise ValueError(f"{path}: its stored settings: {e}") from e
+    out = {}
+    for name, st in ck["planes"].items():
+        m = plane_models[name]
+        plane = m.f_u.detach().float().contiguous()
+        try:
+            synth = cls.from_state(plane, ck["seed"], st, ck["settings"])
+        except ValueError as e:
+            raise ValueError(f"{path}: the {ck['method']} state of {name!r} does not fit the "
+                             f"given {name!r} model ({getattr(m, 'method', type(m).__name__)}, "
+                             f"f_U (H, W, C) = {tuple(plane.shape)}): {e}; was it synthesised "
+                             "from another model file?") from e
+        out[name] = Synthesized(m, synth)
+    return out

@@ -20,6 +20,7 @@ import torch
 
 from neumat.btf.neural import fetch
 from neumat.btf.synthesis import kernel
+from neumat.btf.synthesis import settings as _settings
 from neumat.btf.synthesis.grid import triangle_grid, vertex_hash, wrap_fetch_coords
 
 SIGMA = 1.0 / 6.0
@@ -84,11 +85,12 @@ class HPB:
 
     @classmethod
     def build(cls, plane, seed, settings=None, luminance=None):
+        s = _settings.check(cls.method, settings)
         H, W, C = plane.shape
         x = plane.detach().float().reshape(-1, C)
         mean, basis = decorrelate(x)
         q = (x - mean) @ basis
-        lut = build_lut(q, int((settings or {}).get("lut_size", 128)))
+        lut = build_lut(q, s["lut_size"])
         return cls(seed, mean, basis, gaussianise(q).reshape(H, W, C).contiguous(), lut)
 
     def state(self) -> dict:
@@ -96,6 +98,19 @@ class HPB:
 
     @classmethod
     def from_state(cls, plane, seed, state, settings=None):
+        """The synthesis of `state` (of `build` on a plane of plane's shape, with `settings`);
+        ValueError where the state does not fit the plane or the settings."""
+        s = _settings.check(cls.method, settings)
+        missing = sorted({"mean", "basis", "gauss", "lut"} - set(state))
+        if missing:
+            raise ValueError(f"HPB state lacks {missing}")
+        H, W, C = plane.shape
+        want = {"gauss": (H, W, C), "mean": (C,), "basis": (C, C), "lut": (C, s["lut_size"])}
+        for k, shape in want.items():
+            if tuple(state[k].shape) != shape:
+                raise ValueError(f"HPB state {k!r} has shape {tuple(state[k].shape)}, but the "
+                                 f"model's plane (H, W, C) = {(H, W, C)} and lut_size "
+                                 f"{s['lut_size']} need {shape}")
         return cls(seed, state["mean"], state["basis"], state["gauss"], state["lut"])
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
@@ -104,8 +119,15 @@ class HPB:
         return self.torch_features(u) if out is None else out
 
     def torch_features(self, u: torch.Tensor) -> torch.Tensor:
+        """The torch path: a pure function of (u, seed), to the bit, whatever the batch (no
+        BLAS: its kernels, and so its rounding, depend on the number of rows)."""
+        C = self.gauss.shape[-1]
         v, w = triangle_grid(u)
         xy = wrap_fetch_coords(u, vertex_hash(v, self.seed))
-        taps = fetch(self.gauss, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3, -1)
+        taps = fetch(self.gauss, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3, C)
         q = inverse_lut(blend(taps, w.float()), self.lut)
-        return torch.addmm(self.mean, q, self.basis.T)
+        # mean + basis q, summed over c in order, elementwise (as hpb_features in C)
+        out = self.mean + q[:, :1] * self.basis[:, 0]
+        for c in range(1, C):
+            out = out + q[:, c:c + 1] * self.basis[:, c]
+        return out

@@ -16,8 +16,9 @@ import numpy as np
 import torch
 
 from neumat.btf.neural import fetch
+from neumat.btf.synthesis import settings as _settings
 
-DEFAULTS = {"block": 0.25, "scale": 15, "tolerance": 1.1}
+DEFAULTS = _settings.defaults("quilting")
 
 
 def block_size(exemplar_size: int, block) -> int:
@@ -131,18 +132,18 @@ class Quilting:
     method, dynamic = "quilting", False
 
     def __init__(self, seed, quilted, settings=None, seam_ssd=float("nan")):
+        self.s = _settings.check(self.method, settings)
         self.seed, self.quilted = int(seed), quilted
-        self.s = {**DEFAULTS, **(settings or {})}
         self.seam_ssd = seam_ssd
 
     @classmethod
     def build(cls, plane, seed, settings=None, luminance=None):
-        s = {**DEFAULTS, **(settings or {})}
+        s = _settings.check(cls.method, settings)
         ex = plane.detach().float().numpy()
         H, W, _ = ex.shape
         b = block_size(min(H, W), s["block"])
-        q, err = quilt(ex, int(s["scale"]) * H, int(s["scale"]) * W, b,
-                       np.random.default_rng(seed), s["tolerance"])
+        q, err = quilt(ex, s["scale"] * H, s["scale"] * W, b, np.random.default_rng(seed),
+                       s["tolerance"])
         return cls(seed, torch.from_numpy(q).contiguous(), s, err)
 
     def state(self) -> dict:
@@ -150,7 +151,17 @@ class Quilting:
 
     @classmethod
     def from_state(cls, plane, seed, state, settings=None):
-        return cls(seed, state["quilted"], settings, state["seam_ssd"])
+        """ValueError where the quilt is not `scale` x the plane (H, W, C) of its settings."""
+        s = _settings.check(cls.method, settings)
+        if "quilted" not in state:
+            raise ValueError("quilting state lacks 'quilted'")
+        H, W, C = plane.shape
+        want = (s["scale"] * H, s["scale"] * W, C)
+        if tuple(state["quilted"].shape) != want:
+            raise ValueError(f"quilting state 'quilted' has shape {tuple(state['quilted'].shape)}, "
+                             f"but the model's plane (H, W, C) = {(H, W, C)} at scale "
+                             f"{s['scale']} needs {want}")
+        return cls(seed, state["quilted"], s, state.get("seam_ssd", float("nan")))
 
     def storage_bytes(self) -> int:
         return self.quilted.numel() * self.quilted.element_size()

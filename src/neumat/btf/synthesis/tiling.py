@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 
 from neumat.btf.neural import fetch
+from neumat.btf.synthesis import settings as _settings
 from neumat.btf.synthesis.grid import triangle_grid, vertex_hash, wrap_fetch_coords
 
 
@@ -19,6 +20,7 @@ class Tiling:
 
     @classmethod
     def build(cls, plane, seed, settings=None, luminance=None):
+        _settings.check(cls.method, settings)  # none: a key is a mistake
         return cls(plane.detach().float().contiguous(), seed)
 
     def state(self) -> dict:
@@ -26,6 +28,7 @@ class Tiling:
 
     @classmethod
     def from_state(cls, plane, seed, state, settings=None):
+        _settings.check(cls.method, settings)
         return cls(plane, seed)
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
@@ -41,5 +44,6 @@ class LinearBlend(Tiling):
     def __call__(self, u):
         v, w = triangle_grid(u)
         xy = wrap_fetch_coords(u, vertex_hash(v, self.seed))
-        taps = fetch(self.plane, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3, -1)
+        taps = fetch(self.plane, xy.reshape(-1, 2), wrap=True).reshape(len(u), 3,
+                                                                       self.plane.shape[-1])
         return (taps * w.float()[:, :, None]).sum(1)
