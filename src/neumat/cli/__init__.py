@@ -21,14 +21,36 @@ import sys
 
 from neumat.cli.info import cmd_info
 from neumat.cli.render import cmd_render
-from neumat.cli.run import (EXIT_BUDGET, EXIT_USAGE, IMAGE_ENCODER, CLIError, Run, load_model,
+from neumat.cli.run import (ACTIVATIONS, EXIT_BUDGET, EXIT_USAGE, IMAGE_ENCODER, CLIError, Run,
                             schema_default, unsupported)
 from neumat.cli.sample import cmd_sample, parse_guidance
 
 # `cli.<name>` for tests and scripts; the subcommands live in info, sample and render, what
 # they share in run
 __all__ = ["main", "parser", "EXIT_BUDGET", "EXIT_USAGE", "IMAGE_ENCODER", "CLIError", "Run",
-           "load_model", "schema_default", "unsupported", "parse_guidance"]
+           "schema_default", "unsupported", "parse_guidance"]
+
+
+def whole(low: int):
+    """An argparse type: a whole number >= low (argparse exits with status 2 and names the
+    option, before any work)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = low - 1
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{text!r}: give a whole number >= {low}")
+        return value
+    return parse
+
+
+def bins(text: str) -> int | str:
+    """--bins: a whole number of bins, or `all` (every valid bin, the config's null)."""
+    try:
+        return "all" if text == "all" else whole(1)(text)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(f"{e}, or all") from None
 
 
 def parser() -> argparse.ArgumentParser:
@@ -64,21 +86,26 @@ def parser() -> argparse.ArgumentParser:
                                       "a pilot batch per way of drawing (unconditional, category "
                                       "guidance, type guidance), then the best, stopping as soon as "
                                       "-n are accepted")
-    s.add_argument("-n", type=int, default=8, help="number of samples (default 8)")
-    s.add_argument("--out", required=True, help="output directory (created)")
-    s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    s.add_argument("--steps", type=int,
+    s.add_argument("-n", type=whole(1), default=8, help="number of samples (default 8)")
+    s.add_argument("--out", required=True,
+                   help="output directory (created); the files an earlier `neumat sample` wrote "
+                        "there (weights.npy, samples.tsv, sample_NNN.binary/.png, scene.xml, "
+                        "scene.png, sky.exr) are replaced, other files are left alone")
+    # the root of named streams (neumat.seeds), one per batch
+    s.add_argument("--seed", type=whole(0), default=0, help="random seed (default 0)")
+    s.add_argument("--steps", type=whole(1),
                    help="DDIM steps (default: the run's diffusion.sample.steps, as its workflow sampled)")
     s.add_argument("--guidance", action="append", metavar="[MOD=]S",
                    help="classifier-free guidance scale (1 = none, 0 = ignore the condition): S "
-                        "for every condition asked, or MOD=S for one of type, text, image; "
+                        "for every condition asked (it needs one: --type, --text, --image, or "
+                        "--category's guide types), or MOD=S for one of type, text, image; "
                         "repeatable (--guidance text=3 --guidance image=1.5). Default: the run's "
                         "config, conditions.guidance.<MOD> for the multimodal model and "
                         "diffusion.sample.guidance for a type-only model such as ours")
-    s.add_argument("--batch", type=int,
+    s.add_argument("--batch", type=whole(1),
                    help="samples per batch (default: the run's diffusion.sample.batch_size, or "
                         "with --category its constrained.batch)")
-    s.add_argument("--budget", type=int,
+    s.add_argument("--budget", type=whole(1),
                    help="--category: most draws before giving up (default: the run's constrained.budget)")
     s.add_argument("--category-step", type=float, metavar="S",
                    help="--category diffuse/metallic: category guidance step, 0 = off (default: the "
@@ -111,14 +138,16 @@ def parser() -> argparse.ArgumentParser:
                         "(diffusion/refiner/model.pt, rule train_refiner), unconditionally, as "
                         "the workflow's conditions.<m>.refiner (--image: render guidance and "
                         "best of n still follow the image)")
-    s.add_argument("--bins", type=int,
-                   help="--category: MERL bins the statistics use (default: the run's constrained.bins)")
-    s.add_argument("--activation", help="NBRDF activation (default: the run's fit.activation)")
-    s.add_argument("--resolution", type=int, default=128, help="metric-view PNG size (default 128)")
+    s.add_argument("--bins", type=bins, metavar="N|all",
+                   help="--category: MERL bins the statistics use, or all (default: the run's "
+                        "constrained.bins, null = all)")
+    s.add_argument("--activation", choices=ACTIVATIONS,
+                   help="NBRDF activation (default: the run's fit.activation)")
+    s.add_argument("--resolution", type=whole(2), default=128, help="metric-view PNG size (default 128)")
     s.add_argument("--no-binary", action="store_true", help="skip the MERL .binary files (35 MB each)")
     s.add_argument("--mitsuba", action="store_true", help="also render scene.xml to scene.png with Mitsuba")
-    s.add_argument("--mitsuba-resolution", type=int, default=256, help="scene.png size (default 256)")
-    s.add_argument("--spp", type=int, default=32, help="Mitsuba samples per pixel (default 32)")
+    s.add_argument("--mitsuba-resolution", type=whole(1), default=256, help="scene.png size (default 256)")
+    s.add_argument("--spp", type=whole(1), default=32, help="Mitsuba samples per pixel (default 32)")
     s.add_argument("--variant", default="auto", choices=["auto", "llvm_ad_rgb", "scalar_rgb"], help="Mitsuba variant")
     s.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="torch device")
     s.set_defaults(func=cmd_sample)
@@ -128,13 +157,14 @@ def parser() -> argparse.ArgumentParser:
                                    "environment), or with --mitsuba a Mitsuba 3 sphere under a sky; "
                                    "a .xml scene (e.g. from `neumat sample`) renders with Mitsuba.")
     r.add_argument("file", help="FILE.binary, weights.npy (N x 675) or scene.xml")
-    r.add_argument("--out", required=True, help="PNG to write")
-    r.add_argument("--index", type=int, help="weights.npy: only this row (default: up to --max rows as a grid)")
-    r.add_argument("--max", type=int, default=16, help="weights.npy: most rows in the grid (default 16)")
+    r.add_argument("--out", required=True, help="PNG to write (FILE.png)")
+    r.add_argument("--index", type=whole(0), help="weights.npy: only this row (default: up to --max rows as a grid)")
+    r.add_argument("--max", type=whole(1), default=16, help="weights.npy: most rows in the grid (default 16)")
     r.add_argument("--mitsuba", action="store_true", help="render with Mitsuba instead of the metric view")
-    r.add_argument("--resolution", type=int, default=None, help="image size (default 128; a .xml keeps its own)")
-    r.add_argument("--spp", type=int, default=None, help="Mitsuba samples per pixel (default 32)")
-    r.add_argument("--activation", help="NBRDF activation of weights files (default relu)")
+    r.add_argument("--resolution", type=whole(2), help="image size (default 128; a .xml keeps its own)")
+    r.add_argument("--spp", type=whole(1), help="Mitsuba samples per pixel (default 32; a .xml keeps its own)")
+    r.add_argument("--activation", choices=ACTIVATIONS,
+                   help="NBRDF activation of weights files (default relu)")
     r.add_argument("--variant", default="auto", choices=["auto", "llvm_ad_rgb", "scalar_rgb"], help="Mitsuba variant")
     r.set_defaults(func=cmd_render)
     return ap
@@ -142,20 +172,6 @@ def parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
-    if args.command == "render":
-        args.resolution_set = args.resolution is not None
-        args.resolution = args.resolution or 128
-        if args.file.endswith(".xml"):
-            args.spp = args.spp
-        else:
-            args.spp = args.spp or 32
-    if args.command == "sample":
-        if args.n < 1:
-            print("neumat: error: -n must be >= 1", file=sys.stderr)
-            return EXIT_USAGE
-        if args.seed < 0:  # the root of named streams (neumat.seeds), one per batch
-            print("neumat sample: error: --seed must be >= 0", file=sys.stderr)
-            return EXIT_USAGE
     try:
         return args.func(args)
     except CLIError as e:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumat.cli.run import IMAGE_ENCODER, MULTIMODAL, Run, load_model, model_conditions
+from neumat.cli.run import IMAGE_ENCODER, MULTIMODAL, CLIError, Run, model_conditions
 
 def cmd_info(args) -> int:
     import pandas as pd
@@ -32,12 +32,16 @@ def cmd_info(args) -> int:
     models = run.models()
     print(f"models ({len(models)}):" if models else
           f"models: none (rule train_diffusion: `{run.target('diffusion/ours/model.pt')}`)")
-    for name, p in models.items():
-        b = load_model(p)
-        conds = model_conditions(b)
+    for name in models:
+        try:  # one unreadable model is listed as such, as the image encoder is: info goes on
+            b = run.load_model(name)
+        except CLIError as e:
+            print(f"  {name:<12} unreadable: {e}")
+            continue
+        conds, m = model_conditions(b), b["model_cfg"]
         print(f"  {name:<12} trained on {b.get('n_train', '?')} fields, "
-              f"{b['train_cfg'].get('steps', '?')} steps, width {b['model_cfg']['width']}, depth "
-              f"{b['model_cfg']['depth']}; conditions: {', '.join(conds) or 'none'} "
+              f"{b.get('train_cfg', {}).get('steps', '?')} steps, width {m.get('width', '?')}, "
+              f"depth {m.get('depth', '?')}; conditions: {', '.join(conds) or 'none'} "
               f"({len(b['class_names'])} types)")
     _info_encoders(run, models)
     sets = sorted(run.path.glob("samples/*/weights.npy"))
@@ -79,8 +83,7 @@ def _info_encoders(run: Run, models: dict[str, Path]) -> None:
             print(f"  image        {enc.relative_to(run.path)}: ResNet, {c['resolution']} px renders, "
                   f"{c['embed_dim']}-d embeddings, objective {c['objective']}, {c['steps']} steps")
         except Exception as e:  # a damaged or foreign file
-            print(f"  image        {enc}: unreadable ({type(e).__name__}: {e}); rebuild it with rule "
-                  f"train_image_encoder")
+            print(f"  image        unreadable: {run.unreadable(IMAGE_ENCODER, 'train_image_encoder', e)}")
     if MULTIMODAL not in models:
         print(f"  (--text / --image need the {MULTIMODAL} model: rule train_multimodal, "
               f"`{run.target(f'diffusion/{MULTIMODAL}/model.pt')}`)")

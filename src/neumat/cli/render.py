@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neumat.cli.run import CLIError, _progress
+from neumat.cli.run import CLIError, _progress, check_out_dir
 
 def _write_scene(out: Path, n: int, activation: str, resolution: int = 512, spp: int = 64) -> Path:
     """scene.xml: the samples as spheres in a grid under sky.exr, each loading its row of
@@ -86,6 +86,35 @@ def _render_scene(xml: Path, png: Path, variant: str, resolution: int | None, sp
     scenes.write_png(png, img)
 
 
+def _check_out(path: str) -> Path:
+    """--out: a .png whose directory can be made (checked before rendering)."""
+    out = Path(path)
+    if out.suffix.lower() != ".png":
+        raise CLIError(f"--out {path}: give a PNG file name, ending in .png")
+    if out.is_dir():
+        raise CLIError(f"--out {path}: a directory; give a PNG file name, e.g. {out / 'render.png'}")
+    check_out_dir(out.parent, f"--out {path}")
+    return out
+
+
+def _read_weights(f: Path) -> np.ndarray:
+    """(N, 675) NBRDF weights from a .npy file (no pickled objects), or a CLIError."""
+    from neumat import nbrdf
+    want = (f"expected NBRDF weights (N, {nbrdf.N_PARAMS}) or ({nbrdf.N_PARAMS},) of numbers, "
+            f"e.g. samples/<set>/weights.npy or neumerl/weights.npy")
+    try:
+        w = np.load(f)  # allow_pickle=False: a pickle would run code
+    except (OSError, ValueError, EOFError) as e:
+        why = ("not an array numpy can read without unpickling (neumat loads no pickles: they "
+               "can run code)" if "pickle" in str(e) else f"not a .npy array ({type(e).__name__}: {e})")
+        raise CLIError(f"{f}: {why}; {want}") from None
+    if not isinstance(w, np.ndarray) or w.dtype.kind not in "fiu":
+        raise CLIError(f"{f}: holds {getattr(w, 'dtype', type(w).__name__)}, not numbers; {want}")
+    if w.ndim not in (1, 2) or w.shape[-1] != nbrdf.N_PARAMS or w.size == 0:
+        raise CLIError(f"{f}: shape {w.shape}; {want}")
+    return w.reshape(-1, nbrdf.N_PARAMS)
+
+
 def cmd_render(args) -> int:
     import torch
 
@@ -95,12 +124,14 @@ def cmd_render(args) -> int:
     f = Path(args.file)
     if not f.exists():
         raise CLIError(f"{f}: no such file (give a MERL .binary, a weights .npy or a scene .xml)")
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if f.suffix == ".xml":
-        _render_scene(f, out, args.variant, args.resolution if args.resolution_set else None, args.spp)
+    out = _check_out(args.out)
+    if f.suffix == ".xml":  # the file's own size and sample count unless asked
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _render_scene(f, out, args.variant, args.resolution, args.spp)
         print(f"wrote {out} (Mitsuba)")
         return 0
+    args.resolution = 128 if args.resolution is None else args.resolution
+    args.spp = 32 if args.spp is None else args.spp
     if f.suffix == ".binary":
         from neumat.io import merl
         try:
@@ -109,12 +140,7 @@ def cmd_render(args) -> int:
             raise CLIError(f"{e}; a MERL .binary has a 12-byte header (90, 90, 180) and 3 float64 planes")
         materials, labels = [("table", table)], [f.stem]
     elif f.suffix == ".npy":
-        from neumat import nbrdf
-        w = np.load(f)
-        if w.ndim not in (1, 2) or w.shape[-1] != nbrdf.N_PARAMS:
-            raise CLIError(f"{f}: shape {w.shape}; expected NBRDF weights (N, {nbrdf.N_PARAMS}) or "
-                           f"({nbrdf.N_PARAMS},), e.g. samples/<set>/weights.npy or neumerl/weights.npy")
-        w = w.reshape(-1, nbrdf.N_PARAMS)
+        w = _read_weights(f)
         idx = [args.index] if args.index is not None else list(range(min(len(w), args.max)))
         if any(not 0 <= i < len(w) for i in idx):
             raise CLIError(f"--index {args.index}: {f} holds {len(w)} samples (0..{len(w) - 1})")
@@ -139,6 +165,7 @@ def cmd_render(args) -> int:
         else:
             imgs = sphere.render_fields(np.stack([v for _, v in materials]), args.resolution, act)
         imgs = list(sphere.tonemap(imgs))
+    out.parent.mkdir(parents=True, exist_ok=True)
     if len(imgs) == 1:
         from PIL import Image
         img = imgs[0] if imgs[0].dtype == np.uint8 else sphere.tonemap(torch.as_tensor(imgs[0])[None])[0]

@@ -15,7 +15,14 @@ VECTOR_MODALITIES = ("text", "image")
 MULTIMODAL = "multimodal"  # the model rule train_multimodal writes (workflow/rules/conditions.smk)
 IMAGE_ENCODER = "conditions/image_encoder.pt"  # rule train_image_encoder
 IMAGE_FORMATS = f"{FORMATS} showing one sphere filling the frame, like the metric view"
-SCHEMA = Path(__file__).resolve().parents[3] / "config" / "schema.yaml"  # a source checkout's
+# config/schema.yaml, through a link beside this file that a wheel stores as the file itself
+# (package data), so an installed `neumat` has the defaults too
+SCHEMA = Path(__file__).with_name("schema.yaml")
+ACTIVATIONS = ("relu", "leaky_relu")  # neumat.nbrdf.ACTIVATIONS, without importing torch
+# what Sampler reads from a diffusion model file (neumat.diffusion.train.Sampler), of which type
+MODEL_KEYS = {"model_cfg": dict, "sched_cfg": dict, "class_names": list, "ema": dict,
+              "normalizer": dict}
+_ABSENT = object()  # a key a config does not have (a recorded null is a value, None)
 
 
 class CLIError(Exception):
@@ -30,6 +37,16 @@ def _progress(total: int, desc: str):
     """A tqdm bar on a terminal (silent when stderr is not one)."""
     from tqdm import tqdm
     return tqdm(total=total, desc=desc, unit="it", disable=None, file=sys.stderr, leave=False)
+
+
+def check_out_dir(path: Path, option: str) -> None:
+    """CLIError unless directory `path` exists or can be made: its nearest existing ancestor
+    is a directory (checked before any work, so no draw is lost to a bad --out)."""
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise CLIError(f"{option}: {p} is a file, not a directory; give another path")
+            return
 
 
 # ----------------------------------------------------------------------------- the run
@@ -49,12 +66,20 @@ class Run:
                            f"--configfile config/<config>.yaml`")
         self.name = self.path.name
 
-    def target(self, rel: str) -> str:
+    def target(self, rel: str, flags: str = "") -> str:
         """The snakemake command that builds `rel` (inside this run), run in the workflow's
         directory: targets are relative to it (an absolute run path gave an absolute target,
-        which Snakemake rejects with MissingRuleException)."""
-        return (f"snakemake --cores 2 results/{self.name}/{rel} --configfile <the config whose "
-                f"run: is {self.name!r}>")
+        which Snakemake rejects with MissingRuleException); `flags` e.g. --forcerun RULE."""
+        return (f"snakemake --cores 2 results/{self.name}/{rel} {flags + ' ' if flags else ''}"
+                f"--configfile <the config whose run: is {self.name!r}>")
+
+    def unreadable(self, rel: str, rule: str, why: Exception | str) -> CLIError:
+        """The error for the run's file `rel` that is damaged or foreign: rule `rule` remakes it
+        (--forcerun: the file exists, so Snakemake would not rebuild it otherwise)."""
+        if isinstance(why, Exception):
+            why = _cause(why)
+        return CLIError(f"{self.path / rel}: damaged, or not written by rule {rule} ({why}); "
+                        f"rebuild it: `{self.target(rel, f'--forcerun {rule}')}`")
 
     def models(self) -> dict[str, Path]:
         return {p.parent.name: p for p in sorted(self.path.glob("diffusion/*/model.pt"))}
@@ -64,13 +89,26 @@ class Run:
         p = self.path / "diffusion" / model / "model.pt"
         if not p.exists():
             have = ", ".join(self.models()) or "none"
-            rule = {MULTIMODAL: "train_multimodal", "refiner": "train_refiner"}.get(
-                model, "train_diffusion")
             raise CLIError(f"no diffusion model {model!r} in {self.path} (models here: {have})"
-                           f"{'; ' + why if why else ''}. Build it with rule {rule}: "
+                           f"{'; ' + why if why else ''}. Build it with rule {model_rule(model)}: "
                            f"`{self.target(f'diffusion/{model}/model.pt')}`"
                            f"{'' if why else ', or pick one with --model'}")
         return p
+
+    def load_model(self, model: str) -> dict:
+        """The bundle of diffusion/<model>/model.pt (tensors and plain values only), with the
+        keys sampling reads; a CLIError naming the rule that remakes a damaged or foreign file."""
+        import torch
+        rel = f"diffusion/{model}/model.pt"
+        try:
+            bundle = torch.load(self.path / rel, map_location="cpu", weights_only=True)
+        except Exception as e:  # UnpicklingError for foreign objects, RuntimeError for bad zips
+            raise self.unreadable(rel, model_rule(model), e) from None
+        get = bundle.get if isinstance(bundle, dict) else lambda k: None
+        missing = [k for k, kind in MODEL_KEYS.items() if not isinstance(get(k), kind)]
+        if missing:
+            raise self.unreadable(rel, model_rule(model), f"no {', '.join(missing)} in it")
+        return bundle
 
     def text_embedding(self, prompt: str):
         """(1, 384) float32: the run's own embedding of `prompt` when rule text_embeddings made
@@ -102,23 +140,16 @@ class Run:
         return p if p.exists() else None
 
     def setting(self, *keys: str):
-        """A config value of this run (report/index.md), or the schema's default when the run
-        has not recorded its config yet (config/schema.yaml of a source checkout); a key in
-        `overrides` first."""
-        node = self.overrides
-        for k in keys:
-            if not isinstance(node, dict) or k not in node:
-                break
-            node = node[k]
-        else:
-            return node
-        value = self.config()
-        for k in keys:
-            value = value.get(k) if isinstance(value, dict) else None
-        if value is not None:
-            return value
-        return schema_default(*keys, hint=f"the run has no recorded config "
-                                          f"({self.path / 'report/index.md'})")
+        """A config value of this run: a key in `overrides` first, then the run's recorded
+        config (report/index.md; a recorded null is a value, e.g. constrained.bins: null = all
+        bins), else the schema's default (a run that has not recorded its config yet)."""
+        for source in (self.overrides, self.config()):
+            value = _lookup(source, keys)
+            if value is not _ABSENT:
+                return value
+        recorded = self.path / "report/index.md"
+        return schema_default(*keys, hint=f"the run's recorded config ({recorded}) lacks it"
+                              if self.config() else f"the run has no recorded config ({recorded})")
 
     def config(self) -> dict | None:
         """The run's config (defaults filled in), as recorded in report/index.md by `report`;
@@ -142,10 +173,36 @@ class Run:
         return cfg.get("fit", {}).get("activation", "relu")
 
 
+def _cause(e: Exception) -> str:
+    """An exception in one line; of torch.load(weights_only=True)'s page, which advises
+    weights_only=False (running the file's code), only the cause (also under the ValueError of
+    neumat.io.modelfile.load, which quotes the page's first line)."""
+    e = e.__cause__ if isinstance(e.__cause__, Exception) else e
+    text = str(e).strip()
+    if "WeightsUnpickler error:" in text:
+        cause = (text.split("WeightsUnpickler error:", 1)[1].strip().splitlines() or ["?"])[0]
+        return f"torch.load(weights_only=True) refuses it: {cause}"
+    return f"{type(e).__name__}: {(text.splitlines() or [''])[0]}"
+
+
+def _lookup(node, keys: tuple[str, ...]):
+    """node[keys[0]][keys[1]]..., or _ABSENT where a key is missing."""
+    for k in keys:
+        if not isinstance(node, dict) or k not in node:
+            return _ABSENT
+        node = node[k]
+    return node
+
+
 def schema_default(*keys: str, hint: str = ""):
     """The default of config key keys[0].keys[1]... from config/schema.yaml."""
     import yaml
-    node = {"properties": yaml.safe_load(SCHEMA.read_text())["properties"]} if SCHEMA.exists() else None
+    if not SCHEMA.is_file():  # e.g. a copy of the package without its data
+        raise CLIError(f"no value for config key {'.'.join(keys)}: {hint or 'not in the run'}, and "
+                       f"the config schema with the defaults ({SCHEMA}) is missing: reinstall "
+                       f"neumat (`pip install .` in the source checkout), or build the run's "
+                       f"report, which records its config")
+    node = {"properties": yaml.safe_load(SCHEMA.read_text())["properties"]}
     for k in keys:
         node = (node or {}).get("properties", {}).get(k)
     if node is None or "default" not in node:
@@ -154,13 +211,9 @@ def schema_default(*keys: str, hint: str = ""):
     return node["default"]
 
 
-def load_model(path: Path) -> dict:
-    import torch
-    try:
-        return torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as e:  # a damaged or foreign file
-        raise CLIError(f"{path}: not a neumat diffusion model ({type(e).__name__}: {e}); rebuild it "
-                       f"with `snakemake --cores 2 {path} --forcerun train_diffusion --configfile ...`")
+def model_rule(model: str) -> str:
+    """The rule that writes diffusion/<model>/model.pt (workflow/rules/)."""
+    return {MULTIMODAL: "train_multimodal", "refiner": "train_refiner"}.get(model, "train_diffusion")
 
 
 def model_conditions(bundle: dict) -> list[str]:

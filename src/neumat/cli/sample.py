@@ -4,6 +4,7 @@ conditions, and write them with their renders and a Mitsuba scene."""
 from __future__ import annotations
 
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -11,8 +12,13 @@ import numpy as np
 
 from neumat.cli.render import _render_scene, _write_scene
 from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIES, MULTIMODAL,
-                            VECTOR_MODALITIES, CLIError, Run, _progress, load_model,
-                            model_conditions, unsupported)
+                            VECTOR_MODALITIES, CLIError, Run, _progress, check_out_dir,
+                            model_conditions, model_rule, unsupported)
+
+# the files `neumat sample` writes into --out; a new draw replaces an earlier one's (a draw of
+# fewer samples or without --mitsuba / with --no-binary would otherwise leave some beside it)
+OUT_FILES = ("weights.npy", "samples.tsv", "scene.xml", "scene.png", "sky.exr")
+OUT_SAMPLE = re.compile(r"sample_\d{3,}\.(binary|png)")  # f"sample_{i:03d}.binary" and .png
 
 def _text_embedding(run: Run, prompt: str) -> np.ndarray:
     """(1, 384) all-MiniLM-L6-v2 embedding of the prompt: the run's own where it embedded the
@@ -44,10 +50,8 @@ def _image_embedding(run: Run, path: str, dim: int | None) -> tuple[np.ndarray, 
                        f"with rule train_image_encoder: `{run.target(IMAGE_ENCODER)}`")
     try:
         enc = image.load(enc_path)
-    except Exception as e:  # a damaged or foreign file
-        raise CLIError(f"{enc_path}: not a neumat image encoder ({type(e).__name__}: {e}); rebuild "
-                       f"it with `snakemake --cores 2 {enc_path} --forcerun train_image_encoder "
-                       f"--configfile ...`")
+    except Exception as e:  # a damaged or foreign file (ValueError), one without its keys
+        raise run.unreadable(IMAGE_ENCODER, "train_image_encoder", e) from None
     if dim is not None and enc.cfg.embed_dim != dim:
         raise CLIError(f"{enc_path} gives {enc.cfg.embed_dim}-d embeddings, the multimodal model "
                        f"expects {dim}-d: the two come from different configs; rebuild the model "
@@ -80,6 +84,9 @@ def parse_guidance(values: list[str] | None, asked: list[str]) -> dict[str, floa
         if mod and mod not in asked:
             raise CLIError(f"--guidance {v!r}: no {mod} condition asked (conditions: "
                            f"{', '.join(asked) or 'none'})")
+        if not asked:  # it would scale nothing: say so rather than ignore it
+            raise CLIError(f"--guidance {v!r}: no condition asked, so nothing to guide; give "
+                           f"--type, --text or --image with it (unconditional draws take none)")
         out.update({mod: x} if mod else {m: x for m in asked})
     return out
 
@@ -267,15 +274,19 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     from neumat.diffusion import Sampler
     from neumat.seeds import seed_for
 
-    sampler = base = Sampler(bundle, args.device)
-    if args.type and args.type not in sampler.class_names:
+    if args.type and args.type not in bundle["class_names"]:
         raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
-                       f"{', '.join(sampler.class_names)}")
+                       f"{', '.join(bundle['class_names'])}")
     if args.type:
         _check_trained_type(run, args.type)
     # type guidance also steers --category's guide types when no --type is given
     scales = _guidance(args, run, bundle, asked + (["type"] if args.category and not args.type
                                                    and "type" in model_conditions(bundle) else []))
+    try:
+        sampler = base = Sampler(bundle, args.device)
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:  # keys of another layout
+        raise run.unreadable(f"diffusion/{model_path.parent.name}/model.pt",
+                             model_rule(model_path.parent.name), e) from None
     fixed = {}
     if args.text:
         fixed["text"] = _text_embedding(run, args.text)
@@ -448,19 +459,37 @@ def _draw_category(args, run: Run, sampler, cfg):
     return r.weights, table
 
 
-def cmd_sample(args) -> int:
+def _check_options(args, chosen: list[str]) -> None:
+    """What the options alone show to be wrong, checked before the run is read, so no draw is
+    lost to it (and nothing is written)."""
     import torch
-
-    from neumat import nbrdf
-    from neumat.io import merl
-    from neumat.render import sphere
 
     if args.text is not None and not args.text.strip():
         raise CLIError("--text is empty; give a description, e.g. --text \"red plastic\"")
-    chosen = [m for m in MODALITIES if getattr(args, m)]
-    run = Run(args.run)
-    vector = [m for m in chosen if m in VECTOR_MODALITIES]
+    check_out_dir(Path(args.out), f"--out {args.out}")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        raise CLIError("--device cuda: torch sees no CUDA device here; give --device cpu, or "
+                       "auto (cuda where there is one)")
+    if args.category:
+        from neumat.constrained import CATEGORIES
+        if args.category not in CATEGORIES:
+            raise CLIError(f"--category {args.category!r}: choose one of {', '.join(CATEGORIES)}")
+    for flag in ("budget", "bins"):  # they set how --category draws: alone they would do nothing
+        if getattr(args, flag) is not None and not args.category:
+            raise CLIError(f"--{flag} {getattr(args, flag)}: give it with --category (it sets how "
+                           f"constrained synthesis draws)")
+    if args.category_step is not None and (not args.category or args.category_step < 0):
+        raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
+                       f"number >= 0 (0 = rejection only)")
+    if args.render_step is not None and (not args.image or args.render_step < 0):
+        raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
+                       f">= 0 (0 = off)")
     _check_start(args, chosen)
+
+
+def _load(args, run: Run, chosen: list[str]) -> tuple[dict, Path]:
+    """The model to draw from (its bundle and file), checked against the conditions asked."""
+    vector = [m for m in chosen if m in VECTOR_MODALITIES]
     if args.refiner:  # the refiner takes no condition: the start carries it
         model_path = run.model_path("refiner", "--refiner denoises the starts with it")
     elif args.model is None:  # text / image: the multimodal model; otherwise `ours`, as the report
@@ -470,18 +499,17 @@ def cmd_sample(args) -> int:
         model_path = run.model_path(args.model, why)
     else:
         model_path = run.model_path(args.model)
-    bundle = load_model(model_path)
+    bundle = run.load_model(model_path.parent.name)
     for m in [] if args.refiner else chosen:
         why = unsupported(bundle, m, model_path)
         if why:
             raise CLIError(f"--{m}: {why}")
-    if args.category:
-        from neumat.constrained import CATEGORIES
-        if args.category not in CATEGORIES:
-            raise CLIError(f"--category {args.category!r}: choose one of {', '.join(CATEGORIES)}")
-    if args.category_step is not None and (not args.category or args.category_step < 0):
-        raise CLIError(f"--category-step {args.category_step:g}: give it with --category, as a "
-                       f"number >= 0 (0 = rejection only)")
+    return bundle, model_path
+
+
+def _settings(args, run: Run) -> None:
+    """The options not given, as the run's workflow drew (its config; --category: rule
+    sample_constrained's constrained.*, read only then)."""
     for flag, key, low in [("candidates", "candidates", 1),
                            ("unconstrained_candidates", "unconstrained_candidates", 0)]:
         v = getattr(args, flag)
@@ -490,36 +518,41 @@ def cmd_sample(args) -> int:
                            f"--category), as a whole number >= {low}")
         if v is None:  # the run's best of n
             setattr(args, flag, int(run.setting("conditions", "image", key)) if args.image else 0)
-    # batch, budget and bins as the run's workflow drew (--category: rule sample_constrained)
     if args.batch is None:
         args.batch = int(run.setting("constrained", "batch") if args.category
                          else run.setting("diffusion", "sample", "batch_size"))
-    if args.budget is None:
-        args.budget = int(run.setting("constrained", "budget"))
-    if args.bins is None:
-        args.bins = int(run.setting("constrained", "bins"))
-    if args.batch < 1:
-        raise CLIError(f"--batch {args.batch}: give a whole number >= 1")
-    from neumat.constrained import n_peak_bins
-    if args.category and args.bins < n_peak_bins():
-        raise CLIError(f"--bins {args.bins}: give at least {n_peak_bins()} (every "
-                       f"theta_h-bin-0 bin, where highlights peak, plus some of the rest; the "
-                       f"schema's minimum of constrained.bins)")
+    if args.category:
+        from neumat.constrained import n_peak_bins
+        args.budget = int(run.setting("constrained", "budget")) if args.budget is None else args.budget
+        bins = run.setting("constrained", "bins") if args.bins is None else args.bins
+        args.bins = None if bins in (None, "all") else int(bins)  # None: every valid bin
+        if args.bins is not None and args.bins < n_peak_bins():
+            raise CLIError(f"--bins {args.bins}: give at least {n_peak_bins()} (every "
+                           f"theta_h-bin-0 bin, where highlights peak, plus some of the rest; the "
+                           f"schema's minimum of constrained.bins), or all")
     # DDIM's eta and the x0 clip of the run (diffusion.sample), as its workflow sampled
     args.eta = float(run.setting("diffusion", "sample", "eta"))
     clip = run.setting("diffusion", "sample", "clip")
     args.clip = None if clip is None else float(clip)
-    if args.render_step is not None and (not args.image or args.render_step < 0):
-        raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
-                       f">= 0 (0 = off)")
     args.activation = args.activation or run.activation()
-    w, table = _draw(args, run, bundle, model_path, chosen)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if len(w) == 0:
-        raise CLIError(f"no sample of category {args.category!r} within --budget {args.budget} "
-                       f"draws; raise --budget or ask for another category (acceptance per "
-                       f"category of this run: {run.path / 'constrained/acceptance.tsv'})", EXIT_BUDGET)
+
+
+def _clear_previous(out: Path) -> None:
+    """Remove what an earlier `neumat sample` wrote into `out` (OUT_FILES, OUT_SAMPLE), so the
+    directory holds one draw; other files are left alone."""
+    for p in out.iterdir():
+        if (p.name in OUT_FILES or OUT_SAMPLE.fullmatch(p.name)) and p.is_file():
+            p.unlink()
+
+
+def _write(args, out: Path, w: np.ndarray, table) -> None:
+    """weights.npy, samples.tsv, sample_NNN.binary/.png, scene.xml (and scene.png)."""
+    import torch
+
+    from neumat import nbrdf
+    from neumat.io import merl
+    from neumat.render import sphere
+
     np.save(out / "weights.npy", w.astype(np.float32))
     table.to_csv(out / "samples.tsv", sep="\t", index=False, float_format="%.6g")
     imgs = sphere.tonemap(sphere.render_fields(w, args.resolution, args.activation))
@@ -534,6 +567,23 @@ def cmd_sample(args) -> int:
     scene = _write_scene(out, len(w), args.activation)
     if args.mitsuba:
         _render_scene(scene, out / "scene.png", args.variant, args.mitsuba_resolution, args.spp)
+
+
+def cmd_sample(args) -> int:
+    chosen = [m for m in MODALITIES if getattr(args, m)]
+    _check_options(args, chosen)
+    run = Run(args.run)
+    bundle, model_path = _load(args, run, chosen)
+    _settings(args, run)
+    w, table = _draw(args, run, bundle, model_path, chosen)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _clear_previous(out)  # also when nothing was drawn: no older draw passes for this one
+    if len(w) == 0:
+        raise CLIError(f"no sample of category {args.category!r} within --budget {args.budget} "
+                       f"draws; raise --budget or ask for another category (acceptance per "
+                       f"category of this run: {run.path / 'constrained/acceptance.tsv'})", EXIT_BUDGET)
+    _write(args, out, w, table)
     print(f"wrote {len(w)} samples to {out}/: weights.npy, samples.tsv, "
           f"{'' if args.no_binary else 'sample_NNN.binary, '}sample_NNN.png, scene.xml"
           f"{', scene.png' if args.mitsuba else ''}")
