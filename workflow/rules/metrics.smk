@@ -64,6 +64,7 @@ rule metrics:
         **METRIC_SETTINGS,
         draws=DRAWS,
         novelty_bins=config["diffusion"]["nn_bins"],
+        novelty_seed=seed_for("metrics_novelty"),  # the novelty rows' subset of the BRDF-L1 bins
         halves_seeds=lambda wc: draw_seeds("halves", wc.model) if wc.model == "reference_halves" else [],
     log:
         log("metrics/{model}"),

@@ -34,19 +34,21 @@ with script_logging(snakemake) as log:
         h = len(ref) // 2
         log.info("sanity: %d random halves of %d references", len(halves), len(ref))
         table = evaluate.evaluate_halves(prepared, halves, ref=ref, resolution=p.resolution,
-                                         bins=kw["bins"], fid_unavailable=reason)
+                                         bins=kw["bins"], activation=p.activation, fid_model=net,
+                                         fid_unavailable=reason, device=device)
     else:
         smp = materials.load(snakemake.input.samples)
         log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
         table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw,
-                                        reference=prepared)
+                                        reference=prepared, source=snakemake.input.samples)
     # novelty: nearest NeuMERL training material at a subset of the BRDF-L1 bins (inside every
-    # table set), as diffusion_nearest does for the diffusion sets
+    # table set), as diffusion_nearest does for the diffusion sets; the subset from its own stream
     weights = np.load(snakemake.input.weights)
     train = dataset.training_rows(dataset.read_manifest(snakemake.input.manifest, len(weights)), "ours")
-    nb = kw["bins"][np.sort(np.random.default_rng(p.seed).choice(
-        len(kw["bins"]), min(p.novelty_bins, len(kw["bins"])), replace=False))]
+    nb = evaluate.novelty_bins(kw["bins"], p.novelty_bins, p.novelty_seed)
     f_train = materials.brdf_values(weights[train], nb, p.activation)
+    materials.require_finite(f_train, f"{snakemake.input.weights} (training rows' BRDF values)",
+                             "non-finite BRDF values")
     f_ref = materials.brdf_values(ref, nb, p.activation)
     sets = ([materials.rows(ref, o[h:2 * h]) for o in halves] if model == "reference_halves"
             else draws_of(smp, p.draws, len(ref), log))

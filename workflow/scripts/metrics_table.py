@@ -17,7 +17,8 @@ with script_logging(snakemake) as log:
     results = {m: read(f) for m, f in zip(p.models, snakemake.input.models)}
     halves = read(snakemake.input.sanity)
     checks, problems = evaluate.sanity(halves, results.get("training_set"))
-    evaluate.write_table2(results, out.csv, out.md, out.html)
+    evaluate.write_table2(results, out.csv, out.md, out.html,
+                          sources=dict(zip(p.models, snakemake.input.models)))
     notes = sorted({n for df in results.values() for n in df.loc[df["metric"] == "FID", "note"]})
     draws = int(halves["draw"].nunique())
     verdict = ("**Protocol check failed** - " + "; ".join(problems) + ". The table below cannot "
@@ -31,7 +32,9 @@ with script_logging(snakemake) as log:
         f"the reference set and from its own seed. Distances: BRDF-L1 = mean |f - f'| of the "
         f"physical BRDF over {p.brdf_samples} valid MERL bins (fixed sample); RMSE, NegPSNR "
         f"(= -PSNR), NegSSIM (= -SSIM) between {p.resolution}² sRGB metric sphere renders. "
-        "COV and 1-NNA in %; MMD rows show value × the factor in their label, as in the paper. "
+        "COV and 1-NNA in %; the MMD RMSE and NegSSIM rows show value × the factor in their "
+        "label, as in the paper; MMD BRDF-L1 is shown unscaled (the paper's ×10⁻³ is on "
+        "another BRDF scale and would leave no digits here). "
         "1-NNA: 50 % is ideal. PCA-A samples are tables (rendered from the table); all other "
         "columns are neural fields.",
         Path(out.md).read_text(),

@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from neumat import nbrdf
+from neumat.metrics import MetricsInputError
 from neumat.metrics import distances as D
 from neumat.render import sphere
 
@@ -61,7 +62,8 @@ def save(path: str | Path, s: MaterialSet) -> None:
 
 
 def load(path: str | Path) -> MaterialSet:
-    """A field set (.npy, (N, 675)) or a table set (.npz with bins and values)."""
+    """A field set (.npy, (N, 675)) or a table set (.npz with bins and values); a set with a
+    NaN or infinite value is refused (`require_finite`)."""
     path = Path(path)
     if path.suffix == ".npz":
         with np.load(path) as z:
@@ -71,11 +73,31 @@ def load(path: str | Path) -> MaterialSet:
             s = TableSet(z["bins"].astype(np.int64), z["values"].astype(np.float32))
         if s.values.ndim != 3 or s.values.shape[1:] != (3, len(s.bins)):
             raise ValueError(f"{path}: values {s.values.shape} do not match {len(s.bins)} bins")
+        require_finite(s.values, f"{path} (table values)")
         return s
     w = np.load(path)
     if w.ndim != 2 or w.shape[1] != nbrdf.N_PARAMS:
         raise ValueError(f"{path}: a field set must be (N, {nbrdf.N_PARAMS}), got {w.shape}")
+    require_finite(w, f"{path} (field weights)")
     return w
+
+
+def require_finite(x, where: str, what: str = "NaN or infinite values") -> None:
+    """MetricsInputError naming `where` and the first bad materials (rows of axis 0) when `x`
+    holds a NaN or an infinity. A NaN would pass as everyone's nearest neighbour in COV and
+    1-NNA (torch's min and argmin take NaN as the minimum) and an infinity would skew MMD, so
+    the metrics refuse them rather than report numbers that only look valid."""
+    x = torch.as_tensor(x)
+    if x.numel() == 0:
+        return
+    bad = ~torch.isfinite(x.reshape(len(x), -1)).all(1)
+    if bad.any():
+        rows = torch.nonzero(bad).flatten().tolist()
+        shown = ", ".join(map(str, rows[:8])) + (", ..." if len(rows) > 8 else "")
+        raise MetricsInputError(
+            f"{where}: {len(rows)} of {len(x)} materials have {what} (rows {shown}); the metrics "
+            "cannot rank them. Find what wrote them (a diverged fit or sampler, a field whose "
+            "output overflows exp) and rebuild that file with its rule, or drop those rows.")
 
 
 def rows(s: MaterialSet, index) -> MaterialSet:

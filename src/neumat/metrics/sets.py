@@ -2,7 +2,8 @@
 
 Conventions: R is the reference set, S the synthesized set, d_rs[i, j] = d(R_i, S_j).
 Ties in a nearest-neighbour search go to the lowest index (torch.argmin), with the R block
-before the S block in 1-NNA.
+before the S block in 1-NNA. Distances must be finite (a NaN would be everyone's nearest
+neighbour): a matrix with a NaN or infinity is refused.
 """
 
 from __future__ import annotations
@@ -14,6 +15,12 @@ def _as_matrix(d, name):
     d = torch.as_tensor(d, dtype=torch.float64)
     if d.dim() != 2 or 0 in d.shape:
         raise ValueError(f"{name} must be a non-empty 2-D distance matrix, got {tuple(d.shape)}")
+    bad = ~torch.isfinite(d)
+    if bad.any():  # torch's min / argmin take NaN as the minimum: COV and 1-NNA would be wrong
+        i, j = (int(k) for k in torch.nonzero(bad)[0])
+        raise ValueError(f"{name} holds {int(bad.sum())} NaN or infinite distances (first at "
+                         f"[{i}, {j}]): a material's BRDF values or renders are not finite. "
+                         "Refuse such sets before scoring (neumat.metrics.materials.require_finite)")
     return d
 
 
