@@ -42,6 +42,12 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     ({"metrics": {"models": ["training_set", "ourss"]}}, "metrics.models ['ourss']: not Table 2 models"),
     ({"diffusion": {"types": ["nonexistent_type"]}}, "diffusion.types ['nonexistent_type']: no material"),
     ({"fit": {"export": ["mix9999"]}}, "fit.export ['mix9999']: not AugMERL materials of this run"),
+    # Table 3: each failed in a job (hyperbrdf_eval after both trainings; train_hyperbrdf after
+    # reading every shard), naming one key (tiny: augmerl.bins 16384, train_bins 8192)
+    ({"hyperbrdf": {"sparse_samples": 20000}}, "hyperbrdf.sparse_samples 20000 exceeds augmerl.bins 16384"),
+    ({"hyperbrdf": {"train": {"query": 9000}}}, "hyperbrdf.train.query 9000 exceeds hyperbrdf.train_bins 8192"),
+    ({"augmerl": {"bins": 900}, "hyperbrdf": {"sparse_samples": 500}},
+     "hyperbrdf.train.context 1000 exceeds augmerl.bins 900"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")

@@ -71,6 +71,73 @@ def test_value_mapping_round_trip():
     torch.testing.assert_close(hb.from_target(y, med), torch.as_tensor(f), rtol=1e-4, atol=1e-6)
 
 
+def test_training_targets_equal_to_target_bit_for_bit():
+    """The in-place mapping of `train` is `to_target` of the transposed values to the bit, so
+    the checkpoint fingerprint (which hashes it) is unchanged; it leaves the input alone."""
+    import hashlib
+
+    rng = np.random.default_rng(2)
+    vals = rng.lognormal(-3, 3, (4, 3, 257)).astype(np.float32)
+    vals[:, :, ::7] *= -1  # invalid (negative) entries are clamped to 0 by both
+    vals[0, 0, :3] = [0.0, -0.0, 1e-30]
+    med = hb.bin_median(vals)
+    med[5] = 0.0
+    keep = vals.copy()
+    old = hb.to_target(vals.transpose(0, 2, 1), med)  # (M, B, 3), not contiguous
+    new = hb.training_targets(vals, med)
+    assert new.is_contiguous() and new.shape == (4, 257, 3)
+    assert np.array_equal(new.numpy().view(np.uint32), old.numpy().view(np.uint32))
+    assert np.array_equal(vals.view(np.uint32), keep.view(np.uint32))
+    # one bin: the transposed view is already contiguous, and must still not be mapped in place
+    one = vals[:, :, :1].copy()
+    hb.training_targets(one, med[:1])
+    assert np.array_equal(one, vals[:, :, :1])
+    # the fingerprint hashes the same bytes as before (then a tobytes() copy of y)
+    bins = np.arange(257)
+    ref = hashlib.sha256(np.ascontiguousarray(old.numpy()).tobytes())
+    ref.update(bins.astype(np.int64).tobytes())
+    ref.update(b'[{"latent": 8}, 5]')
+    import dataclasses
+
+    @dataclasses.dataclass
+    class C:
+        latent: int = 8
+
+    assert hb.fingerprint(new.numpy(), bins, 5, C()) == ref.hexdigest()
+    assert hb.fingerprint(old.numpy(), bins, 5, C()) == ref.hexdigest()
+    # train's fingerprint also names the draw scheme: an argsort-era checkpoint is not resumed
+    assert hb.fingerprint(new.numpy(), bins, 5, C(), draws=hb.DRAWS) != ref.hexdigest()
+
+
+def test_training_targets_memory():
+    """Mapping and fingerprinting the training values grows the peak RSS by about one copy of
+    the values (the targets), not ~4 (to_target's temporaries and the hash's copies)."""
+    import os
+    import subprocess
+    import sys
+
+    if not os.access("/proc/self/clear_refs", os.W_OK):
+        pytest.skip("needs Linux /proc/self/clear_refs (resetting the peak RSS)")
+    code = """
+import numpy as np, torch
+from neumat.baselines import hyperbrdf as hb
+def kib(key):  # VmRSS (now) or VmHWM (peak since the reset) of this process
+    return int(next(l for l in open("/proc/self/status") if l.startswith(key)).split()[1])
+torch.set_num_threads(1)
+v = np.random.default_rng(0).random((64, 3, 1 << 17), dtype=np.float32)  # 96 MiB
+med = np.full(1 << 17, 0.5, np.float32)
+w = hb.training_targets(v[:2, :, :4096], med[:4096]); hb.fingerprint(w.numpy(), np.arange(3), 0)
+open("/proc/self/clear_refs", "w").write("5")  # reset the peak to the current RSS
+r0 = kib("VmRSS")
+y = hb.training_targets(v, med)
+hb.fingerprint(y.numpy(), np.arange(3), 0)
+print((kib("VmHWM") - r0) * 1024 / v.nbytes)
+"""
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    growth = float(res.stdout.split()[-1])
+    assert 0.9 < growth < 1.3, growth
+
+
 def _train_args(tmp_path, steps=12, tag="a"):
     bins = _bins(600)
     vals = _lambertian([[0.2, 0.5, 0.8], [0.9, 0.1, 0.3], [0.4, 0.4, 0.4]], bins)
@@ -107,12 +174,28 @@ def test_resume_after_kill_is_identical(tmp_path):
     assert other["history"] != full["history"]
 
 
+def test_history_is_the_mean_loss_per_log_window(tmp_path):
+    """The losses are read from the device once per log_every steps; a history row is still
+    the mean total loss of the steps since the previous row (the last row: the remainder)."""
+    args = _train_args(tmp_path, steps=8, tag="h")  # log_every 3: rows at 3, 6 and 8
+    losses = []
+    bundle = hb.train(*args, seed=2, on_step=lambda step, loss: losses.append(loss))
+    assert [r[0] for r in bundle["history"]] == [3, 6, 8]
+    for row, window in zip(bundle["history"], (losses[0:3], losses[3:6], losses[6:8])):
+        assert row[1] == np.mean(window)
+        assert row[2] < row[1]  # the MSE part of it
+
+
 def test_training_rejects_bad_input(tmp_path):
     vals, bins, med, mcfg, cfg, out, ck = _train_args(tmp_path)
     with pytest.raises(ValueError, match="values must be"):
         hb.train(vals[:, :2], bins, med, mcfg, cfg, out, ck, seed=0)
     with pytest.raises(ValueError, match=r"\(hyperbrdf.train_bins\), fewer than hyperbrdf.train.context"):
         hb.train(vals[:, :, :150], bins[:150], med[:150], mcfg, cfg, out, ck, seed=0)
+    # where the shards store fewer bins than train_bins, the message names augmerl.bins
+    with pytest.raises(ValueError, match=r"150 bins per material \(augmerl.bins\), fewer"):
+        hb.train(vals[:, :, :150], bins[:150], med[:150], mcfg, cfg, out, ck, seed=0,
+                 bins_key="augmerl.bins")
 
 
 @pytest.mark.slow
@@ -207,21 +290,75 @@ def _paired_scores(shift, noise, n=12):
 
 
 def test_paired_comparison_known_answers():
-    # a constant gain: every pair won, the interval is the gain itself, beyond noise everywhere
+    # a constant gain on 12 materials: every pair won, the interval is the gain itself, and
+    # only the observed signs and their mirror image reach the observed |mean|: p = 2 / 2^12
     p = rec.paired(_paired_scores(1.0, 0.0), "augmerl", "merl", list(hb.TASKS), seed=0)
     assert list(p["cell"]) == [f"{t} {m}" for t in hb.TASKS for m in rec.METRICS]
-    assert p["beyond noise"].all() and (p["pairs won"] == "24/24").all()
+    assert (p["beyond noise"] == True).all() and (p["pairs won"] == "24/24").all()  # noqa: E712
+    assert (p["materials"] == 12).all() and np.allclose(p["p (sign-flip)"], 2 / 2 ** 12)
     row = p.set_index("cell").loc["sparse dE"]
     assert row["mean difference"] == pytest.approx(-1.0) and row["95 % interval"] == "[-1, -1]"
-    # no gain but material-to-material noise: the interval straddles 0, no cell beyond noise
+    # the same gain for the other method is not a win of `better` (two-sided p, one direction)
+    p = rec.paired(_paired_scores(-1.0, 0.0), "augmerl", "merl", list(hb.TASKS), seed=0)
+    assert (p["beyond noise"] == False).all()  # noqa: E712
+    # no gain but material-to-material noise: no cell beyond noise
     p = rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS), seed=0)
-    assert not p["beyond noise"].any()
+    assert (p["beyond noise"] == False).all() and (p["p (sign-flip)"] > 0.05).all()  # noqa: E712
     # deterministic given the seed
     assert rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS), seed=0).equals(p)
     with pytest.raises(ValueError, match="same materials"):
         s = _paired_scores(1.0, 0.0)
         rec.paired(s[~((s.method == "merl") & (s.material == "m0"))], "augmerl", "merl",
                    list(hb.TASKS), seed=0)
+
+
+def test_sign_flip_p_known_answers():
+    # 6 materials, all positive: of the 64 sign patterns only all-plus and all-minus reach the
+    # observed |sum| 21
+    assert rec.sign_flip_p(np.arange(1.0, 7.0)) == 2 / 64
+    # the smallest one negative: |sum| 19 is reached by flipping nothing or {1}, and mirrors
+    assert rec.sign_flip_p(np.array([-1.0, 2, 3, 4, 5, 6])) == 4 / 64
+    # -2: flipping {}, {1} or {2} (or their complements) reaches |sum| >= 17
+    assert rec.sign_flip_p(np.array([1.0, -2, 3, 4, 5, 6])) == 6 / 64
+    # no difference at all: every pattern ties, p = 1; columns are tested separately
+    assert np.array_equal(rec.sign_flip_p(np.c_[np.zeros(6), np.arange(1.0, 7.0)]), [1, 2 / 64])
+
+
+def test_sign_flip_p_monte_carlo_matches_exact(monkeypatch):
+    d = np.random.default_rng(3).normal(0.4, 1.0, (20, 3))
+    with pytest.raises(ValueError, match="seeded rng"):
+        rec.sign_flip_p(d)  # 20 > EXACT_MAX: Monte Carlo, which needs a seeded generator
+    mc = rec.sign_flip_p(d, np.random.default_rng(0))
+    assert np.array_equal(mc, rec.sign_flip_p(d, np.random.default_rng(0)))  # seeded
+    monkeypatch.setattr(rec, "EXACT_MAX", 20)
+    exact = rec.sign_flip_p(d)  # all 2^20 patterns
+    assert np.abs(mc - exact).max() < 0.01, (mc, exact)
+
+
+@pytest.mark.parametrize("n", [6, 9, 24])
+def test_sign_flip_false_win_rate_under_the_null(n):
+    """No true difference (per-material differences symmetric about 0): p < 0.05 in at most
+    5 % of cells (+ the simulation's noise; the percentile bootstrap interval it replaces
+    excluded 0 in 17 % of such cells at 5 materials, 8 % at 20). Exact for 6 and 9 materials,
+    Monte Carlo for 24."""
+    rng = np.random.default_rng(n)
+    reps = 1500 if n <= 9 else 300
+    ps = np.concatenate([rec.sign_flip_p(rng.standard_t(3, (n, 3)), rng, 1 << 12)
+                         for _ in range(reps)])
+    rate = float(np.mean(ps < rec.ALPHA))
+    assert rate <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / len(ps)), rate
+    assert rate > 0.01  # the test is not vacuous: it does reject at about its level
+
+
+def test_too_few_materials_to_judge():
+    """With n <= 5 materials even a perfect, consistent gain cannot reach p < 0.05 (the
+    smallest attainable p is 2 / 2^n >= 0.0625): the verdict says so instead of True/False."""
+    assert rec.min_p(5) == 2 / 32 >= rec.ALPHA > rec.min_p(6) == 2 / 64
+    for n in (1, 2, 5):
+        p = rec.paired(_paired_scores(1.0, 0.0, n=n), "augmerl", "merl", list(hb.TASKS), seed=0)
+        assert (p["beyond noise"] == rec.TOO_FEW).all() and (p["materials"] == n).all()
+    p = rec.paired(_paired_scores(1.0, 0.0, n=6), "augmerl", "merl", list(hb.TASKS), seed=0)
+    assert (p["beyond noise"] == True).all()  # noqa: E712
 
 
 def test_views_differ():

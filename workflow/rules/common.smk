@@ -313,6 +313,20 @@ def check_cross_keys():
     if missing:
         errors.append(f"diffusion.types {missing}: no material of this run has that type "
                       f"(config/merl_materials.tsv's `type` column)")
+    # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
+    # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
+    hb, stored = config["hyperbrdf"], config["augmerl"]["bins"]
+    stored = stored if isinstance(stored, int) else None  # "all": 1,096,216, more than any N
+    if stored is not None and hb["sparse_samples"] > stored:
+        errors.append(f"hyperbrdf.sparse_samples {hb['sparse_samples']} exceeds augmerl.bins "
+                      f"{stored} (the stored bins of a test material the encoder samples from)")
+    per_step = {k: hb["train"][k] for k in ("context", "query")}
+    key, most = max(per_step.items(), key=lambda kv: kv[1])
+    for limit_key, limit in (("hyperbrdf.train_bins", hb["train_bins"]), ("augmerl.bins", stored)):
+        if limit is not None and most > limit:
+            errors.append(f"hyperbrdf.train.{key} {most} exceeds {limit_key} {limit} (training "
+                          f"samples each step's context and query from min(hyperbrdf.train_bins, "
+                          f"augmerl.bins) bins per material)")
     if errors:
         raise ValueError("bad config: " + "; ".join(errors))
 

@@ -53,9 +53,13 @@ rule train_hyperbrdf:
         CONDA_ENV
     threads: HB["threads"]
     resources:
-        # one shard at a time, then values + mapped targets of the kept bins (2 x 12 bytes each)
+        # one shard at a time, then the kept bins' values and their mapped targets. Measured
+        # peak RSS growth of this script's path (shard rows -> concatenate -> hb.train, 1 step,
+        # CPU; 200-800 materials x 32768-131072 bins): 8.07-8.30 bytes per stored value
+        # (material x channel x bin) = 24.2-24.9 per material-bin, the values' 4 bytes twice
+        # (rows + their concatenation, then values + targets); 26 per material-bin budgeted
         mem_mb=lambda wc, input: 2000 + 2 * input.size_mb // len(AUG_SHARDS)
-        + 24 * augmerl_count() * HB["train_bins"] // 2**20,
+        + 26 * augmerl_count() * HB["train_bins"] // 2**20,
         runtime=hyperbrdf_runtime(),
         gpu=1 if config["device"] == "cuda" else 0,
     script:
@@ -117,7 +121,7 @@ rule hyperbrdf_table:
         train={k: HB["train"][k] for k in ("steps", "materials_per_step", "lr")},
         sparse_samples=HB["sparse_samples"],
         resolution=HB["resolution"],
-        seed=seed_for("hyperbrdf_table"),  # the paired bootstrap over materials
+        seed=seed_for("hyperbrdf_table"),  # the paired bootstrap and Monte Carlo sign flips
     log:
         log("hyperbrdf_table"),
     benchmark:

@@ -29,7 +29,7 @@ with script_logging(snakemake) as log:
         sh = augment.load_shard(path)
         bins = sh["bins"]
         for r in np.flatnonzero(np.isin(sh["ids"], ids)):
-            stored[int(sh["ids"][r])] = sh["values"][r]
+            stored[int(sh["ids"][r])] = sh["values"][r].copy()  # a view kept the whole shard
     absent = [n for i, n in zip(ids, names) if i not in stored]
     if absent:
         raise ValueError(f"test material(s) {absent[:5]} in none of the AugMERL shards "

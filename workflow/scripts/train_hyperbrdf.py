@@ -8,9 +8,12 @@ import pandas as pd
 
 from neumat import augment
 from neumat.baselines import hyperbrdf as hb
+from neumat.device import resolve_device
 from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
+    # config device first: `cuda` without a GPU fails here, not after reading every shard
+    dev = str(resolve_device(snakemake.config["device"]))
     inp, p, model = snakemake.input, snakemake.params, snakemake.wildcards.model
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     train = man["split"] == "train"
@@ -19,11 +22,13 @@ with script_logging(snakemake) as log:
     ids = set(man.loc[train, "id"].tolist())
     if not ids:
         raise ValueError(f"{inp.manifest}: no training materials for model {model!r}")
-    values, keep, bins = [], None, None
+    values, keep, bins, bins_key = [], None, None, "hyperbrdf.train_bins"
     for path in inp.shards:
         sh = augment.load_shard(path)
         if keep is None:
             n = min(p.cfg["train_bins"], len(sh["bins"]))
+            if len(sh["bins"]) < p.cfg["train_bins"]:
+                bins_key = "augmerl.bins"  # the shards store fewer bins than train_bins
             rng = np.random.default_rng(p.seed)
             keep = np.sort(rng.choice(len(sh["bins"]), n, replace=False))
             bins = sh["bins"][keep]
@@ -38,7 +43,7 @@ with script_logging(snakemake) as log:
     ckpt = snakemake.config["hyperbrdf"]["train"]["checkpoint_every"]  # speed-only: not a param
     bundle = hb.train(values, bins, median, hb.HyperConfig(**p.cfg["model"]),
                       hb.HyperTrainConfig(**p.cfg["train"], checkpoint_every=ckpt), snakemake.output.model,
-                      p.checkpoint, p.seed, snakemake.config["device"])
+                      p.checkpoint, p.seed, dev, bins_key=bins_key)
     pd.DataFrame(bundle["history"], columns=hb.HISTORY_COLUMNS).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)

@@ -105,6 +105,19 @@ def to_target(f, median) -> torch.Tensor:
     return torch.log1p((f + EPS) / (m + EPS))
 
 
+def training_targets(values: np.ndarray, median) -> torch.Tensor:
+    """Physical BRDF (M, 3, B) and median (B,) -> y (M, B, 3), C-contiguous: `to_target` of the
+    transposed values, bit for bit (the same operations in the same order), but with one
+    (M, B, 3) float32 buffer mapped in place rather than several full-size temporaries
+    (training holds all materials: the old path peaked at ~4x the values)."""
+    v = np.asarray(values, dtype=np.float32)
+    # np.array copies always (a transposed view that happens to be contiguous, B = 1, would
+    # otherwise be mapped in place in the caller's array)
+    y = torch.from_numpy(np.array(v.transpose(0, 2, 1), order="C"))
+    m = torch.as_tensor(median, dtype=torch.float32)[:, None]
+    return y.clamp_min_(0).add_(EPS).div_(m + EPS).log1p_()
+
+
 def from_target(y, median) -> torch.Tensor:
     """Inverse of `to_target`, clamped at 0: y (..., B, 3), median (B,) -> f."""
     m = torch.as_tensor(median, dtype=torch.float32, device=y.device)[:, None]
@@ -211,23 +224,32 @@ def loss_terms(model: HyperBRDF, x_ctx, y_ctx, x_q, y_q, cos_q, cfg: HyperTrainC
 # ----------------------------------------------------------------------------- training
 
 
-def fingerprint(y: np.ndarray, bins: np.ndarray, seed: int, *cfgs) -> str:
-    h = hashlib.sha256(np.ascontiguousarray(y, dtype=np.float32).tobytes())
-    h.update(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
+# How `train` draws its samples; in the checkpoint fingerprint, so a checkpoint written by the
+# earlier scheme (argsort of uniforms) is not resumed with this one's draws
+DRAWS = "randperm"
+
+
+def fingerprint(y: np.ndarray, bins: np.ndarray, seed: int, *cfgs,
+                draws: str | None = None) -> str:
+    # hashes the buffer itself: no copy of a C-contiguous float32 y (tobytes() copied it)
+    h = hashlib.sha256(np.ascontiguousarray(y, dtype=np.float32))
+    h.update(np.ascontiguousarray(bins, dtype=np.int64))
     # checkpoint_every sets when steps are saved, not what they compute (a speed key): a run
     # resumes across it
     d = [{k: v for k, v in asdict(c).items() if k != "checkpoint_every"} for c in cfgs]
-    h.update(json.dumps(d + [seed], sort_keys=True).encode())
+    extra = [{"draws": draws}] if draws else []  # without: the fingerprint of earlier commits
+    h.update(json.dumps(d + [seed] + extra, sort_keys=True).encode())
     return h.hexdigest()
 
 
 def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: HyperConfig,
           cfg: HyperTrainConfig, out_path, checkpoint_path, seed: int, device: str = "cpu",
-          on_step=None) -> dict:
+          on_step=None, bins_key: str = "hyperbrdf.train_bins") -> dict:
     """Train on materials' physical BRDF `values` (M, 3, B) at flat MERL `bins` (B,), with the
     mapping's `median` at those bins (B,). Writes the model bundle to `out_path` (and returns
     it); checkpoints to `checkpoint_path` and resumes from it. `on_step(step, loss)` after every
-    optimiser step (tests simulate a kill with it)."""
+    optimiser step (tests simulate a kill with it). `bins_key`: the config key that set B, named
+    when B is too small (hyperbrdf.train_bins, or augmerl.bins where the shards store fewer)."""
     values = np.asarray(values, dtype=np.float32)
     bins = np.asarray(bins)
     if values.ndim != 3 or values.shape[1] != 3 or values.shape[2] != len(bins):
@@ -237,7 +259,7 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     if not np.isfinite(values).all():
         raise ValueError("training values contain NaN or inf")
     if len(bins) < max(cfg.context, cfg.query):
-        raise ValueError(f"{len(bins)} bins per material (hyperbrdf.train_bins), fewer than "
+        raise ValueError(f"{len(bins)} bins per material ({bins_key}), fewer than "
                          f"hyperbrdf.train.context={cfg.context} or "
                          f"query={cfg.query} samples per step")
     from neumat.device import resolve_device
@@ -245,26 +267,34 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     dev = resolve_device(device)
     ckpt_path, out_path = Path(checkpoint_path), Path(out_path)
     x_all, cos_all = (t.to(dev) for t in bin_inputs(bins))
-    y_all = to_target(values.transpose(0, 2, 1), median).to(dev)  # (M, B, 3)
-    fp = fingerprint(y_all.cpu().numpy(), bins, seed, model_cfg, cfg)
+    y_all = training_targets(values, median)  # (M, B, 3): values + one buffer of their size
+    fp = fingerprint(y_all.numpy(), bins, seed, model_cfg, cfg, draws=DRAWS)
+    y_all = y_all.to(dev)
 
     torch.manual_seed(seed)
     model = HyperBRDF(model_cfg).to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     # the draws' own stream: seeded with `seed` too, they replayed the initial weights' numbers
     gen = torch.Generator().manual_seed(seed_for(seed, "draws"))
+    # `running`: [loss, mse, z_reg, theta_reg] of each step since the last logged one, kept as
+    # tensors on the device and read once per log_every steps (a .item() per value and step
+    # waited for the device every step); saved and resumed as lists of floats
     step, history, elapsed, running = 0, [], 0.0, []
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, opt=opt, generator=gen)
     if ck is not None:
         step, elapsed = int(ck["step"]), float(ck["elapsed"])
         history = [tuple(r) for r in ck["history"]]
-        running = [list(r) for r in ck.get("running", [])]  # since the last logged step
+        running = [torch.tensor(r, dtype=torch.float32, device=dev)
+                   for r in ck.get("running", [])]  # since the last logged step
+
+    def read(rows: list[torch.Tensor]) -> list[list[float]]:
+        return torch.stack(rows).tolist() if rows else []
 
     def checkpoint():
         save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
                                "opt": opt.state_dict(), "generator": gen.get_state(),
                                "step": step, "history": history, "elapsed": elapsed,
-                               "running": running})
+                               "running": read(running)})
 
     M, B = y_all.shape[:2]
     b = min(cfg.materials_per_step, M)
@@ -272,14 +302,14 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
     model.train()
     while step < cfg.steps:
         mats = torch.randint(0, M, (b,), generator=gen)
-        # independent random samples per material: the context the encoder sees, the query
-        # the loss is taken on (argsort of uniforms = a sample without replacement)
-        ctx = torch.rand(b, B, generator=gen).argsort(1)[:, :cfg.context]
-        qry = torch.rand(b, B, generator=gen).argsort(1)[:, :cfg.query]
+        # independent random samples per material, each without replacement: the context the
+        # encoder sees, the query the loss is taken on (a prefix of a random permutation;
+        # argsort of B uniforms cost more than the model step at B = 131072)
+        ctx = torch.stack([torch.randperm(B, generator=gen)[:cfg.context] for _ in range(b)])
+        qry = torch.stack([torch.randperm(B, generator=gen)[:cfg.query] for _ in range(b)])
         mats, ctx, qry = mats.to(dev), ctx.to(dev), qry.to(dev)
-        y_m = y_all[mats]
-        y_ctx = torch.gather(y_m, 1, ctx[..., None].expand(-1, -1, 3))
-        y_q = torch.gather(y_m, 1, qry[..., None].expand(-1, -1, 3))
+        # the drawn rows only (indexing y_all[mats] first copied each material's B x 3 values)
+        y_ctx, y_q = y_all[mats[:, None], ctx], y_all[mats[:, None], qry]
         loss, parts = loss_terms(model, x_all[ctx], y_ctx, x_all[qry], y_q, cos_all[qry], cfg)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -287,9 +317,9 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
             nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         opt.step()
         step += 1
-        running.append([loss.item()] + [p.item() for p in parts])
+        running.append(torch.stack([loss, *parts]).detach())
         if step % cfg.log_every == 0 or step == cfg.steps:
-            history.append((step, *np.mean(running, 0).tolist()))
+            history.append((step, *np.mean(read(running), 0).tolist()))
             running = []
             log.info("step %d/%d loss %.5f (mse %.5f, z %.4f, theta %.4f)", *history[-1][:1],
                      cfg.steps, *history[-1][1:])
