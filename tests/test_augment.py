@@ -274,6 +274,33 @@ def test_shard_roundtrip_and_shape_check(tmp_path):
         augment.load_shard(tmp_path / "bad.npz")
 
 
+def test_damaged_shard_recipe_or_index_errors_name_the_file_and_its_rule(tmp_path):
+    """A shard or recipe missing an array, empty or not a zip: a ValueError naming the file and
+    the rule that writes it, not a KeyError / EOFError / BadZipFile from inside numpy."""
+    np.savez(tmp_path / "001.npz", ids=np.arange(2), bins=np.arange(3))  # no values
+    with pytest.raises(ValueError, match=r"001\.npz: not a readable AugMERL shard \(KeyError: "
+                                         r"'values.*rule augmerl_shard writes it"):
+        augment.load_shard(tmp_path / "001.npz")
+    for content, error in ((b"", "EOFError"), (b"PK\x03\x04junk", "BadZipFile")):
+        (tmp_path / "002.npz").write_bytes(content)
+        with pytest.raises(ValueError, match=rf"002\.npz: not a readable AugMERL shard "
+                                             rf"\({error}.*rule augmerl_shard writes it"):
+            augment.load_shard(tmp_path / "002.npz")
+    recipe = tmp_path / "recipe.npz"
+    np.savez(recipe, coef=np.eye(2), row_src=np.arange(2), row_perm=np.zeros(2, int),
+             source_names=np.array(["a", "b"]))  # no bins
+    with pytest.raises(ValueError, match=r"recipe\.npz: not a readable AugMERL recipe "
+                                         r"\(KeyError: 'bins.*rule augmerl_pca writes it"):
+        augment.AugMERL(recipe, tmp_path / "logs.npy", tmp_path / "idx.npz")
+    recipe.write_bytes(b"PK\x03\x04junk")
+    with pytest.raises(ValueError, match=r"recipe\.npz: not a readable AugMERL recipe "
+                                         r"\(BadZipFile.*rule augmerl_pca writes it"):
+        augment.AugMERL(recipe, tmp_path / "logs.npy", tmp_path / "idx.npz")
+    (tmp_path / "idx.npz").write_bytes(b"PK\x03\x04junk")  # the cache's index: a damaged zip
+    with pytest.raises(ValueError, match=r"idx\.npz: not a readable AugMERL log-table index"):
+        augment.open_log_tables(tmp_path / "logs.npy", tmp_path / "idx.npz")
+
+
 def test_pca_gram_is_the_same_on_any_core_count():
     """OpenBLAS split this product (300 rows over 7e4 bins) differently with 2 threads than with
     1, so AugMERL's PCA, and every fit after it, depended on `snakemake --cores`."""

@@ -359,6 +359,67 @@ def test_resume_after_kill_is_identical(tmp_path):
     assert fresh["history"][0] != full["history"][0]
 
 
+def test_checkpoint_of_another_seed_is_not_resumed(tmp_path, caplog):
+    """The seed is in the fingerprint: a checkpoint of seed 1 resumed under seed 2 finished the
+    seed-1 run and recorded seed 2 in the bundle."""
+    from neumat.diffusion.train import fingerprint
+    w, labels, _ = _two_modes(32)
+    cfg = TrainConfig(steps=6, batch_size=8, warmup_steps=1, checkpoint_every=3, log_every=3)
+    mcfg = DenoiserConfig(width=16, depth=1, heads=2, n_classes=2)
+    args = (w, labels, ["a", "b"], mcfg, TOY_SCHED, cfg)
+
+    def kill(step, loss):
+        if step == 4:  # after the checkpoint at 3
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=1, device="cpu", on_step=kill)
+    ran = []
+    resumed = train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=2, device="cpu",
+                    on_step=lambda step, loss: ran.append(step))
+    assert ran[0] == 1  # started over
+    assert "r_ck.pt" in caplog.text and "written for other data or settings" in caplog.text
+    fresh = train(*args, tmp_path / "f.pt", tmp_path / "f_ck.pt", seed=2, device="cpu")
+    assert resumed["seed"] == 2 and resumed["history"] == fresh["history"]
+    assert all(torch.equal(v, resumed["ema"][k]) for k, v in fresh["ema"].items())
+    # the same seed still resumes
+    with pytest.raises(KeyboardInterrupt):
+        train(*args, tmp_path / "s.pt", tmp_path / "s_ck.pt", seed=2, device="cpu", on_step=kill)
+    ran.clear()
+    again = train(*args, tmp_path / "s.pt", tmp_path / "s_ck.pt", seed=2, device="cpu",
+                  on_step=lambda step, loss: ran.append(step))
+    assert ran[0] == 4 and again["history"] == fresh["history"]
+    assert fingerprint(w, labels, mcfg, cfg, seed=1) != fingerprint(w, labels, mcfg, cfg, seed=2)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(),
+                    reason="no CUDA device: the CUDA random state (dropout on a GPU) needs one")
+def test_cuda_checkpoint_restores_the_cuda_random_state(tmp_path):
+    """On a GPU, dropout draws from the CUDA generators: a checkpoint saves them and a resumed
+    run restores them, so its dropout masks are the uninterrupted run's (differences left:
+    the GPU's own float nondeterminism, far below what other masks make)."""
+    w, labels, _ = _two_modes(32)
+    cfg = TrainConfig(steps=8, batch_size=8, warmup_steps=1, checkpoint_every=4, log_every=4)
+    mcfg = DenoiserConfig(width=16, depth=1, heads=2, n_classes=0, dropout=0.3)
+    args = (w, np.full(len(w), -1), [], mcfg, TOY_SCHED, cfg)
+    full = train(*args, tmp_path / "full.pt", tmp_path / "full_ck.pt", seed=0, device="cuda")
+
+    def kill(step, loss):
+        if step == 6:  # after the checkpoint at 4
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=0, device="cuda", on_step=kill)
+    ck = torch.load(tmp_path / "r_ck.pt", weights_only=True)
+    assert len(ck["cuda_rng"]) == torch.cuda.device_count()
+    ran = []
+    resumed = train(*args, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=0, device="cuda",
+                    on_step=lambda step, loss: ran.append(step))
+    assert ran[0] == 5
+    for k, v in full["ema"].items():
+        torch.testing.assert_close(resumed["ema"][k], v, rtol=0, atol=1e-5)
+
+
 def test_training_rejects_bad_input(tmp_path):
     w, labels, _ = _two_modes(8)
     args = (["a", "b"], TOY_MODEL, TOY_SCHED, TOY_TRAIN, tmp_path / "m.pt", tmp_path / "c.pt", 0)

@@ -155,6 +155,165 @@ def test_checkpoint_of_other_settings_is_not_resumed(data, tmp_path, caplog):
     np.testing.assert_array_equal(res["weights"], ref["weights"])
 
 
+def _killed(monkeypatch, after: int, *args, **kw):
+    """fit_many(*args, **kw), killed right after its `after`-th checkpoint save."""
+    real_save, calls = fit._save_npz, []
+
+    def crash(path, **arrays):
+        real_save(path, **arrays)
+        calls.append(1)
+        if len(calls) == after:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit, "_save_npz", crash)
+    with pytest.raises(KeyboardInterrupt):
+        fit.fit_many(*args, **kw)
+    monkeypatch.setattr(fit, "_save_npz", real_save)
+
+
+def test_checkpoint_of_other_data_with_the_same_ids_starts_over(data, tmp_path, monkeypatch,
+                                                                 caplog):
+    """A checkpoint outlives the config: after e.g. an augmerl.pca_dims change the shard holds
+    other materials under the same ids, which must not be resumed (it returned the old
+    materials' fields)."""
+    bins, values, init, _ = data
+    ids, ck = [0, 1, 2], tmp_path / "ck.npz"
+    other = (values * 1.5).astype(np.float32)  # other materials, same ids and bins
+    _killed(monkeypatch, 6, values, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+    with np.load(ck) as z:  # group 0 done (5 saves), group 1 running
+        assert len(z["weights"]) == 2 and int(z["run_step"]) == 10
+    with caplog.at_level("INFO", logger="neumat.fit"):
+        res = fit.fit_many(other, bins, ids, init, SMALL, seed=0, checkpoint=ck)
+    assert "checkpoint of other settings/data, starting over" in caplog.text
+    assert "resuming" not in caplog.text
+    np.testing.assert_array_equal(res["weights"],
+                                  fit.fit_many(other, bins, ids, init, SMALL, seed=0)["weights"])
+    # the fingerprint covers every value and the bins, not the speed keys
+    kern = fit.resolve_kernel(SMALL, "cpu")
+    fp = fit.fingerprint(SMALL, 0, ids, init, kern, bins, values)
+    one = values.copy()
+    one[2, 1, -1] = np.nextafter(one[2, 1, -1], np.float32(1))
+    moved = bins.copy()
+    moved[-1] += 1
+    assert fit.fingerprint(SMALL, 0, ids, init, kern, bins, one) != fp
+    assert fit.fingerprint(SMALL, 0, ids, init, kern, moved, values) != fp
+    assert fit.fingerprint(dataclasses.replace(SMALL, lr=1e-3), 0, ids, init, kern, bins,
+                           values) != fp
+    speed = dataclasses.replace(SMALL, checkpoint_every=7, materials_per_batch=5)
+    assert fit.fingerprint(speed, 0, ids, init, kern, bins, values.astype(np.float64)) == fp
+
+
+@pytest.mark.parametrize("damage", ["empty", "not_a_zip", "no_fingerprint", "truncated"])
+def test_unreadable_checkpoint_is_logged_and_replaced(data, tmp_path, monkeypatch, caplog,
+                                                       damage):
+    """A damaged checkpoint (a killed write, a full disk) is no Snakemake output, so
+    --rerun-incomplete never removes it: the fit starts over (naming it) instead of failing
+    every rerun, and overwrites it."""
+    bins, values, init, _ = data
+    ck = tmp_path / "shard_007.npz"
+    if damage == "empty":
+        ck.write_bytes(b"")
+    elif damage == "not_a_zip":
+        ck.write_bytes(b"PK\x03\x04junk")
+    elif damage == "no_fingerprint":
+        np.savez(ck, w=np.zeros(3))
+    else:
+        _killed(monkeypatch, 1, values[:2], bins, [0, 1], init, SMALL, seed=0, checkpoint=ck)
+        ck.write_bytes(ck.read_bytes()[:-200])
+    res = fit.fit_many(values[:2], bins, [0, 1], init, SMALL, seed=0, checkpoint=ck)
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warned) == 1 and str(ck) in warned[0] and "starting over" in warned[0], warned
+    assert "unreadable fit checkpoint" in warned[0]
+    ref = fit.fit_many(values[:2], bins, [0, 1], init, SMALL, seed=0)
+    np.testing.assert_array_equal(res["weights"], ref["weights"])
+    with np.load(ck) as z:  # replaced by a checkpoint of this fit
+        assert len(z["weights"]) == 2 and str(z["fingerprint"])
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_resumes_across_checkpoint_every_and_materials_per_batch(data, tmp_path, monkeypatch,
+                                                                 caplog, kernel):
+    """Both are speed keys: a checkpoint written with other values is resumed, the running
+    group at its own size, bit-identically; later groups take the new size."""
+    bins, values, init, _ = data
+    values = np.concatenate([values, values * 0.5]).astype(np.float32)
+    ids, ck = list(range(6)), tmp_path / "ck.npz"
+    s = dataclasses.replace(SMALL, kernel=kernel)  # groups [0 1] [2 3] [4 5]
+    ref = fit.fit_many(values, bins, ids, init, s, seed=2)
+    # 4 saves + 1 in group 0, then 2 in group 1: killed with [2 3] at step 20
+    _killed(monkeypatch, 7, values, bins, ids, init, s, seed=2, checkpoint=ck)
+    later = dataclasses.replace(s, checkpoint_every=7, materials_per_batch=1)
+    with caplog.at_level("INFO", logger="neumat.fit"):
+        res = fit.fit_many(values, bins, ids, init, later, seed=2, checkpoint=ck)
+    assert "resuming, 2 materials done, group of 2 at step 20" in caplog.text
+    assert "starting over" not in caplog.text
+    groups = [r.getMessage() for r in caplog.records if r.getMessage().startswith("materials ")]
+    assert groups == ["materials 2-3 of 6", "materials 4-4 of 6", "materials 5-5 of 6"]
+    # the resumed group and the finished ones: bit for bit
+    np.testing.assert_array_equal(res["weights"][:4], ref["weights"][:4])
+    np.testing.assert_array_equal(res["val_history"][:, :4], ref["val_history"][:, :4])
+    # 4 and 5 trained alone: the C kernel fits each material on its own (bit for bit), torch's
+    # batched matmuls agree to float32 rounding
+    if kernel == "c":
+        np.testing.assert_array_equal(res["weights"], ref["weights"])
+    np.testing.assert_allclose(res["weights"], ref["weights"], atol=2e-5)
+
+
+def test_log_target_in_place_is_bit_identical_to_the_expression():
+    """log_target builds the targets in one buffer, in place, also straight in the fitter's
+    bin-major layout: the same bits as log1p(clamp_min(f, 0) * cos), on any thread count,
+    float64 values, negative values, sizes off the vector width."""
+    rng = np.random.default_rng(0)
+    threads = torch.get_num_threads()
+    try:
+        for t in (1, 2):
+            torch.set_num_threads(t)
+            for M, B, dtype in [(1, 37, np.float32), (3, 2000, np.float32),
+                                (5, 4099, np.float64), (2, 70001, np.float32)]:
+                bins = np.sort(rng.choice(merl.N_BINS, B, replace=False))
+                _, cos = fit.bin_inputs(bins)
+                v = (rng.standard_normal((M, 3, B)) * rng.choice([1e-3, 1, 100], (M, 3, B)))
+                v = v.astype(dtype)
+                ref = torch.log1p(torch.as_tensor(v, dtype=torch.float32).clamp_min(0) * cos)
+                ref = ref.transpose(1, 2)  # (M, B, 3): the former expression
+                got = fit.log_target(v, cos)
+                assert got.shape == (M, B, 3) and torch.equal(got, ref), (t, M, B)
+                bm = fit.log_target(v, cos, bin_major=True)
+                assert bm.shape == (B, M * 3) and bm.is_contiguous()
+                assert torch.equal(bm, ref.permute(1, 0, 2).reshape(B, M * 3)), (t, M, B)
+    finally:
+        torch.set_num_threads(threads)
+    with pytest.raises(ValueError, match=r"\(n, 3, 37\)"):
+        fit.log_target(np.zeros((2, 37)), cos[:37])
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+def test_fitter_takes_bin_major_targets_as_they_are(kernel):
+    """A bin-major target is used without a copy and trains as the (M, B, 3) one does; the
+    torch path's evaluation, gathered chunk by chunk (over 32768 training bins here), gives
+    the bits of field_loss over all points at once."""
+    rng = np.random.default_rng(3)
+    bins = np.sort(rng.choice(np.flatnonzero(merl.valid_mask()), 45000, replace=False))
+    x, cos = fit.bin_inputs(bins)
+    values = rng.random((2, 3, len(bins)), dtype=np.float32)
+    init = nbrdf.init_weights(2, torch.Generator().manual_seed(4))
+    s = dataclasses.replace(SMALL, steps=3, eval_every=3, kernel=kernel)
+    bm = fit.log_target(values, cos, bin_major=True)
+    a = fit.BatchFitter(x, cos, fit.log_target(values, cos), [0, 1], init, s, seed=0).train()
+    b = fit.BatchFitter(x, cos, bm, [0, 1], init, s, seed=0)
+    assert b.target.data_ptr() == bm.data_ptr()
+    b.train()
+    assert torch.equal(a.w, b.w)
+    train = b.eval_loss("train")
+    np.testing.assert_array_equal(train, a.eval_loss("train"))
+    if kernel == "torch":
+        assert len(b.train_idx) > fit.LOSS_CHUNK
+        whole = fit.field_loss(b.w, *b._points(b.train_idx), s.activation).numpy()
+        np.testing.assert_array_equal(train, whole)
+    with pytest.raises(ValueError, match="inconsistent fit inputs"):
+        fit.BatchFitter(x, cos, bm[:, :5], [0, 1], init, s, seed=0)
+
+
 def test_settings_errors_name_the_config_key(data):
     with pytest.raises(ValueError, match="fit.activation"):
         fit.FitSettings(activation="tanh")

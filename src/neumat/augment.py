@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import itertools
 import logging
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +34,8 @@ from neumat.linalg import one_blas_thread
 from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
+# what np.load and reading its members raise on a damaged, truncated or foreign file
+NPZ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
 
 PERMS = ["".join(p) for p in itertools.permutations("rgb")]  # "rgb" (identity) first
 MANIFEST_COLUMNS = ["id", "name", "operation", "sources", "weight", "permutation", "type",
@@ -214,7 +218,7 @@ def open_log_tables(npy_path: str | Path, index_path: str | Path):
         with np.load(index_path, allow_pickle=False) as z:
             names = [str(s) for s in z["source_names"]]
             valid, negative = z["valid_bins"], z["negative_bins"]
-    except (OSError, ValueError, KeyError, EOFError) as e:
+    except NPZ_ERRORS as e:
         raise ValueError(f"{index_path}: not a readable AugMERL log-table index ({e}); "
                          f"{redo}") from e
     try:
@@ -355,13 +359,19 @@ class AugMERL:
     bins)` gives the physical BRDF of materials at chosen bins, `table(id)` a full MERL table."""
 
     def __init__(self, recipe_path: str | Path, log_tables: str | Path, log_index: str | Path):
-        r = np.load(recipe_path, allow_pickle=False)
-        self.coef, self.row_src, self.row_perm = r["coef"], r["row_src"], r["row_perm"]
-        self.source_names = [str(s) for s in r["source_names"]]
-        self.shard_bins = r["bins"]
+        try:
+            with np.load(recipe_path, allow_pickle=False) as r:
+                self.coef, self.row_src, self.row_perm = r["coef"], r["row_src"], r["row_perm"]
+                self.source_names = [str(s) for s in r["source_names"]]
+                self.shard_bins = r["bins"]
+                recipe_valid = r["valid_bins"] if "valid_bins" in r.files else None
+        except NPZ_ERRORS as e:
+            raise ValueError(f"{recipe_path}: not a readable AugMERL recipe ({type(e).__name__}: "
+                             f"{e}); delete it and rerun the workflow (rule augmerl_pca writes "
+                             "it)") from e
         self.logs, self.valid_bins, names, _ = open_log_tables(log_tables, log_index)
-        if names != self.source_names or ("valid_bins" in r.files and
-                                           not np.array_equal(r["valid_bins"], self.valid_bins)):
+        if names != self.source_names or (recipe_valid is not None and
+                                           not np.array_equal(recipe_valid, self.valid_bins)):
             raise ValueError(f"{recipe_path} was planned on other sources or bins than the cache "
                              f"{log_tables} holds ({len(self.source_names)} vs {len(names)} "
                              "sources); rerun the workflow")
@@ -422,9 +432,15 @@ def save_shard(path: str | Path, ids: np.ndarray, bins: np.ndarray, values: np.n
 
 def load_shard(path: str | Path) -> dict[str, np.ndarray]:
     """A shard: ids (n,), bins (B,) flat MERL bin indices, values (n, 3, B) physical BRDF."""
-    with np.load(path) as z:
-        d = {k: z[k] for k in ("ids", "bins", "values")}
+    redo = "delete it and rerun the workflow (rule augmerl_shard writes it)"
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in ("ids", "bins", "values")}
+    except NPZ_ERRORS as e:
+        raise ValueError(f"{path}: not a readable AugMERL shard ({type(e).__name__}: {e}); "
+                         f"{redo}") from e
     if d["values"].shape != (len(d["ids"]), 3, len(d["bins"])):
         raise ValueError(f"{path}: inconsistent shard shapes "
-                         f"{d['values'].shape} vs ids {d['ids'].shape}, bins {d['bins'].shape}")
+                         f"{d['values'].shape} vs ids {d['ids'].shape}, bins {d['bins'].shape}; "
+                         f"{redo}")
     return d

@@ -37,6 +37,8 @@ import json
 import logging
 import math
 import time
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -111,10 +113,23 @@ def bin_inputs(bins: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     return x, cos
 
 
-def log_target(values: np.ndarray | torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
-    """Physical BRDF (n, 3, B) -> log(1 + f cos) as (n, B, 3), the loss's fixed term."""
-    v = torch.as_tensor(values, dtype=torch.float32).clamp_min(0)
-    return torch.log1p(v * cos).transpose(1, 2).contiguous()
+def log_target(values: np.ndarray | torch.Tensor, cos: torch.Tensor,
+               bin_major: bool = False) -> torch.Tensor:
+    """Physical BRDF (n, 3, B) -> log(1 + f cos), the loss's fixed term: (n, B, 3), or with
+    `bin_major` (B, n * 3), the layout `BatchFitter` trains on.
+
+    Built in one float32 buffer, in place: clamp at 0, times cos, log1p, elementwise the same
+    operations as `log1p(clamp_min(f, 0) * cos)` and bit-identical to it (tests/test_fit.py),
+    where that expression held three temporaries of the values' size and a transposed copy."""
+    v = torch.as_tensor(values)
+    if v.dim() != 3 or v.shape[1] != 3 or v.shape[2] != len(cos):
+        raise ValueError(f"BRDF values must be (n, 3, {len(cos)}), got {tuple(v.shape)}")
+    n, _, B = v.shape
+    t = torch.empty((B, n, 3) if bin_major else (n, B, 3), dtype=torch.float32)
+    (t.permute(1, 2, 0) if bin_major else t.transpose(1, 2)).copy_(v)
+    flat = t.view(B, n * 3) if bin_major else t
+    flat.clamp_min_(0).mul_(cos[:, None]).log1p_()
+    return flat
 
 
 def _generator(seed: int, *keys: int) -> torch.Generator:
@@ -208,19 +223,26 @@ def loss_and_grad(w: torch.Tensor, x: torch.Tensor, target: torch.Tensor, cos: t
     return loss, ws.g
 
 
-def field_loss(w: torch.Tensor, x: torch.Tensor, target: torch.Tensor, cos: torch.Tensor,
-               activation: str = "relu", chunk: int = 1 << 15) -> torch.Tensor:
-    """Eq. 2 loss per material over all given points, no gradient (chunked to bound memory).
+LOSS_CHUNK = 1 << 15  # points per forward pass of field_loss
 
-    x (n, 6) shared or (M, n, 6), target (M, n, 3), cos (n, 1) or (M, n, 1) -> (M,) float64."""
+
+def _loss_sums(w, x, target, cos, activation="relu", chunk=LOSS_CHUNK) -> torch.Tensor:
+    """Sum of |r| per material (M,) float64, as `field_loss` (chunked to bound memory)."""
     total = torch.zeros(w.shape[0], dtype=torch.float64, device=w.device)
-    n = x.shape[-2]
     with torch.no_grad():
-        for s in range(0, n, chunk):
+        for s in range(0, x.shape[-2], chunk):
             f = nbrdf.forward(w, x[..., s:s + chunk, :], activation)
             r = torch.log1p(f * cos[..., s:s + chunk, :]) - target[:, s:s + chunk]
             total += r.abs().sum((1, 2)).double()
-    return total / (n * 3)
+    return total
+
+
+def field_loss(w: torch.Tensor, x: torch.Tensor, target: torch.Tensor, cos: torch.Tensor,
+               activation: str = "relu", chunk: int = LOSS_CHUNK) -> torch.Tensor:
+    """Eq. 2 loss per material over all given points, no gradient (chunked to bound memory).
+
+    x (n, 6) shared or (M, n, 6), target (M, n, 3), cos (n, 1) or (M, n, 1) -> (M,) float64."""
+    return _loss_sums(w, x, target, cos, activation, chunk) / (x.shape[-2] * 3)
 
 
 def adam_step(w, g, m, v, step: int, lr: float):
@@ -258,15 +280,19 @@ def resolve_kernel(settings: FitSettings, device) -> str:
 class BatchFitter:
     """Fits M materials at once. Data on `device`; state = (w, m, v, step, history).
 
-    x (B, 6), cos (B,): the shared bins; target (M, B, 3) = `log_target`; ids (M,) material
-    ids (bookkeeping); init (M, 675) initial weights."""
+    x (B, 6), cos (B,): the shared bins; target (M, B, 3) = `log_target`, or bin-major
+    (B, M * 3) = `log_target(..., bin_major=True)`, the layout trained on (used as it is, no
+    copy, when it is a contiguous float32 tensor on `device`); ids (M,) material ids
+    (bookkeeping); init (M, 675) initial weights."""
 
     def __init__(self, x, cos, target, ids, init, settings: FitSettings, seed: int,
                  device="cpu"):
         self.s, self.seed, self.dev = settings, seed, torch.device(device)
         self.ids = [int(i) for i in ids]
-        M, B = target.shape[:2]
-        if init.shape != (M, nbrdf.N_PARAMS) or len(self.ids) != M or x.shape[0] != B:
+        bin_major = target.dim() == 2
+        M, B = (target.shape[1] // 3, target.shape[0]) if bin_major else target.shape[:2]
+        if (init.shape != (M, nbrdf.N_PARAMS) or len(self.ids) != M or x.shape[0] != B
+                or target.shape[-1] != (3 * M if bin_major else 3)):
             raise ValueError(f"inconsistent fit inputs: target {tuple(target.shape)}, "
                              f"init {tuple(init.shape)}, {len(self.ids)} ids, {x.shape[0]} bins")
         self.train_idx, self.val_idx = (i.to(self.dev) for i in
@@ -278,7 +304,8 @@ class BatchFitter:
         self.steps_per_epoch = self.n_train // settings.batch
         self.x, self.cos = x.to(self.dev), cos.to(self.dev)
         # bin-major (B, M * 3): a minibatch gathers n rows of contiguous values, not M * n
-        self.target = target.to(self.dev).permute(1, 0, 2).reshape(B, M * 3).contiguous()
+        self.target = (target.to(self.dev, torch.float32).contiguous() if bin_major else
+                       target.to(self.dev).permute(1, 0, 2).reshape(B, M * 3).contiguous())
         self.w = init.detach().to(self.dev, torch.float32).clone()
         self.m, self.v = torch.zeros_like(self.w), torch.zeros_like(self.w)
         self.step, self.history = 0, []  # history: (step, val loss on eval bins (M,))
@@ -368,7 +395,13 @@ class BatchFitter:
             idx = idx[torch.linspace(0, len(idx) - 1, limit).long().to(idx.device)]
         if self._c:
             return self._c.losses(self.w, idx).numpy()
-        return field_loss(self.w, *self._points(idx), self.s.activation).cpu().numpy()
+        # gathered a chunk at a time (all train bins at once were a copy of 0.8 targets), the
+        # sums taken in field_loss's chunks and order: the same float64 total
+        total, n = None, len(idx)
+        for s in range(0, n, LOSS_CHUNK):
+            part = _loss_sums(self.w, *self._points(idx[s:s + LOSS_CHUNK]), self.s.activation)
+            total = part if total is None else total.add_(part)
+        return (total / (n * 3)).cpu().numpy()
 
     def state(self) -> dict[str, np.ndarray]:
         steps = np.array([s for s, _ in self.history], dtype=np.int64)
@@ -388,11 +421,12 @@ def fit(values, bins, ids, init, settings: FitSettings, seed: int, device="cpu",
         on_checkpoint=None, state=None) -> BatchFitter:
     """Fit materials `ids` with data values (M, 3, B) at flat MERL bins (B,), from init (M, 675)."""
     x, cos = bin_inputs(bins)
-    target = log_target(values, cos)
     init = torch.as_tensor(np.asarray(init), dtype=torch.float32)
     if init.dim() == 1:
         init = init.expand(len(ids), -1)
-    f = BatchFitter(x, cos, target, ids, init, settings, seed, device)
+    # the one copy of the targets, in the fitter's layout (on another device: moved there)
+    f = BatchFitter(x, cos, log_target(values, cos, bin_major=True), ids, init, settings, seed,
+                    device)
     if state is not None:
         f.load_state(state)
     return f.train(on_checkpoint=on_checkpoint)
@@ -401,13 +435,49 @@ def fit(values, bins, ids, init, settings: FitSettings, seed: int, device="cpu",
 # ----------------------------------------------------------------------------- shards
 
 
-def fingerprint(settings: FitSettings, seed: int, ids, init, kernel: str) -> str:
-    """Identifies a fitting job; a checkpoint with another fingerprint is not resumed."""
-    h = hashlib.sha256(json.dumps([dataclasses.asdict(settings), seed, SAMPLING_VERSION,
-                                   kernel]).encode())
+# Settings a checkpoint resumes across: `checkpoint_every` only says when the state is saved
+# (train() runs the same steps in any chunks: tests/test_fit.py), and `materials_per_batch`
+# which materials train together, each with its own weights, Adam state and data (a resumed
+# run finishes the running group at its size, then takes groups of the new size). Both are
+# speed keys (config/speed_keys.yaml).
+RESUMABLE_ACROSS = ("checkpoint_every", "materials_per_batch")
+CHECKPOINT_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
+
+
+def fingerprint(settings: FitSettings, seed: int, ids, init, kernel: str, bins, values) -> str:
+    """Identifies a fitting job: the settings that change results, seed, sampling, kernel, the
+    materials' ids and initial weights, and the data fitted (the bins and the values, hashed
+    a material at a time: no copy of the shard); a checkpoint with another fingerprint is not
+    resumed. The data count because a checkpoint outlives the config: after e.g. an
+    `augmerl.pca_dims` change a shard holds other materials under the same ids."""
+    cfg = {k: v for k, v in dataclasses.asdict(settings).items() if k not in RESUMABLE_ACROSS}
+    h = hashlib.sha256(json.dumps([cfg, seed, SAMPLING_VERSION, kernel,
+                                   list(np.shape(values))]).encode())
     h.update(np.asarray(ids, dtype=np.int64).tobytes())
     h.update(np.ascontiguousarray(init, dtype=np.float32).tobytes())
+    h.update(np.ascontiguousarray(bins, dtype=np.int64).tobytes())
+    for v in values:
+        h.update(np.ascontiguousarray(v, dtype=np.float32))
     return h.hexdigest()[:16]
+
+
+def _resume_state(ck: Path, fp: str, keys) -> tuple[dict, dict | None, float] | None:
+    """(finished groups' results, running group's state or None, seconds) from the checkpoint
+    `ck`, or None (logged) where it belongs to another job or cannot be read: a checkpoint is no
+    Snakemake output, so --rerun-incomplete never removes a damaged one, and failing on it would
+    fail every rerun; the fit starts over and overwrites it."""
+    try:
+        with np.load(ck, allow_pickle=False) as z:
+            if str(z["fingerprint"]) != fp:
+                log.warning("%s: checkpoint of other settings/data, starting over", ck)
+                return None
+            done = {k: list(z[k]) for k in keys}
+            running = {k[4:]: z[k] for k in z.files if k.startswith("run_")} or None
+            return done, running, float(z["seconds"])
+    except CHECKPOINT_ERRORS as e:
+        log.warning("%s: unreadable fit checkpoint (%s: %s); starting over (the file is "
+                    "overwritten at the next checkpoint)", ck, type(e).__name__, e)
+        return None
 
 
 def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="cpu",
@@ -415,26 +485,23 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
     """Fit all materials in groups of `materials_per_batch`, checkpointing to `checkpoint`.
 
     A killed run restarts from its last checkpoint (finished groups, and the running group's
-    weights, Adam moments and step) when the settings, seed, ids and init are unchanged.
+    weights, Adam moments and step) when the settings (but `RESUMABLE_ACROSS`), seed, data,
+    ids and init are unchanged; an unreadable checkpoint is logged and replaced.
     Returns ids, weights (n, 675) float32, train_loss, val_loss (n,), history_steps (k,),
     val_history (k, n), and the wall time."""
     ids = np.asarray(ids, dtype=np.int64)
     init = np.asarray(init, dtype=np.float32)
     init = np.broadcast_to(init, (len(ids), nbrdf.N_PARAMS)).copy()
     ck = Path(checkpoint) if checkpoint else None
-    fp = fingerprint(settings, seed, ids, init, resolve_kernel(settings, device))
+    fp = fingerprint(settings, seed, ids, init, resolve_kernel(settings, device), bins, values)
     done = dict(weights=[], train_loss=[], val_loss=[], val_history=[])
     running, t_prev = None, 0.0
-    if ck and ck.exists():
-        with np.load(ck) as z:
-            if str(z["fingerprint"]) == fp:
-                done = {k: list(z[k]) for k in done}
-                running = {k[4:]: z[k] for k in z.files if k.startswith("run_")} or None
-                t_prev = float(z["seconds"])
-                log.info("%s: resuming, %d materials done%s", ck, len(done["weights"]),
-                         f", group at step {int(running['step'])}" if running else "")
-            else:
-                log.warning("%s: checkpoint of other settings/data, starting over", ck)
+    resumed = _resume_state(ck, fp, list(done)) if ck and ck.exists() else None
+    if resumed:
+        done, running, t_prev = resumed
+        log.info("%s: resuming, %d materials done%s", ck, len(done["weights"]),
+                 f", group of {len(running['w'])} at step {int(running['step'])}"
+                 if running else "")
     t0 = time.perf_counter()
     steps = None
 
@@ -445,9 +512,11 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
         _save_npz(ck, fingerprint=np.array(fp), seconds=np.float64(t_prev + time.perf_counter() - t0),
                   **{k: np.array(v) for k, v in done.items()}, **extra)
 
-    g = settings.materials_per_batch
-    for s in range(len(done["weights"]), len(ids), g):
-        sl = slice(s, min(s + g, len(ids)))
+    s = len(done["weights"])
+    while s < len(ids):
+        # a running group from the checkpoint keeps its size (materials_per_batch may differ)
+        sl = slice(s, min(s + (len(running["w"]) if running else settings.materials_per_batch),
+                          len(ids)))
         log.info("materials %d-%d of %d", sl.start, sl.stop - 1, len(ids))
         f = fit(values[sl], bins, ids[sl], init[sl], settings, seed, device, on_checkpoint=save,
                 state=running)
@@ -458,7 +527,9 @@ def fit_many(values, bins, ids, init, settings: FitSettings, seed: int, device="
         done["train_loss"] += list(f.eval_loss("train"))
         done["val_loss"] += list(f.eval_loss("val"))
         done["val_history"] += list(st["history"].T)
+        del f  # its targets, before the next group's are built
         save()
+        s = sl.stop
     if steps is None:  # every group came from the checkpoint
         steps = np.array(sorted({*range(settings.eval_every, settings.steps + 1,
                                         settings.eval_every), settings.steps}), dtype=np.int64)

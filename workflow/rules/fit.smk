@@ -4,9 +4,24 @@
 
 FIT = config["fit"]
 # what a fit's result depends on (fit.threads, materials_per_batch, checkpoint_every: speed only)
-FIT_SETTINGS = settings("fit", ["steps", "template_steps", "lr", "lr_final", "batch", "activation",
-                                "mirror_phi_d", "val_fraction", "eval_every", "eval_bins", "kernel"])
+FIT_KEYS = ["steps", "template_steps", "lr", "lr_final", "batch", "activation", "mirror_phi_d",
+            "val_fraction", "eval_every", "eval_bins", "kernel"]
+FIT_SETTINGS = settings("fit", FIT_KEYS)
 FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch order
+# Peak RSS of a fit job (measured on an Intel Xeon Processor, family 6 model 207 = Emerald
+# Rapids, AVX-512; torch 2.13 CPU, 1 thread; 100 materials in one batch, 2 steps with evals):
+#   C kernel: 261 MB (imports) + 2.09 x the shard (its values, their log targets in the
+#   fitter's layout, the bins' geometry): 901, 1529, 2899 MB for shards of 302, 604, 1263 MB
+#   (1263 MB: paper scale, every valid bin); before the targets were built in place
+#   261 + 4.03 x (5345 MB at paper scale, over the former budget 1500 + 3 x = 5289).
+#   The template's job: 261 + 1.14 x its shard (951 MB at 604 MB).
+#   torch step on the CPU (kernel torch, or auto where the C step is the slower one): the
+#   evaluations' activations (32768 points a pass) add 9.7 MB per material of a batch at 100
+#   materials, 12.6 at 25: 1862, 2471, 3875 MB for 302, 604, 1263 MB. On a GPU the host holds
+#   what the C path does. Budget: 1000 + 2.5 x (+ 13 MB per material of a batch off the C
+#   kernel): 1.26 GB over the C path's peak at paper scale (1.58 GB off it).
+FIT_MEM_EVAL = 0 if FIT["kernel"] == "c" else 13 * min(FIT["materials_per_batch"],
+                                                         config["augmerl"]["shard_size"])
 
 
 rule fit_template:
@@ -16,6 +31,8 @@ rule fit_template:
         out("neumerl/template.npz"),
     params:
         template=TEMPLATE_ID,
+        # fit.steps is not used here (the template trains fit.template_steps) but stays: taking
+        # it out would rerun every existing run's template, and after it every shard
         cfg=FIT_SETTINGS,
         seed=FIT_SEED,
         checkpoint=out("neumerl/checkpoints/template.npz"),
@@ -54,7 +71,7 @@ rule fit_shard:
         CONDA_ENV
     threads: FIT["threads"]
     resources:
-        mem_mb=lambda wc, input: 1500 + 3 * input.size_mb,
+        mem_mb=lambda wc, input: int(1000 + 2.5 * input.size_mb) + FIT_MEM_EVAL,  # measured, above
         runtime=fit_runtime(config["augmerl"]["shard_size"], FIT["steps"]),
         gpu=1 if config["device"] == "cuda" else 0,
     script:

@@ -3,9 +3,10 @@ model.
 
 Reproducibility: every random draw of training (batch indices, timesteps, noise, condition
 dropout) comes from one CPU `torch.Generator` whose state is saved in each checkpoint together
-with the model, EMA, optimiser and step, so a run killed at any point and resumed from its last
-checkpoint ends in exactly the state of an uninterrupted run (on the same device).
-A checkpoint carries a fingerprint of the data and settings; a stale one is ignored.
+with the model, EMA, optimiser and step (and torch's global CPU and, on a GPU, CUDA generators:
+module dropout), so a run killed at any point and resumed from its last checkpoint ends in
+exactly the state of an uninterrupted run (on the same device).
+A checkpoint carries a fingerprint of the data, settings and seed; a stale one is ignored.
 """
 
 from __future__ import annotations
@@ -111,7 +112,11 @@ def check_precision(cfg: TrainConfig, dev: torch.device) -> None:
         raise ValueError(f"diffusion.train.precision: bf16 on {dev}: {why}; set it to fp32")
 
 
-def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | None = None) -> str:
+def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, seed: int,
+                vectors: dict | None = None) -> str:
+    """Identifies a training run: data, labels, condition vectors, settings and seed (a
+    checkpoint of another seed is not resumed: it would finish the old run under the new
+    seed's name)."""
     h = hashlib.sha256(np.ascontiguousarray(weights, dtype=np.float32).tobytes())
     h.update(np.ascontiguousarray(labels, dtype=np.int64).tobytes())
     for k in sorted(vectors or {}):
@@ -120,6 +125,7 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, vectors: dict | 
     # compute (speed keys): a run resumes across either
     d = [{k: v for k, v in asdict(c).items() if k not in ("compile", "checkpoint_every")} for c in cfgs]
     h.update(json.dumps(d, sort_keys=True).encode())
+    h.update(json.dumps({"seed": int(seed)}).encode())
     return h.hexdigest()
 
 
@@ -150,7 +156,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     dev = resolve_device(device)
     check_precision(cfg, dev)
     ckpt_path, out_path = Path(checkpoint_path), Path(out_path)
-    fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg, vectors=vectors)
+    fp = fingerprint(weights, labels, model_cfg, sched_cfg, cfg, seed=seed, vectors=vectors)
 
     torch.manual_seed(seed)  # model initialisation (and dropout, if enabled)
     norm = Normalizer.fit(torch.from_numpy(weights)).to(dev)
@@ -169,6 +175,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, ema=ema, opt=opt, generator=gen)
     if ck is not None:
         torch.set_rng_state(ck["torch_rng"].cpu())  # map_location put it on `dev`
+        if dev.type == "cuda":
+            _set_cuda_rng(ck.get("cuda_rng"), ckpt_path)
         step, history, elapsed = ck["step"], ck["history"], ck["elapsed"]
         # the loss summed since the last logged step: a resumed run logs the same history
         run_sum, run_n = ck.get("running", (0.0, 0))
@@ -181,6 +189,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         save_torch(ckpt_path, {"fingerprint": fp, "model": model.state_dict(),
                                "ema": ema.state_dict(), "opt": opt.state_dict(),
                                "generator": gen.get_state(), "torch_rng": torch.get_rng_state(),
+                               **({"cuda_rng": torch.cuda.get_rng_state_all()}
+                                  if dev.type == "cuda" else {}),
                                "step": step, "history": history, "elapsed": elapsed,
                                "running": (0.0 if running is None else running.item(), n_running)})
 
@@ -236,6 +246,19 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
               "seed": seed, "fingerprint": fp}
     save_torch(out_path, result)
     return result
+
+
+def _set_cuda_rng(states, path) -> None:
+    """Restore the CUDA generators saved in a checkpoint (GPU runs; module dropout draws from
+    them). Not restorable (a checkpoint of a CPU run, or of another number of visible GPUs): the
+    run resumes, but a model with dropout then draws other numbers than an uninterrupted run."""
+    n = torch.cuda.device_count()
+    if states is None or len(states) != n:
+        log.warning("%s: %s; resuming without restoring the CUDA random state", path,
+                    "no CUDA random state saved" if states is None else
+                    f"CUDA random states of {len(states)} GPUs saved, {n} visible now")
+        return
+    torch.cuda.set_rng_state_all([s.cpu() for s in states])  # map_location put them on `dev`
 
 
 def check_vectors(vectors: dict | None, model_cfg: DenoiserConfig, n: int) -> dict:
