@@ -37,7 +37,7 @@ from typing import Callable
 import torch
 
 from neumat import cbuild
-from neumat.btf.fold import fold_pca
+from neumat.btf.fold import check_lut, fold_pca
 from neumat.btf import query_triton
 
 SOURCE = Path(__file__).with_name("query_kernel.c")
@@ -76,14 +76,6 @@ def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
     lut = lut.detach().float().contiguous()
     slope = torch.cat([lut[:, 1:] - lut[:, :-1], torch.zeros_like(lut[:, :1])], 1)
     return torch.stack([lut, slope], -1).contiguous()
-
-
-def check_lut(lut: torch.Tensor, channels: int) -> None:
-    """HPB's inverse LUT must be (channels, L) with L >= 2 (the kernel interpolates entry k
-    with k + 1: L = 1 reads before the row, L = 0 crashes); ValueError otherwise."""
-    if lut.dim() != 2 or lut.shape[0] != channels or lut.shape[1] < 2:
-        raise ValueError(f"HPB's inverse LUT must be ({channels}, L) with L >= 2 entries "
-                         f"(setting lut_size), got shape {tuple(lut.shape)}")
 
 
 def hpb_plane(hpb) -> torch.Tensor:

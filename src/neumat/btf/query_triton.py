@@ -33,7 +33,7 @@ from functools import cache
 
 import torch
 
-from neumat.btf.fold import fold_pca
+from neumat.btf.fold import check_lut, fold_pca
 
 log = logging.getLogger(__name__)
 _failed: list[str] = []  # the first kernel failure of this process, if any
@@ -198,7 +198,6 @@ def _narrow(p: dict) -> None:
 def _pack_hpb(model, hpb, dtype) -> dict:
     """pack(model) with HPB's folded layer 1, its LUT and its Gaussianised plane as `dtype`:
     float16 holds it exactly (hpb.gaussianise rounds it so), at half the bytes per tap."""
-    from neumat.btf.query import check_lut  # lazily: `query` imports this module
     check_lut(hpb.lut, hpb.gauss.shape[-1])  # the kernel interpolates entries k and k + 1
     lin = [m for m in model.net if isinstance(m, torch.nn.Linear)]
     w1, b1 = fold_pca(lin[0].weight, lin[0].bias, model.kwargs["u_channels"], hpb.mean, hpb.basis)

@@ -11,6 +11,7 @@ import os
 import torch
 
 from neumat.btf import query
+from neumat.btf.fold import check_lut
 
 
 def _library():
@@ -28,7 +29,7 @@ def hpb_features(u: torch.Tensor, hpb):
     None (no kernel)."""
     lib = _library()
     H, W, C = hpb.gauss.shape
-    query.check_lut(hpb.lut, C)  # before C reads it: L < 2 would read outside the LUT
+    check_lut(hpb.lut, C)  # before C reads it: L < 2 would read outside the LUT
     if (lib is None or u.device.type != "cpu" or C > query.MAX_WIDTH
             or (H + 1) * (W + 1) * C >= 2 ** 31):  # int32 offsets into query.hpb_plane
         return None
