@@ -36,14 +36,22 @@ def _plane_model_grads(method: str) -> dict:
 @pytest.mark.parametrize("method", ["triple_plane", "neumip"])
 def test_btf_plane_gradients_are_the_same_on_one_and_two_threads(torch_threads, method):
     """btf.threads: the planes' gradients (bilinear taps summed back into the plane) were
-    thread-dependent with plane[idx] (this test failed on them)."""
+    thread-dependent with plane[idx] (this test failed on them): now the same bytes, and so are
+    the biases'. The MLP's weight gradients are GEMMs whose reduction runs over the queries; MKL
+    splits it between threads on Intel CPUs (not on the AMD EPYC), so there they agree to float32
+    rounding only (up to 2.3e-7 of the largest on an Intel Xeon, 2026-11-29). Every gradient is
+    the same bytes on a repeat at the same thread count."""
     torch_threads(1)
     one = _plane_model_grads(method)
     torch_threads(2)
     two, again = _plane_model_grads(method), _plane_model_grads(method)
     for k in one:
-        assert torch.equal(one[k], two[k]), k
         assert torch.equal(two[k], again[k]), k
+        if k.startswith("net.") and k.endswith(".weight"):
+            scale = one[k].abs().max()
+            assert (one[k] - two[k]).abs().max() <= 1e-6 * scale, k
+        else:
+            assert torch.equal(one[k], two[k]), k
 
 
 def _tables(n=48, bins=10731, seed=0):  # the tiny run's PCA-A shapes
