@@ -337,6 +337,10 @@ def test_save_load_fits_round_trip(data, tmp_path):
     np.savez(tmp_path / "bad.npz", ids=np.arange(2), weights=np.zeros((2, 5)))
     with pytest.raises(ValueError, match="bad.npz"):
         fit.load_fits(tmp_path / "bad.npz")
+    # a damaged file (a killed copy, a full disk) names itself and its rule, not BadZipFile
+    (tmp_path / "cut.npz").write_bytes((tmp_path / "f.npz").read_bytes()[:100])
+    with pytest.raises(ValueError, match=r"cut\.npz: not a readable fit result.*rule fit_shard"):
+        fit.load_fits(tmp_path / "cut.npz")
 
 
 def test_merge_orders_by_manifest_and_checks_coverage():

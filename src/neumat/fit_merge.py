@@ -3,6 +3,7 @@ here, and merged into one weight matrix in manifest order."""
 
 from __future__ import annotations
 
+import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -21,8 +22,13 @@ def save_fits(path: str | Path, result: dict) -> None:
 
 
 def load_fits(path: str | Path) -> dict[str, np.ndarray]:
-    with np.load(path) as z:
-        d = {k: z[k] for k in z.files}
+    """A shard's fit result (rule fit_shard), or ValueError naming the file and the rule."""
+    try:
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise ValueError(f"{path}: not a readable fit result ({type(e).__name__}: {e}); delete "
+                         f"it and rebuild it with rule fit_shard") from e
     missing = {"ids", "weights", "train_loss", "val_loss"} - set(d)
     if missing or d["weights"].shape != (len(d["ids"]), nbrdf.N_PARAMS):
         raise ValueError(f"{path}: not a fit result (missing {sorted(missing)} or bad weights shape)")
