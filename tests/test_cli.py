@@ -304,6 +304,9 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
      "--guidance '3': no condition asked, so nothing to guide"),
     (["sample", "--run", "{run}", "--budget", "5", "--out", "{tmp}/o"], "--budget 5: give it with --category"),
     (["sample", "--run", "{run}", "--bins", "all", "--out", "{tmp}/o"], "--bins all: give it with --category"),
+    (["sample", "--run", "{run}", "--spp", "8", "--out", "{tmp}/o"], "--spp 8: give it with --mitsuba"),
+    (["sample", "--run", "{run}", "--mitsuba-resolution", "64", "--out", "{tmp}/o"],
+     "--mitsuba-resolution 64: give it with --mitsuba"),
 ])
 def test_errors_say_what_to_do(run, tmp_path, capsys, args, message):
     (tmp_path / "bad.binary").write_bytes(b"1234")

@@ -146,8 +146,9 @@ def parser() -> argparse.ArgumentParser:
     s.add_argument("--resolution", type=whole(2), default=128, help="metric-view PNG size (default 128)")
     s.add_argument("--no-binary", action="store_true", help="skip the MERL .binary files (35 MB each)")
     s.add_argument("--mitsuba", action="store_true", help="also render scene.xml to scene.png with Mitsuba")
-    s.add_argument("--mitsuba-resolution", type=whole(1), default=256, help="scene.png size (default 256)")
-    s.add_argument("--spp", type=whole(1), default=32, help="Mitsuba samples per pixel (default 32)")
+    s.add_argument("--mitsuba-resolution", type=whole(1),
+                   help="scene.png size (default 256; with --mitsuba)")
+    s.add_argument("--spp", type=whole(1), help="Mitsuba samples per pixel (default 32; with --mitsuba)")
     s.add_argument("--variant", default="auto", choices=["auto", "llvm_ad_rgb", "scalar_rgb"], help="Mitsuba variant")
     s.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="torch device")
     s.set_defaults(func=cmd_sample)

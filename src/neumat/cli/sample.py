@@ -484,6 +484,10 @@ def _check_options(args, chosen: list[str]) -> None:
     if args.render_step is not None and (not args.image or args.render_step < 0):
         raise CLIError(f"--render-step {args.render_step:g}: give it with --image, as a number "
                        f">= 0 (0 = off)")
+    for flag in ("mitsuba_resolution", "spp"):  # they set the Mitsuba render: alone, nothing
+        if getattr(args, flag) is not None and not args.mitsuba:
+            raise CLIError(f"--{flag.replace('_', '-')} {getattr(args, flag)}: give it with "
+                           f"--mitsuba (it sets the scene.png render)")
     _check_start(args, chosen)
 
 
@@ -566,7 +570,9 @@ def _write(args, out: Path, w: np.ndarray, table) -> None:
             bar.update(1)
     scene = _write_scene(out, len(w), args.activation)
     if args.mitsuba:
-        _render_scene(scene, out / "scene.png", args.variant, args.mitsuba_resolution, args.spp)
+        _render_scene(scene, out / "scene.png", args.variant,
+                      256 if args.mitsuba_resolution is None else args.mitsuba_resolution,
+                      32 if args.spp is None else args.spp)
 
 
 def cmd_sample(args) -> int:
