@@ -76,10 +76,9 @@ def _info_encoders(run: Run, models: dict[str, Path]) -> None:
     if enc is None:
         print(f"  image        none (rule train_image_encoder: `{run.target(IMAGE_ENCODER)}`)")
     else:
-        import torch
+        from neumat.io import modelfile
         try:
-            b = torch.load(enc, map_location="cpu", weights_only=True)
-            c = b["cfg"]
+            c = modelfile.load(enc)["cfg"]
             print(f"  image        {enc.relative_to(run.path)}: ResNet, {c['resolution']} px renders, "
                   f"{c['embed_dim']}-d embeddings, objective {c['objective']}, {c['steps']} steps")
         except Exception as e:  # a damaged or foreign file

@@ -98,11 +98,11 @@ class Run:
     def load_model(self, model: str) -> dict:
         """The bundle of diffusion/<model>/model.pt (tensors and plain values only), with the
         keys sampling reads; a CLIError naming the rule that remakes a damaged or foreign file."""
-        import torch
+        from neumat.io import modelfile
         rel = f"diffusion/{model}/model.pt"
         try:
-            bundle = torch.load(self.path / rel, map_location="cpu", weights_only=True)
-        except Exception as e:  # UnpicklingError for foreign objects, RuntimeError for bad zips
+            bundle = modelfile.load(self.path / rel)
+        except Exception as e:  # refused pickles and bad zips: the cause, under modelfile's error
             raise self.unreadable(rel, model_rule(model), e) from None
         get = bundle.get if isinstance(bundle, dict) else lambda k: None
         missing = [k for k, kind in MODEL_KEYS.items() if not isinstance(get(k), kind)]
