@@ -357,10 +357,13 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
        coordinates and taps. In one loop GCC spilled vector registers to the stack (16 on AVX2);
        split, it keeps them in registers, most on AVX2 (README, "BTF synthesis on the
        positional plane") */
-    uint32_t hxa[3][T], h0a[3][T], ha[3][T];
+    uint32_t hxa[3][T], h0a[3][T], ha[3][T], mxa[2][T];
+    for (int q = 0; q < T; q++)  /* vertices 0 and 1 share their column i0 + !up, so its mix:
+                                    two column mixes a query, not three */
+        mxa[0][q] = mix(vx[0][q] ^ hs), mxa[1][q] = mix(vx[2][q] ^ hs);
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {  /* grid.vertex_hash */
-            uint32_t h = mix(vy[v][q] ^ mix(vx[v][q] ^ hs));
+        for (int q = 0; q < T; q++) {  /* grid.vertex_hash: mix(vy ^ mix(vx ^ hs)), ... */
+            uint32_t h = mix(vy[v][q] ^ mxa[v == 2][q]);
             h = mix(h ^ 0x9E3779B1u);
             hxa[v][q] = h;
             h = mix(h ^ 0x9E3779B2u);
