@@ -8,18 +8,18 @@ FIT_KEYS = ["steps", "template_steps", "lr", "lr_final", "batch", "activation", 
             "val_fraction", "eval_every", "eval_bins", "kernel"]
 FIT_SETTINGS = settings("fit", FIT_KEYS)
 FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch order
-# Peak RSS of a fit job (measured on an Intel Xeon Processor, family 6 model 207 = Emerald
-# Rapids, AVX-512; torch 2.13 CPU, 1 thread; 100 materials in one batch, 2 steps with evals):
-#   C kernel: 261 MB (imports) + 2.09 x the shard (its values, their log targets in the
-#   fitter's layout, the bins' geometry): 901, 1529, 2899 MB for shards of 302, 604, 1263 MB
-#   (1263 MB: paper scale, every valid bin); before the targets were built in place
-#   261 + 4.03 x (5345 MB at paper scale, over the former budget 1500 + 3 x = 5289).
-#   The template's job: 261 + 1.14 x its shard (951 MB at 604 MB).
+# Peak RSS of a fit job (`python benchmarks/job_memory.py --jobs fit`, and `--kernel torch
+# --materials 100` / `25`; Intel Xeon AVX-512, torch 2.13 CPU, 1 thread, 2026-11-29; 100
+# materials in one batch, 2 steps with an evaluation):
+#   C kernel: 267 MB + 2.08 x the shard (its values, their log targets in the fitter's
+#   layout, the bins' geometry; 253 MB of imports): 581, 895, 1523 MB for shards of 151, 302,
+#   604 MB, so about 2900 MB at paper scale (1263 MB: every valid bin).
+#   The template's job: 1.13-1.18 x its shard over the imports (939 MB at 604 MB).
 #   torch step on the CPU (kernel torch, or auto where the C step is the slower one): the
-#   evaluations' activations (32768 points a pass) add 9.7 MB per material of a batch at 100
-#   materials, 12.6 at 25: 1862, 2471, 3875 MB for 302, 604, 1263 MB. On a GPU the host holds
-#   what the C path does. Budget: 1000 + 2.5 x (+ 13 MB per material of a batch off the C
-#   kernel): 1.26 GB over the C path's peak at paper scale (1.58 GB off it).
+#   evaluations' activations (32768 points a pass) add about 9 MB per material of a batch at
+#   100 materials and 14 at 25 (the fitted intercepts: 1153 and 605 MB). On a GPU the host
+#   holds what the C path does. Budget: 1000 + 2.5 x (+ 13 MB per material of a batch off the
+#   C kernel): 0.42-0.61 of it on the C path at 151-604 MB, 0.55 on torch's at 151 MB.
 FIT_MEM_EVAL = 0 if FIT["kernel"] == "c" else 13 * min(FIT["materials_per_batch"],
                                                          config["augmerl"]["shard_size"])
 

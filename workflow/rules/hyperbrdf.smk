@@ -53,11 +53,12 @@ rule train_hyperbrdf:
         CONDA_ENV
     threads: HB["threads"]
     resources:
-        # one shard at a time, then the kept bins' values and their mapped targets. Measured
-        # peak RSS growth of this script's path (shard rows -> concatenate -> hb.train, 1 step,
-        # CPU; 200-800 materials x 32768-131072 bins): 8.07-8.30 bytes per stored value
-        # (material x channel x bin) = 24.2-24.9 per material-bin, the values' 4 bytes twice
-        # (rows + their concatenation, then values + targets); 26 per material-bin budgeted
+        # one shard at a time, then the kept bins' values and their mapped targets. Peak RSS
+        # of this script's path (shard rows -> concatenate -> hb.train, 1 step, CPU;
+        # `python benchmarks/job_memory.py --jobs hyperbrdf`, 200 and 400 materials x 32768
+        # bins, Intel Xeon AVX-512, 2026-11-29): 443 MB + 24.6 bytes per material-bin, i.e.
+        # 8.2 per stored value (material x channel x bin), the values' 4 bytes twice (rows +
+        # their concatenation, then values + targets); 26 per material-bin budgeted
         mem_mb=lambda wc, input: 2000 + 2 * input.size_mb // len(AUG_SHARDS)
         + 26 * augmerl_count() * HB["train_bins"] // 2**20,
         runtime=hyperbrdf_runtime(),

@@ -1,0 +1,234 @@
+"""Peak memory of the jobs whose Snakemake `mem_mb` is a formula of their input, against that
+budget: the NeuMERL fit of an AugMERL shard (rules fit_shard and fit_template,
+workflow/rules/fit.smk) and the HyperBRDF training (rule train_hyperbrdf,
+workflow/rules/hyperbrdf.smk).
+
+Each measurement runs the job script's path in a fresh Python process on synthetic shards in the
+real file format (`augment.save_shard`: random positive values at random MERL bins), so its peak
+RSS (VmHWM; Snakemake's benchmark files report the same as max_rss) holds imports, the shard
+and what the job builds from it, and nothing from the run before:
+- fit: `augment.load_shard` -> `fit.fit_many` with every material in one batch (the most a batch
+  can hold: fit.materials_per_batch up to the shard) for 2 steps with an evaluation (the C
+  kernel, as `fit.kernel: auto` picks it on x86). Its memory does not depend on the steps.
+  The template: the same with the shard's first material alone (fit_template's path).
+  `--kernel torch`: the torch step (fit.kernel: torch), whose evaluations hold activations per
+  material of a batch: compare `--materials 100` and `--materials 25`.
+- hyperbrdf: the rows of every shard kept at `train_bins` bins, concatenated, then
+  `hyperbrdf.train` for 1 step, as workflow/scripts/train_hyperbrdf.py does.
+
+Per size it prints the input, the peak, the RSS after imports, the growth per input unit (per MB
+of shard; per material-bin), the rule's budget and the peak's fraction of that budget (the
+bound: a job over it is killed by Slurm). A budget below the peak is reported as exceeded.
+Over the sizes, the least-squares line of the peak against the input (the slope is what the
+budget's factor must cover; at small sizes the fixed costs dominate the per-unit growth).
+
+    python benchmarks/job_memory.py [--jobs fit hyperbrdf] [--fit-bins 131072 262144 524288]
+                                    [--materials 100] [--kernel auto|c|torch]
+                                    [--hb-materials 200 400] [--hb-bins 32768]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+MB = 2 ** 20
+
+
+def status_mb(key: str) -> float:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024
+    raise RuntimeError(f"no {key} in /proc/self/status")
+
+
+def rss_mb() -> float:
+    """Current resident set of this process (MB)."""
+    return status_mb("VmRSS")
+
+
+def peak_mb() -> float:
+    """Peak resident set of this process (MB): VmHWM, the high-water mark of its own memory.
+    Not ru_maxrss: Linux carries the forking parent's high-water mark over exec into it."""
+    return status_mb("VmHWM")
+
+
+def write_shard(path: Path, first_id: int, materials: int, bins: np.ndarray, seed: int):
+    from neumat import augment
+    rng = np.random.default_rng(seed)
+    values = rng.gamma(1.0, 0.2, (materials, 3, len(bins))).astype(np.float32)
+    augment.save_shard(path, np.arange(first_id, first_id + materials), bins, values)
+
+
+# ----------------------------------------------------------------------------- children
+
+
+def child_fit(shard: str, out: str, template: bool, kernel: str) -> dict:
+    """fit_shard's path (workflow/scripts/fit_shard.py) with all materials in one batch, or
+    fit_template's (workflow/scripts/fit_template.py): the shard's first material alone."""
+    from neumat import augment, fit, nbrdf
+    base = rss_mb()
+    sh = augment.load_shard(shard)
+    if template:
+        sh = dict(sh, values=sh["values"][:1], ids=sh["ids"][:1])
+    n = len(sh["ids"])
+    init = np.random.default_rng(0).normal(0, 0.1, nbrdf.N_PARAMS).astype(np.float32)
+    settings = fit.FitSettings(steps=2, eval_every=1, materials_per_batch=n, checkpoint_every=1,
+                               kernel=kernel)
+    res = fit.fit_many(sh["values"], sh["bins"], sh["ids"], init, settings, 0, "cpu",
+                       checkpoint=out)
+    assert res["weights"].shape == (n, nbrdf.N_PARAMS)
+    return dict(imports=base, peak=peak_mb(), kernel=fit.resolve_kernel(settings, "cpu"))
+
+
+def child_hyperbrdf(shards: list[str], train_bins: int, out: str) -> dict:
+    """train_hyperbrdf's path (workflow/scripts/train_hyperbrdf.py), 1 step."""
+    from neumat import augment
+    from neumat.baselines import hyperbrdf as hb
+    base = rss_mb()
+    values, keep, bins = [], None, None
+    for path in shards:
+        sh = augment.load_shard(path)
+        if keep is None:
+            keep = np.sort(np.random.default_rng(0).choice(len(sh["bins"]), train_bins, replace=False))
+            bins = sh["bins"][keep]
+        values.append(sh["values"][:, :, keep])
+        del sh
+    values = np.concatenate(values)
+    median = np.full(len(bins), 0.05, np.float32)
+    hb.train(values, bins, median, hb.HyperConfig(), hb.HyperTrainConfig(steps=1, checkpoint_every=1),
+             Path(out) / "model.pt", Path(out) / "checkpoint.pt", 0, "cpu")
+    return dict(imports=base, peak=peak_mb(), materials=len(values))
+
+
+def run_child(args: list[str]) -> dict:
+    env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
+    r = subprocess.run([sys.executable, __file__, "--child", json.dumps(args)], env=env,
+                       capture_output=True, text=True)
+    if r.returncode:
+        sys.exit(f"child {args[0]} failed:\n{r.stderr[-3000:]}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+# ----------------------------------------------------------------------------- parent
+
+
+def fit_budget(shard_mb: float, kernel: str, materials: int) -> float:
+    """mem_mb of rule fit_shard (workflow/rules/fit.smk, FIT_MEM_EVAL) at config fit.kernel
+    `kernel`, `materials` a batch."""
+    return 1000 + 2.5 * shard_mb + (0 if kernel == "c" else 13 * materials)
+
+
+def template_budget(shard_mb: float) -> float:
+    """mem_mb of rule fit_template."""
+    return 1000 + 2 * shard_mb
+
+
+def hb_budget(shard_mb: float, shards: int, materials: int, train_bins: int) -> float:
+    """mem_mb of rule train_hyperbrdf (workflow/rules/hyperbrdf.smk); shard_mb: all shards."""
+    return 2000 + 2 * shard_mb // shards + 26 * materials * train_bins // MB
+
+
+def bench_fit(tmp: Path, materials: int, sizes: list[int], kernel: str):
+    from neumat.io import merl
+    rows = []
+    print(f"fit_shard: {materials} materials in one batch, 2 steps with an evaluation; fit_template: "
+          "the first alone; a fresh process each")
+    print(f"{'bins':>8s} {'shard MB':>9s} {'peak MB':>8s} {'imports':>8s} {'(peak-imp)/shard':>17s} "
+          f"{'budget':>7s} {'of it':>6s} {'template peak':>14s} {'(peak-imp)/shard':>17s} "
+          f"{'budget':>7s} {'of it':>6s}")
+    for i, b in enumerate(sizes):
+        rng = np.random.default_rng(i)
+        bins = np.sort(rng.choice(merl.N_BINS, b, replace=False))
+        shard = tmp / f"fit_{b}.npz"
+        write_shard(shard, 0, materials, bins, i)
+        mb = shard.stat().st_size / MB
+        r = run_child(["fit", str(shard), str(tmp / f"fit_{b}.ckpt.npz"), False, kernel])
+        t = run_child(["fit", str(shard), str(tmp / f"template_{b}.ckpt.npz"), True, kernel])
+        shard.unlink()
+        bs, bt = fit_budget(mb, kernel, materials), template_budget(mb)
+        rows.append((mb, r["peak"]))
+        print(f"{b:8d} {mb:9.0f} {r['peak']:8.0f} {r['imports']:8.0f} "
+              f"{(r['peak'] - r['imports']) / mb:17.2f} {bs:7.0f} {r['peak'] / bs:6.2f} "
+              f"{t['peak']:14.0f} {(t['peak'] - t['imports']) / mb:17.2f} {bt:7.0f} "
+              f"{t['peak'] / bt:6.2f}" + ("  EXCEEDED" if r["peak"] > bs or t["peak"] > bt else "")
+              + f"  (kernel {r['kernel']})")
+    if len(rows) >= 2:
+        x, y = np.array(rows).T
+        slope, icpt = np.polyfit(x, y, 1)
+        print(f"fit: peak = {icpt:.0f} MB + {slope:.2f} x the shard (least squares over "
+              f"{len(rows)} sizes); fit_shard budget 1000 + 2.5 x"
+              + ("" if kernel == "c" else f" + 13 MB x {materials} materials (fit.kernel {kernel})"))
+
+
+def bench_hyperbrdf(tmp: Path, materials: list[int], train_bins: int, shard_bins: int):
+    from neumat.io import merl
+    bins = np.sort(np.random.default_rng(9).choice(merl.N_BINS, shard_bins, replace=False))
+    print(f"hyperbrdf: shards of 100 materials x {shard_bins} bins, {train_bins} train_bins, 1 step, "
+          "a fresh process each")
+    rows = []
+    print(f"{'materials':>9s} {'shards MB':>10s} {'peak MB':>8s} {'imports':>8s} "
+          f"{'B/material-bin':>15s} {'budget':>7s} {'of it':>6s}")
+    for m in materials:
+        shards = []
+        for k in range(0, m, 100):
+            p = tmp / f"hb_{m}_{k}.npz"
+            write_shard(p, k, min(100, m - k), bins, k)
+            shards.append(p)
+        mb = sum(p.stat().st_size for p in shards) / MB
+        r = run_child(["hyperbrdf", [str(p) for p in shards], train_bins, str(tmp)])
+        for p in shards:
+            p.unlink()
+        per = (r["peak"] - r["imports"]) * MB / (m * train_bins)
+        budget = hb_budget(mb, len(shards), m, train_bins)
+        rows.append((m * train_bins, r["peak"]))
+        print(f"{m:9d} {mb:10.0f} {r['peak']:8.0f} {r['imports']:8.0f} {per:15.1f} {budget:7.0f} "
+              f"{r['peak'] / budget:6.2f}" + ("  EXCEEDED" if r["peak"] > budget else ""))
+    if len(rows) >= 2:
+        x, y = np.array(rows).T
+        slope, icpt = np.polyfit(x, y, 1)
+        print(f"hyperbrdf: peak = {icpt:.0f} MB + {slope * MB:.1f} bytes per material-bin (least "
+              f"squares over {len(rows)} sizes); budgeted 26 bytes per material-bin")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf"], choices=["fit", "hyperbrdf"])
+    ap.add_argument("--materials", type=int, default=100, help="fit: materials in the shard")
+    ap.add_argument("--kernel", default="auto", choices=["auto", "c", "torch"],
+                    help="fit: the step on the CPU (fit.kernel; auto: the C kernel on x86)")
+    ap.add_argument("--fit-bins", type=int, nargs="+", default=[131072, 262144, 524288],
+                    help="fit: stored bins per material, one shard per value")
+    ap.add_argument("--hb-materials", type=int, nargs="+", default=[200, 400],
+                    help="hyperbrdf: training materials, one run per value")
+    ap.add_argument("--hb-bins", type=int, default=32768, help="hyperbrdf: train_bins")
+    ap.add_argument("--hb-shard-bins", type=int, default=65536, help="hyperbrdf: bins the shards store")
+    a = ap.parse_args()
+    if a.child:
+        kind, *rest = json.loads(a.child)
+        out = child_fit(*rest) if kind == "fit" else child_hyperbrdf(*rest)
+        print(json.dumps(out))
+        return
+    if a.hb_bins > a.hb_shard_bins:
+        ap.error("--hb-bins must not exceed --hb-shard-bins")
+    from neumat import machine
+    import torch
+    print(f"machine: {machine.describe()}; torch {torch.__version__}, "
+          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', '1 (set by this script)')}")
+    with tempfile.TemporaryDirectory(prefix="job_memory_") as d:
+        if "fit" in a.jobs:
+            bench_fit(Path(d), a.materials, a.fit_bins, a.kernel)
+        if "hyperbrdf" in a.jobs:
+            bench_hyperbrdf(Path(d), a.hb_materials, a.hb_bins, a.hb_shard_bins)
+
+
+if __name__ == "__main__":
+    main()
