@@ -39,8 +39,8 @@ def test_btf_plane_gradients_are_the_same_on_one_and_two_threads(torch_threads, 
     thread-dependent with plane[idx] (this test failed on them): now the same bytes, and so are
     the biases'. The MLP's weight gradients are GEMMs whose reduction runs over the queries; MKL
     splits it between threads on Intel CPUs (not on the AMD EPYC), so there they agree to float32
-    rounding only (up to 2.3e-7 of the largest on an Intel Xeon, 2026-11-29). Every gradient is
-    the same bytes on a repeat at the same thread count."""
+    rounding only (held to 1e-6 of the largest here). Every gradient is the same bytes on a
+    repeat at the same thread count."""
     torch_threads(1)
     one = _plane_model_grads(method)
     torch_threads(2)
