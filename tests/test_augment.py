@@ -335,6 +335,21 @@ def test_template_is_the_first_train_split_original():
         augment.template_id(rows)
 
 
+def test_pca_cut_keeps_pca_dims_where_the_small_eigenvalues_are_distinct():
+    """Distinct small eigenvalues are no tie: k stays as asked (a tie test against the largest
+    eigenvalue alone had kept every component above 1e-9 of it: 24 for 8 here)."""
+    rng = np.random.default_rng(0)
+    Q, _ = np.linalg.qr(rng.standard_normal((40, 40)))
+    J = np.eye(40) - 1 / 40
+    Q = J @ Q  # centred directions, so the double centring keeps the spectrum
+    ev = np.r_[1.0, 0.5, 0.25, 0.12, 0.06, np.linspace(8e-9, 2e-9, 20), np.zeros(15)]
+    G = (Q * ev) @ Q.T
+    _, stats = augment.mixing_weights(G, 5, [(0, 1, 0.5)])
+    assert stats[0] == 5
+    _, stats = augment.mixing_weights(G, 8, [(0, 1, 0.5)])
+    assert stats[0] == 8
+
+
 def test_pca_cut_keeps_a_tied_pair_of_components_whole():
     """Rows and their channel permutations make the Gram's eigenvalues come in equal pairs; a
     cut inside a pair would keep whichever half LAPACK returned. k grows to the pair's end, and

@@ -48,6 +48,11 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     ({"hyperbrdf": {"train": {"query": 9000}}}, "hyperbrdf.train.query 9000 exceeds hyperbrdf.train_bins 8192"),
     ({"augmerl": {"bins": 900}, "hyperbrdf": {"sparse_samples": 500}},
      "hyperbrdf.train.context 1000 exceeds augmerl.bins 900"),
+    # each failed in a job: the AugMERL figure after the PCA, the fits in fit_template
+    ({"augmerl": {"figure_pair": ["nonexistent", "other"]}},
+     "augmerl.figure_material / figure_pair ['nonexistent', 'other']: not materials of this run"),
+    ({"fit": {"batch": 16000}}, "fit.batch 16000 exceeds the training bins of a fit: augmerl.bins 16384"),
+    ({"fit": {"batch": 500, "kernel": "c"}}, "fit.batch 500 is not a multiple of 16"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
@@ -139,6 +144,13 @@ def test_catalogues_that_are_missing_or_not_text_name_key_and_file(tmp_path):
     with pytest.raises(ValueError, match=r"config ubo2014.catalog: .*cols\.tsv lacks the column\(s\) "
                                          r"file \(it has name, category\)"):
         ubo2014.load_catalog(tmp_path / "cols.tsv")
+    # a repeated name: split_sources would merge its two rows into one split entry
+    rows = (ROOT / "config/merl_materials.tsv").read_text().splitlines()
+    (tmp_path / "dup.tsv").write_text("\n".join(rows + [rows[3]]) + "\n")
+    name = rows[3].split("\t")[0]
+    with pytest.raises(ValueError, match=rf"config merl.materials: .*dup\.tsv lists the name\(s\) "
+                                         rf"{name} more than once"):
+        catalog.load_catalog(tmp_path / "dup.tsv")
 
 
 def test_missing_catalogue_fails_when_the_dag_is_built(tmp_path):

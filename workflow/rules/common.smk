@@ -327,6 +327,21 @@ def check_cross_keys():
             errors.append(f"hyperbrdf.train.{key} {most} exceeds {limit_key} {limit} (training "
                           f"samples each step's context and query from min(hyperbrdf.train_bins, "
                           f"augmerl.bins) bins per material)")
+    a = config["augmerl"]
+    shown = [a["figure_material"]] if a["figure_material"] else []
+    absent = [n for n in shown + list(a["figure_pair"]) if n not in MERL_NAMES]
+    if absent:
+        errors.append(f"augmerl.figure_material / figure_pair {absent}: not materials of this "
+                      f"run (merl.materials, merl.subset)")
+    # the fits' minibatches come from the stored bins less the validation share
+    # (fit.split_bins); the C step takes minibatches of whole vectors
+    f = config["fit"]
+    if stored is not None and f["batch"] > stored - int(round(f["val_fraction"] * stored)):
+        errors.append(f"fit.batch {f['batch']} exceeds the training bins of a fit: augmerl.bins "
+                      f"{stored} less the fit.val_fraction {f['val_fraction']} held out")
+    if f["kernel"] == "c" and f["batch"] % 16:  # fit_kernel.VECTOR
+        errors.append(f"fit.batch {f['batch']} is not a multiple of 16, which fit.kernel: c "
+                      f"needs (auto falls back to torch)")
     if errors:
         raise ValueError("bad config: " + "; ".join(errors))
 

@@ -45,6 +45,12 @@ def read_tsv(path: str | Path, key: str, columns) -> pd.DataFrame:
     if missing:
         raise ValueError(f"config {key}: {path} lacks the column(s) {', '.join(missing)} "
                          f"(it has {', '.join(map(str, cat.columns))})")
+    # a name is a material's key (its file, its split, its wildcard): a repeated one would
+    # merge two rows into one split entry and could leave a split empty far downstream
+    dup = sorted(set(cat.loc[cat["name"].duplicated(), "name"])) if "name" in cat.columns else []
+    if dup:
+        raise ValueError(f"config {key}: {path} lists the name(s) {', '.join(dup[:5])} more than "
+                         f"once; each material needs a row of its own")
     return cat
 
 
