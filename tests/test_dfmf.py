@@ -127,3 +127,30 @@ def test_index_errors(tmp_path):
         b.decode([0], [7], [0])
     with pytest.raises(dfmf.DFMFError, match="roi"):
         dfmf.DFMF(b.path, roi=(2, 2, 3, 3))
+
+
+def test_corrupt_view_count_is_named_before_any_allocation(tmp_path):
+    p = _write(tmp_path)
+    data = bytearray(p.read_bytes())
+    pos = 10 + struct.unpack_from("<I", data, 10)[0]  # after the meta block: the view count
+    assert struct.unpack_from("<I", data, pos)[0] == 7
+    struct.pack_into("<I", data, pos, 0xFFFFFFF0)
+    p.write_bytes(bytes(data))
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf: corrupt header: 4294967280 views"):
+        dfmf.DFMF(p)
+
+
+def test_non_finite_factors_are_refused_naming_the_file(tmp_path):
+    """A NaN inside the payload passes the header and size checks; a fit would train on NaN
+    loss and save the model."""
+    rng = np.random.default_rng(0)
+    U, SV = _factors(rng, 3, 3, 2)
+    SV[1][4, 1] = np.nan
+    p = tmp_path / "x.btf"
+    dfmf.write_dfmf(p, U, SV, ANG, ANG, 3, 3, color_model=0, scalar=4)
+    b = dfmf.DFMF(p)
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf: channel 1's SV factor hold NaN or inf \(1 of 18\)"):
+        b.factors()
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf: decoded values hold NaN"):
+        b.decode([4], [0], [0])
+    assert np.isfinite(b.decode([0], [0], [0])).all()  # the other texels still decode

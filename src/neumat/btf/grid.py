@@ -25,7 +25,8 @@ class DirectionInterp:
 
     def __call__(self, w: torch.Tensor):
         """(N, 3) unit directions -> vertex indices (N, 3) long and weights (N, 3)."""
-        xy = w[:, :2].detach().cpu().double().numpy()
+        xy = w[:, :2].detach().cpu().double().numpy().copy()  # scaled in place below: a float64
+        # CPU input would share its memory (and the caller's directions would move)
         s = self.tri.find_simplex(xy)
         out = s < 0
         if out.any():

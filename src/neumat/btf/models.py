@@ -6,6 +6,8 @@ unit vectors, z = surface normal)."""
 
 from __future__ import annotations
 
+import torch
+
 from neumat.btf.classical import PCA, SH, Tucker
 from neumat.btf.neural import NeuMIP, TriplePlane
 from neumat.io import modelfile
@@ -29,12 +31,19 @@ def save(model, path) -> None:
 
 
 def load(path):
-    ck = modelfile.load(path)
-    cls = {**NEURAL, **GRID}.get(ck.get("method"))
+    ck = modelfile.require(modelfile.load(path), ("method", "args", "state"), path,
+                           "a BTF model (rule btf_<method>, e.g. btf_triple_plane)")
+    cls = {**NEURAL, **GRID}.get(ck["method"])
     if cls is None:
-        raise ValueError(f"{path}: unknown BTF model method {ck.get('method')!r}; known {METHODS}")
-    model = cls(**ck["args"])
-    model.load_state_dict(ck["state"])
+        raise ValueError(f"{path}: unknown BTF model method {ck['method']!r}; known {METHODS}")
+    # built on the meta device and handed the file's tensors (assign): no second, zero-filled
+    # copy of a model that can be gigabytes (an SH model of a whole 400 x 400 BTF: 2.4 GB)
+    with torch.device("meta"):
+        model = cls(**ck["args"])
+    model.load_state_dict(ck["state"], assign=True)
+    if any(t.is_meta for t in (*model.parameters(), *model.buffers())):
+        model = cls(**ck["args"])  # a tensor the state does not hold: build it for real
+        model.load_state_dict(ck["state"])
     return model.eval()
 
 

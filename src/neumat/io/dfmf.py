@@ -107,6 +107,9 @@ def _read_header(cur: _Cursor) -> Header:
         raise DFMFError(f"{cur.path}: inconsistent meta block (size field {size}, "
                         f"read {cur.pos - start} bytes)")
     n_views = cur.u32()
+    if 12 * n_views > len(cur.buf) - cur.pos:  # each view: 2 floats and a light count at least
+        raise DFMFError(f"{cur.path}: corrupt header: {n_views} views cannot fit in the "
+                        f"{len(cur.buf) - cur.pos} bytes left")
     views, lights = np.zeros((n_views, 2), np.float32), None
     for v in range(n_views):
         views[v] = cur.floats(2)
@@ -204,7 +207,14 @@ class DFMF:
         uc, ic = np.unique(col, return_inverse=True)
         raw = np.stack([np.einsum("nk,nk->n", ch.U[ur].astype(np.float32)[ir],
                                   ch.SV[uc].astype(np.float32)[ic]) for ch in self.channels], -1)
+        self._finite(raw, "decoded values")
         return to_rgb(raw, self.header.color_model)
+
+    def _finite(self, a: np.ndarray, what: str) -> None:
+        """Refuse NaN or inf in the factors: a fit would train on NaN loss and save the model."""
+        if not np.isfinite(a).all():
+            raise DFMFError(f"{self.path}: {what} hold NaN or inf ({np.size(a) - np.isfinite(a).sum()} "
+                            f"of {np.size(a)}); the file is damaged: delete it and fetch it again")
 
     def image(self, light: int, view: int) -> np.ndarray:
         """(height, width, 3) RGB texture for one light/view pair."""
@@ -214,8 +224,12 @@ class DFMF:
     def factors(self, dtype=np.float32):
         """In-memory (U list, SV list) restricted to the roi, for fast batched decoding."""
         cols = self.file_texel(np.arange(self.n_texels))
-        return ([np.asarray(ch.U, dtype) for ch in self.channels],
-                [np.asarray(ch.SV[cols], dtype) for ch in self.channels])
+        U = [np.asarray(ch.U, dtype) for ch in self.channels]
+        SV = [np.asarray(ch.SV[cols], dtype) for ch in self.channels]
+        for c, (u, sv) in enumerate(zip(U, SV)):
+            self._finite(u, f"channel {c}'s U factor")
+            self._finite(sv, f"channel {c}'s SV factor")
+        return U, SV
 
 
 def to_rgb(raw: np.ndarray, model: int) -> np.ndarray:
