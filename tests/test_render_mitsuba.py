@@ -180,3 +180,20 @@ def test_gallery_layout(tmp_path):
     assert (tmp_path / "g.png").exists()
     with pytest.raises(ValueError, match="labels"):
         gallery.gallery(imgs, ["a"])
+
+
+def test_gallery_title_wraps_to_the_grid_width():
+    """A narrow grid (the tiny run's constrained gallery: two 48-px cells) cut a one-line title
+    short; the title wraps onto as many lines as it needs, each within the canvas."""
+    imgs = [np.zeros((48, 48, 3), np.uint8)] * 2
+    plain = gallery.gallery(imgs, ["a", "b"], ncols=2)
+    title = "not produced within budget: metallic, plastic, mirror; fewer than asked: diffuse"
+    g = gallery.gallery(imgs, ["a", "b"], ncols=2, title=title)
+    assert g.shape[1] == plain.shape[1]
+    lines = -(-len(title) // ((plain.shape[1] - 8) // 6))  # at least this many lines
+    assert g.shape[0] - plain.shape[0] >= 14 * lines
+    top = g[:g.shape[0] - plain.shape[0]]
+    assert (top[:, -4:] == 255).all()  # nothing drawn into the right margin
+    # a single narrow cell: a word longer than the grid widens the canvas, not broken up
+    one = gallery.gallery(imgs[:1], ["a"], title="fewer than asked: medium-specular")
+    assert one.shape[1] >= 6 * len("medium-specular")

@@ -15,6 +15,16 @@ from neumat import report  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 
+def mm_type_text(refined: bool) -> str:
+    """What the `mm_type` and `mm_uncond` rows are, as conditions.type.refiner drew them."""
+    if refined:
+        return ("`mm_type`: training materials of the test descriptions' types, noised and "
+                "denoised by the refiner without a condition (conditions.type.refiner); "
+                "`mm_uncond`: unconditional samples of the multimodal model (chance level);")
+    return ("`mm_type` and `mm_uncond` are type-conditioned and unconditional samples of the "
+            "multimodal model for the test descriptions' types (chance level);")
+
+
 def guidance_text(scales, refined) -> str:
     """Each modality's guidance scale, or that the refiner (which takes no condition) drew its
     samples, so no scale applied (the guidance sweep still uses the multimodal model)."""
@@ -96,8 +106,7 @@ with script_logging(snakemake) as log:
         "conditioning material's) type, counted over samples whose asked type some training "
         "material has (a test-split source may have a type found nowhere in training). Colour match: the render's mean chromaticity matches "
         "the prompt's colour word (hue within 40 degrees, saturation >= 0.15; achromatic words: "
-        "saturation below). `mm_type` and `mm_uncond` are type-conditioned and unconditional "
-        "samples of the same model for the test descriptions' types (chance level); `mm_type` "
+        "saturation below). " + mm_type_text("type" in p.refined) + " `mm_type` "
         "draws only the types some training material has (the model never saw the others). "
         "Goal: type "
         "hits >= 90 % with the median distance within 1.5x the real test split's and negative "

@@ -42,6 +42,10 @@ with script_logging(snakemake) as log:
                                                for c in constrained.CATEGORIES]})
     pur = purity.pivot_table(index="set", values="purity", aggfunc="mean")
     missing = acc.loc[~acc["complete"].astype(str).isin(["True", "true"]), "category"].tolist()
+    # incomplete categories: none accepted, or fewer than requested (shown, not padded)
+    accepted = dict(zip(acc["category"], acc["accepted"].astype(int)))
+    none = [c for c in missing if accepted.get(c, 0) == 0]
+    part = [c for c in missing if accepted.get(c, 0) > 0]
 
     # Fig. 6: a row per produced category
     variant = mb.select_variant(p.mitsuba["variant"])
@@ -59,8 +63,6 @@ with script_logging(snakemake) as log:
         for cat, idx in rows:  # a row per category, a short one padded with blank cells
             cells += [imgs[i] for i in idx] + [blank] * (p.gallery_count - len(idx))
             labels += [f"{cat} #{i}" for i in idx] + [""] * (p.gallery_count - len(idx))
-        none = [c for c in missing if c not in dict(rows)]
-        part = [c for c in missing if c in dict(rows)]
         title = "not produced within budget: " + (", ".join(none) or "none") + (
             "; fewer than asked: " + ", ".join(part) if part else "")
         gallery(cells, labels, out.gallery, ncols=p.gallery_count, title=title)
@@ -82,11 +84,12 @@ with script_logging(snakemake) as log:
           "rules above. `guide` is how the draws after the pilot batch were made: "
           "unconditionally, guided by type, or with category guidance toward eq. 9 or 10 "
           "(`constrained.guidance_step`); `pilot` gives each mode's acceptance in its first "
-          "batch. A category with complete = False was not produced within the budget and is "
-          "not padded. Metallic samples, however drawn, reflect more energy than they receive: "
+          "batch. A category with complete = False reached fewer accepted samples than requested "
+          "within the budget (none, or some) and is not padded. Metallic samples, however drawn, reflect more energy than they receive: "
           "eq. 10 admits no passive BRDF):",
           report.md_table(acc),
-          "Not produced within the budget: " + (", ".join(missing) if missing else "none") + ".", fig,
+          "Not produced within the budget: " + (", ".join(none) or "none") + "."
+          + (" Fewer than requested: " + ", ".join(part) + "." if part else ""), fig,
           f"Rendered with Mitsuba 3 ({variant})."]
     with open(out.section, "w") as f:
         f.write("\n\n".join(md) + "\n")

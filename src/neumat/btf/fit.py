@@ -95,7 +95,7 @@ def write_section(metric_files, md_out, table_out, source, crop):
              "better), DSSIM = (1 - SSIM) / 2 and FLIP (lower is better); `params` = stored "
              "floats of the representation.", ""]
     for fig, title in (("texture", "Textures at fixed light/view pairs (mean over pairs)"),
-                       ("tiling", "Tiled plane under two point lights vs interpolated reference (mean)")):
+                       ("tiling", "Tiled plane under the point lights of btf.tiling.lights vs interpolated reference (mean)")):
         sub = q[q["figure"] == fig]
         if sub.empty:
             continue

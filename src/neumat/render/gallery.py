@@ -44,10 +44,14 @@ def gallery(images, labels, path: str | os.PathLike | None = None, ncols: int = 
         r, c = divmod(k, ncols)
         y, x = pad + r * (h + lab_h + pad) + h + 1, pad + c * (w + pad)
         draw.text((x, y), "\n".join(text), fill=(0, 0, 0), font=font)
-    if title:
-        top = Image.new("RGB", (pil.width, label_height + pad), (background,) * 3)
-        ImageDraw.Draw(top).text((pad, pad // 2), title, fill=(0, 0, 0), font=font)
-        framed = Image.new("RGB", (pil.width, pil.height + top.height))
+    if title:  # wrapped to the grid's width (a narrow grid cut a one-line title short), words
+        # whole: a word longer than the grid widens the canvas
+        rows = textwrap.wrap(str(title), max(8, (pil.width - 2 * pad) // 6),
+                             break_long_words=False, break_on_hyphens=False) or [""]
+        width = max(pil.width, 6 * max(len(r) for r in rows) + 2 * pad)
+        top = Image.new("RGB", (width, label_height * len(rows) + pad), (background,) * 3)
+        ImageDraw.Draw(top).text((pad, pad // 2), "\n".join(rows), fill=(0, 0, 0), font=font)
+        framed = Image.new("RGB", (width, pil.height + top.height), (background,) * 3)
         framed.paste(top, (0, 0))
         framed.paste(pil, (0, top.height))
         pil = framed
