@@ -246,6 +246,40 @@ def test_fetch_local_verifies_header_and_lock(tmp_path, tiny_btf):
 
 
 
+def test_fetch_retries_a_body_the_server_cut_short(tmp_path, tiny_btf):
+    """A server that closes the connection cleanly mid-body ends the read without an error;
+    the download compares the bytes with Content-Length and tries again (it had kept the short
+    file as .rejected on the first attempt)."""
+    import http.server
+    import threading
+    body, served = tiny_btf.path.read_bytes(), []
+
+    class Flaky(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            short = not served  # the first answer stops halfway
+            served.append(short)
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body[: len(body) // 2] if short else body)
+            self.close_connection = True
+
+        def log_message(self, *a):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Flaky)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        out = tmp_path / "res" / "wood06.btf"
+        ubo2014.fetch("wood06", out, url=f"http://127.0.0.1:{server.server_address[1]}/w.btf",
+                      retries=1, lock_file=tmp_path / "lock.tsv", expect=(8, 8, 151))
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert served == [True, False]
+    assert out.read_bytes() == body
+
+
 def test_fetch_unreachable_says_what_to_do(tmp_path):
     """Offline: the error names the material, the URL and the settings that avoid the download
     (an InputError: a workflow job prints it without a traceback)."""

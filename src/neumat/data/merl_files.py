@@ -9,6 +9,7 @@ good one; a user's own local files are never modified.
 from __future__ import annotations
 
 import hashlib
+import http.client
 import logging
 import os
 import shutil
@@ -92,7 +93,8 @@ def download(url: str, dest: str | os.PathLike, sha256: str | None = None, retri
                 raise DownloadError(f"{dest.name}: {url} answered HTTP {e.code} ({e.reason}). "
                                     f"Check merl.url. {OFFLINE_HINT}") from e
             error = e
-        except (urllib.error.URLError, socket.timeout, ConnectionError, OSError) as e:
+        except (urllib.error.URLError, socket.timeout, ConnectionError, OSError,
+                http.client.HTTPException) as e:  # e.g. IncompleteRead of a chunked body
             tmp.unlink(missing_ok=True)
             error = e
         except (ChecksumError, merl.MerlFormatError) as e:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import fcntl
 import hashlib
+import http.client
 import logging
 import os
 import shutil
@@ -117,8 +118,13 @@ def fetch(name: str, out, *, url: str | None = None, local_dir=None, link=False,
                 log.info("downloading %s (attempt %d)", url, attempt + 1)
                 with urllib.request.urlopen(url, timeout=60) as r, open(tmp, "wb") as f:
                     shutil.copyfileobj(r, f, 1 << 22)
+                    # a server that closes the connection cleanly mid-body ends the read
+                    # without an error: compare with the length it announced
+                    size, got = r.headers.get("Content-Length"), f.tell()
+                    if size is not None and size.isdigit() and got != int(size):
+                        raise http.client.IncompleteRead(b"", int(size) - got)
                 break
-            except OSError as e:
+            except (OSError, http.client.HTTPException) as e:
                 if attempt == retries:
                     raise FetchError(f"{name}: could not download {url} after {retries + 1} "
                                      f"attempt(s): {e}. {OFFLINE_HINT}") from e
