@@ -353,3 +353,14 @@ def test_loading_a_model_builds_no_second_copy_of_its_tensors(tiny_btf, tmp_path
     assert built_on == ["meta"]
     assert all(not t.is_meta for t in back.buffers())
     assert torch.equal(back.coef, m.coef)
+
+
+def test_tiled_plane_directions_are_in_the_textures_frame():
+    """On the rendered plane v grows along world -y (image rows downwards), and a BTF's y axis is
+    its row direction (texel_uv, synthetic.normals_from_height): a light on the world -y side
+    lies towards growing v, so its direction has local y > 0 (world y had been passed through,
+    which lit the bumps as if mirrored in v)."""
+    from neumat.btf.evaluate import plane_queries
+    u, wi, wo, mask, _ = plane_queries(48, 32, 1.0, [0.0, -3.0, 0.5])
+    assert (wi[:, 1] > 0).all()
+    assert (wo[:, 1] > 0).all()  # the camera sits at world y = -2.4, in front of the plane

@@ -83,6 +83,11 @@ def plane_queries(width: int, height: int, tiles: float, light, fov_deg: float =
     li = np.asarray(light, np.float64) - p
     r2 = np.sum(li ** 2, -1)
     wi = li / np.sqrt(r2)[:, None]
+    # directions in the texture's frame: v grows along world -y (image rows grow downwards)
+    # and a BTF's y is its row direction (texel_uv; synthetic.normals_from_height), so its
+    # frame is (x, -y, z): in world y the bumps were lit as if mirrored in v
+    wo[:, 1] *= -1
+    wi[:, 1] *= -1
     t = lambda a: torch.as_tensor(a, dtype=torch.float32)
     if not wrap:
         u = np.stack([tiles * (p[:, 0] + 1) / 2, tiles * (1 - p[:, 1]) / 2], -1)
