@@ -15,6 +15,7 @@ from neumat import report  # noqa: E402
 from neumat.io import modelfile  # noqa: E402
 from neumat.logs import script_logging  # noqa: E402
 
+
 def mm_type_text(refined: bool) -> str:
     """What the `mm_type` and `mm_uncond` rows are, as conditions.type.refiner drew them."""
     if refined:
