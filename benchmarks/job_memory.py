@@ -15,6 +15,9 @@ and what the job builds from it, and nothing from the run before:
   material of a batch: compare `--materials 100` and `--materials 25`.
 - hyperbrdf: the rows of every shard kept at `train_bins` bins, concatenated, then
   `hyperbrdf.train` for 1 step, as workflow/scripts/train_hyperbrdf.py does.
+- btf_load (`--jobs btf_load`): `neumat.btf.models.load` of a saved SH model (btf_eval loads
+  every model of a material) against the way it loaded before: built zero-filled, then the
+  state copied in.
 
 Per size it prints the input, the peak, the RSS after imports, the growth per input unit (per MB
 of shard; per material-bin), the rule's budget and the peak's fraction of that budget (the
@@ -22,7 +25,7 @@ bound: a job over it is killed by Slurm). A budget below the peak is reported as
 Over the sizes, the least-squares line of the peak against the input (the slope is what the
 budget's factor must cover; at small sizes the fixed costs dominate the per-unit growth).
 
-    python benchmarks/job_memory.py [--jobs fit hyperbrdf] [--fit-bins 131072 262144 524288]
+    python benchmarks/job_memory.py [--jobs fit hyperbrdf btf_load] [--fit-bins 131072 262144 524288]
                                     [--materials 100] [--kernel auto|c|torch]
                                     [--hb-materials 200 400] [--hb-bins 32768]
 """
@@ -106,6 +109,25 @@ def child_hyperbrdf(shards: list[str], train_bins: int, out: str) -> dict:
     hb.train(values, bins, median, hb.HyperConfig(), hb.HyperTrainConfig(steps=1, checkpoint_every=1),
              Path(out) / "model.pt", Path(out) / "checkpoint.pt", 0, "cpu")
     return dict(imports=base, peak=peak_mb(), materials=len(values))
+
+
+def child_btf_load(path: str, plain: bool) -> dict:
+    """neumat.btf.models.load of a saved model, or (`plain`) the way it loaded before 455564a:
+    the model built zero-filled, then the file's state copied in."""
+    import torch
+    from neumat.btf import models
+    from neumat.io import modelfile
+    base = rss_mb()
+    if plain:
+        ck = modelfile.load(path)
+        m = models.GRID[ck["method"]](**ck["args"])
+        m.load_state_dict(ck["state"])
+    else:
+        m = models.load(path)
+    peak = peak_mb()
+    size = sum(t.numel() * t.element_size() for t in (*m.parameters(), *m.buffers())) / MB
+    assert all(bool(torch.isfinite(t).all()) for t in m.buffers())
+    return dict(imports=base, peak=peak, model=size)
 
 
 def run_child(args: list[str]) -> dict:
@@ -198,10 +220,31 @@ def bench_hyperbrdf(tmp: Path, materials: list[int], train_bins: int, shard_bins
               f"squares over {len(rows)} sizes); budgeted 26 bytes per material-bin")
 
 
+def bench_btf_load(tmp: Path, side: int):
+    """Peak growth of loading an SH model of a side x side crop (the paper's whole BTF: 400)."""
+    from neumat.btf import models
+    from neumat.btf.classical import SH
+    from neumat.btf.directions import to_cartesian, ubo2014_angles
+    d = to_cartesian(ubo2014_angles())
+    m = SH(side, side, d, d)
+    m.coef.normal_(generator=__import__("torch").Generator().manual_seed(0))
+    path = tmp / "sh.pt"
+    models.save(m, path)
+    del m
+    new, old = (run_child(["btf_load", str(path), plain]) for plain in (False, True))
+    print(f"btf_eval's model load: SH of a {side} x {side} crop ({new['model']:.0f} MB), "
+          "a fresh process each")
+    for name, r in (("models.load (meta device, assign)", new),
+                    ("built zero-filled, state copied in", old)):
+        print(f"  {name:36s} peak growth {r['peak'] - r['imports']:7.0f} MB = "
+              f"{(r['peak'] - r['imports']) / r['model']:.2f} x the model")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf"], choices=["fit", "hyperbrdf"])
+    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load"],
+                    choices=["fit", "hyperbrdf", "btf_load"])
     ap.add_argument("--materials", type=int, default=100, help="fit: materials in the shard")
     ap.add_argument("--kernel", default="auto", choices=["auto", "c", "torch"],
                     help="fit: the step on the CPU (fit.kernel; auto: the C kernel on x86)")
@@ -209,12 +252,15 @@ def main():
                     help="fit: stored bins per material, one shard per value")
     ap.add_argument("--hb-materials", type=int, nargs="+", default=[200, 400],
                     help="hyperbrdf: training materials, one run per value")
+    ap.add_argument("--btf-side", type=int, default=200,
+                    help="btf_load: the SH model's crop side (400: a whole UBO2014 BTF, 2.4 GB)")
     ap.add_argument("--hb-bins", type=int, default=32768, help="hyperbrdf: train_bins")
     ap.add_argument("--hb-shard-bins", type=int, default=65536, help="hyperbrdf: bins the shards store")
     a = ap.parse_args()
     if a.child:
         kind, *rest = json.loads(a.child)
-        out = child_fit(*rest) if kind == "fit" else child_hyperbrdf(*rest)
+        out = {"fit": child_fit, "hyperbrdf": child_hyperbrdf,
+               "btf_load": child_btf_load}[kind](*rest)
         print(json.dumps(out))
         return
     if a.hb_bins > a.hb_shard_bins:
@@ -226,6 +272,8 @@ def main():
     with tempfile.TemporaryDirectory(prefix="job_memory_") as d:
         if "fit" in a.jobs:
             bench_fit(Path(d), a.materials, a.fit_bins, a.kernel)
+        if "btf_load" in a.jobs:
+            bench_btf_load(Path(d), a.btf_side)
         if "hyperbrdf" in a.jobs:
             bench_hyperbrdf(Path(d), a.hb_materials, a.hb_bins, a.hb_shard_bins)
 

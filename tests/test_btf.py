@@ -338,8 +338,8 @@ def test_a_file_that_is_not_a_btf_model_names_the_file(tmp_path):
 
 def test_loading_a_model_builds_no_second_copy_of_its_tensors(tiny_btf, tmp_path, monkeypatch):
     """models.load builds the model on the meta device and hands it the file's tensors: peak
-    memory is one model, not two (an SH model of 622 MB: +625 MB, against +1248 MB when the
-    model was built zero-filled and the state copied in; /proc/self/status VmHWM, 2026-11-29)."""
+    memory is one model, not two (`python benchmarks/job_memory.py --jobs btf_load`: an SH model
+    of 622 MB, +625 MB against +1248 MB built zero-filled with the state copied in)."""
     m = SH.fit(tiny_btf)
     models.save(m, tmp_path / "sh.pt")
     built_on = []
