@@ -114,3 +114,15 @@ def test_vae_a_outputs_nbrdf_fields_and_learns(tmp_path):
     with pytest.raises(ValueError, match="not a VAE"):
         torch.save({"kind": "x"}, tmp_path / "b.pt")
         vae.load(tmp_path / "b.pt")
+
+
+def test_a_file_that_is_not_a_vae_baseline_names_the_file(tmp_path):
+    torch.save(torch.zeros(3), tmp_path / "bare.pt")
+    with pytest.raises(ValueError, match=r"bare\.pt: not a VAE baseline \(rule train_vae\): it lacks kind"):
+        vae.load(tmp_path / "bare.pt")
+    w = nbrdf.init_weights(8, torch.Generator().manual_seed(0)).numpy()
+    net, _ = vae.train_weight_vae(w, latent=4, hidden=16, steps=1, batch_size=8, lr=1e-3,
+                                  beta=1.0, seed=0)
+    vae.save(tmp_path / "m.pt", net, "vae_n", {"latent": 8, "hidden": 16})  # config != weights
+    with pytest.raises(ValueError, match=r"m\.pt: its state does not fit its config"):
+        vae.load(tmp_path / "m.pt")

@@ -40,6 +40,25 @@ def test_png_is_decoded_from_srgb(tmp_path):
     assert got[0, 0, 2] == 1
 
 
+def test_16_bit_grey_alpha_and_float_images(tmp_path):
+    """Pillow's convert("RGB") clipped 16-bit grey to 0..255 (mid-grey read as white), dropped
+    alpha (a cut-out's transparent pixels kept their stored colour) and clipped float TIFFs."""
+    Image.fromarray(np.array([[32768, 1000]], np.uint16)).save(tmp_path / "g16.png")
+    got = images.read_linear(tmp_path / "g16.png")
+    want = images.srgb_to_linear(np.array([32768, 1000]) / 65535)
+    np.testing.assert_allclose(got[0], np.repeat(want[:, None], 3, 1), rtol=1e-6)
+    rgba = np.array([[[200, 200, 200, 0], [188, 188, 188, 255], [188, 188, 188, 128]]], np.uint8)
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "cut.png")
+    got = images.read_linear(tmp_path / "cut.png")
+    np.testing.assert_allclose(got[0, :, 0], [0, 0.50289, 0.50289 * 128 / 255], atol=2e-5)
+    Image.fromarray(np.full((2, 2), 2.5, np.float32)).save(tmp_path / "f.tif")
+    with pytest.raises(ValueError, match=r"f\.tif: a floating-point \.tif image.*OpenEXR"):
+        images.read_linear(tmp_path / "f.tif")
+    ych = np.ones((3, 3), np.float32)
+    with pytest.raises(ValueError, match=r"yc\.exr: a luminance/chroma"):
+        images.read_exr(_exr(tmp_path / "yc.exr", {"Y": ych, "RY": ych, "BY": ych}))
+
+
 def test_check_images_names_the_key_the_file_and_the_fault(tmp_path):
     good = tmp_path / "good.png"
     Image.fromarray(np.full((4, 4, 3), 90, np.uint8)).save(good)

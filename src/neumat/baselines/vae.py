@@ -156,12 +156,18 @@ def save(path, model, kind: str, config: dict) -> None:
 
 
 def load(path) -> nn.Module:
-    ck = modelfile.load(path)
-    cls = {"vae_n": WeightVAE, "vae_a": SetVAE}.get(ck.get("kind"))
+    ck = modelfile.require(modelfile.load(path), ("kind", "config", "state"), path,
+                           "a VAE baseline (rule train_vae)")
+    cls = {"vae_n": WeightVAE, "vae_a": SetVAE}.get(ck["kind"])
     if cls is None:
-        raise ValueError(f"{path}: not a VAE baseline checkpoint (kind {ck.get('kind')!r})")
-    model = cls(**ck["config"])
-    model.load_state_dict(ck["state"])
+        raise ValueError(f"{path}: not a VAE baseline checkpoint (kind {ck['kind']!r})")
+    try:
+        model = cls(**ck["config"])
+        model.load_state_dict(ck["state"])
+    except (TypeError, RuntimeError) as e:  # another config's weights, or an older layout
+        first = str(e).strip().splitlines()[0]
+        raise ValueError(f"{path}: its state does not fit its config ({first}); rebuild it "
+                         f"with rule train_vae") from e
     return model.eval()
 
 

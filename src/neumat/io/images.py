@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-FORMATS = "PNG (or another format Pillow reads; sRGB) or OpenEXR (.exr; linear radiance)"
+FORMATS = ("PNG (8- or 16-bit, or another format Pillow reads as 8-bit colour; sRGB) or OpenEXR "
+           "(.exr; linear radiance)")
 
 
 def write_exr(path: str | os.PathLike, img: np.ndarray) -> None:
@@ -28,7 +29,8 @@ def write_exr(path: str | os.PathLike, img: np.ndarray) -> None:
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """(H, W, 3) float32 of an OpenEXR file's RGB layer; of RGBA without its alpha (renderers and
-    compositors often write one); a luminance-only (Y) file as grey."""
+    compositors often write one); a luminance-only (Y) file as grey. A luminance/chroma file
+    (Y, RY, BY) is refused: read as grey, its colour would be lost silently."""
     import OpenEXR
 
     with OpenEXR.File(str(path)) as f:
@@ -36,6 +38,9 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
         for name in ("RGB", "RGBA"):
             if name in layers:
                 return np.asarray(layers[name].pixels[..., :3], dtype=np.float32)
+        if "Y" in layers and ("RY" in layers or "BY" in layers):
+            raise ValueError(f"{path}: a luminance/chroma (Y, RY, BY) OpenEXR file; write it as "
+                             f"RGB (e.g. `exrmultipart` or any compositor) and give that")
         if "Y" in layers:
             return np.repeat(np.asarray(layers["Y"].pixels, dtype=np.float32)[..., None], 3, -1)
         names = ", ".join(sorted(layers)) or "none"  # inside: closing the file empties `layers`
@@ -48,16 +53,34 @@ def srgb_to_linear(srgb: np.ndarray) -> np.ndarray:
 
 
 def read_linear(path: str | os.PathLike) -> np.ndarray:
-    """(H, W, 3) float32 linear RGB: an .exr as stored, any other file decoded by Pillow as
-    8-bit sRGB."""
+    """(H, W, 3) float32 linear RGB: an .exr as stored; any other file decoded by Pillow as sRGB,
+    8-bit colour or 16-bit grey (Pillow's convert("RGB") clips 16-bit values to 0..255: mid-grey
+    read as white), with an alpha channel composited over black, the metric view's background
+    (dropped, a cut-out's transparent pixels kept whatever colour they were stored with).
+    Float images other than EXR (a float TIFF) are refused: their encoding is not known."""
     p = Path(path)
     if p.suffix.lower() == ".exr":
         return read_exr(p)
     from PIL import Image
 
     with Image.open(p) as im:
-        srgb = np.asarray(im.convert("RGB"), dtype=np.float64) / 255.0
-    return srgb_to_linear(srgb).astype(np.float32)
+        if im.mode.startswith("I"):  # 16- (I;16*) or 32-bit (I) integer grey
+            a = np.asarray(im, dtype=np.float64)
+            if a.min() < 0 or a.max() > 65535:
+                raise ValueError(f"{p}: a {im.mode} image with values outside 0..65535; give "
+                                 f"an 8- or 16-bit sRGB image or an OpenEXR file")
+            srgb, alpha = np.repeat(a[..., None] / 65535.0, 3, -1), None
+        elif im.mode == "F":
+            raise ValueError(f"{p}: a floating-point {p.suffix} image, whose encoding (linear "
+                             f"or sRGB) is unknown; give linear radiance as OpenEXR (.exr)")
+        else:
+            has_alpha = "A" in im.getbands() or "transparency" in im.info
+            rgba = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float64) / 255.0
+            srgb, alpha = rgba[..., :3], (rgba[..., 3:] if has_alpha else None)
+    lin = srgb_to_linear(srgb)
+    if alpha is not None:  # straight alpha: over black in linear light
+        lin = lin * alpha
+    return lin.astype(np.float32)
 
 
 def check_images(paths, key: str) -> None:
