@@ -53,6 +53,11 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
      "augmerl.figure_material / figure_pair ['nonexistent', 'other']: not materials of this run"),
     ({"fit": {"batch": 16000}}, "fit.batch 16000 exceeds the training bins of a fit: augmerl.bins 16384"),
     ({"fit": {"batch": 500, "kernel": "c"}}, "fit.batch 500 is not a multiple of 16"),
+    # constrained synthesis: medium-specular unreachable, its budget spent with no hint
+    ({"constrained": {"derive": {"specular_quantiles": [0.9, 0.1]}}},
+     "constrained.derive.specular_quantiles [0.9, 0.1]"),
+    ({"constrained": {"thresholds": {"high_peak": 10, "medium_peak": 100}}},
+     "constrained.thresholds.medium_peak 100.0 exceeds high_peak 10.0"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")

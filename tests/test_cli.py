@@ -249,6 +249,31 @@ def test_category_draws_as_the_runs_config(run, tmp_path, capsys):
     assert "no sample of category 'metallic' within --budget 3" in capsys.readouterr().err
 
 
+def test_category_keeps_the_runs_guide_none(run, tmp_path, capsys):
+    """A run with constrained.guide: none drew every category unguided; --category draws as it
+    did (no type or category guidance in the pilot) unless --type or --category-step asks."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    (rec / "constrained").mkdir(exist_ok=True)
+    constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
+                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
+                                                              index=False)
+    args = ["sample", "--run", rec, "--category", "metallic", "-n", 2, "--steps", 3, "--budget", 8,
+            "--batch", 4, "--bins", 16384, "--no-binary"]
+    capsys.readouterr()
+    main(*args, "--out", tmp_path / "a")  # guide auto (the default): category guidance piloted
+    assert "category guidance: eq. 10" in capsys.readouterr().err
+    (rec / "report").mkdir()
+    (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
+                                         "constrained:\n  guide: none\n```\n")
+    main(*args, "--out", tmp_path / "b")
+    err = capsys.readouterr().err
+    assert "pilot unconditional:" in err and "category guidance" not in err, err
+    main(*args, "--category-step", 5, "--out", tmp_path / "c")  # asked for: it pilots it
+    assert "category guidance: eq. 10, step 5" in capsys.readouterr().err
+
+
 def test_info_lists_models_and_missing_config(run, capsys):
     assert main("info", run) == 0
     o = capsys.readouterr().out
@@ -286,7 +311,9 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["sample", "--run", "{run}", "--guidance", "nan", "--out", "{tmp}/o"], "give a scale >= 0"),
     (["sample", "--run", "{run}", "--guidance", "inf", "--out", "{tmp}/o"], "give a scale >= 0"),
     (["sample", "--run", "{run}", "--category", "diffuse", "--bins", "100", "--out", "{tmp}/o"],
-     "--bins 100: give at least 16200"),
+     "--bins 100: give more than 16200"),
+    (["sample", "--run", "{run}", "--category", "diffuse", "--bins", "16200", "--out", "{tmp}/o"],
+     "--bins 16200: give more than 16200"),  # the peak bins alone: no rest to stand for the grid
     (["render", "{tmp}/missing.binary", "--out", "{tmp}/x.png"], "no such file"),
     (["render", "{tmp}/bad.binary", "--out", "{tmp}/x.png"], "MERL .binary has a 12-byte header"),
     (["render", "{tmp}/bad.npy", "--out", "{tmp}/x.png"], "expected NBRDF weights"),

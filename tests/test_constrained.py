@@ -100,6 +100,15 @@ def test_thresholds_tsv_round_trip_and_overrides(tmp_path):
         C.Thresholds.from_tsv(tmp_path / "r.tsv", {"bogus": 1})
 
 
+def test_statistics_need_bins_beyond_the_peak_ones():
+    """constrained.bins 16200 kept only the theta_h-bin-0 bins and stretched them over the
+    whole grid (a glossy GGX table came out metallic); refused, naming the key."""
+    w = np.stack([constant_field(0.1)])
+    with pytest.raises(ValueError, match=r"constrained.bins: 16200 bins hold no bin beyond"):
+        C.field_stats(w, bins=C.grid_bins(C.n_peak_bins(), 0))
+    assert len(C.field_stats(w, bins=C.grid_bins(C.n_peak_bins() + 1, 0))) == 1
+
+
 def test_derive_needs_two_types():
     st = C.field_stats(np.stack([constant_field(0.1)] * 3))
     with pytest.raises(ValueError, match="constrained.thresholds"):
@@ -134,6 +143,24 @@ def test_sample_category_guides_and_reports_budget():
     r = C.sample_category(FakeSampler(), "mirror", th, 5, 10, 4, 0, cfg, None, bins)
     row = C.acceptance_row(r, 5)
     assert r.drawn == 10 and len(r.weights) == 0 and not row["complete"] and row["acceptance"] == 0
+
+
+def test_each_kept_sample_records_the_mode_that_drew_it():
+    """Hits are kept in pilot order: here the unconditional pilot's two diffuse draws, then
+    type-guided ones. Each row names its own mode (every row had named the winning mode, so
+    samples.tsv called unconditional draws type-guided)."""
+    class Half(FakeSampler):
+        def sample(self, n, seed, types=None, *args, **kw):
+            if types:
+                return np.stack([constant_field(0.1)] * n)
+            return np.stack([constant_field(0.1 if i % 2 == 0 else 0.5) for i in range(n)])
+
+    th = C.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9, medium_peak=1e9)
+    cfg = {"guidance": 2.0, "steps": 5, "eta": 0.0, "batch_size": 8, "clip": None, "negative_step": 0.0}
+    r = C.sample_category(Half(), "diffuse", th, 5, 40, 4, 0, cfg, ["felt"], C.grid_bins(16384, 0),
+                          guidance_step=0)
+    assert r.pilot == {"unconditional": 0.5, "type: felt": 1.0} and r.guide == "type: felt"
+    assert r.stats["guide"].tolist() == ["unconditional"] * 2 + ["type: felt"] * 3
 
 
 def test_sample_category_with_category_guidance():

@@ -122,6 +122,9 @@ def _stratified_weights(bins: np.ndarray) -> np.ndarray:
     n_rest_full = int(valid.sum()) - n_peak
     is_peak = bins < merl.N_TD * merl.N_PD
     n_rest = int((~is_peak).sum())
+    if n_rest == 0 and n_rest_full:  # the peak bins alone would stand for the whole grid
+        raise ValueError(f"constrained.bins: {len(bins)} bins hold no bin beyond the "
+                         f"{n_peak} theta_h-bin-0 ones; give more than {n_peak}, or null (all)")
     w = np.ones(len(bins))
     if n_rest and n_rest < n_rest_full:
         w[~is_peak] = n_rest_full / n_rest
@@ -347,7 +350,7 @@ def category_types(types, categories) -> dict[str, list[str]]:
 class CategoryResult:
     category: str
     weights: np.ndarray  # (accepted, 675)
-    stats: pd.DataFrame  # statistics of the accepted samples
+    stats: pd.DataFrame  # statistics of the accepted samples, and the mode that drew each (guide)
     drawn: int
     guide: str  # the sampling mode drawn in after the pilot (`sampling_modes`)
     pilot: dict  # acceptance of each mode in the pilot batch
@@ -410,7 +413,7 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
         pilot[name] = float(ok.mean())
-        acc_w.append(w[ok]), acc_s.append(s[ok])
+        acc_w.append(w[ok]), acc_s.append(s[ok].assign(guide=name))  # each hit's own mode
         drawn += b
         if progress:
             progress(drawn, int(sum(map(len, acc_w))))
@@ -421,14 +424,15 @@ def sample_category(sampler, category: str, th: Thresholds, n: int, budget: int,
         w = _draw(sampler, b, seed_for(seed, chosen, i), modes[chosen], sample_cfg, activation)
         s = field_stats(w, activation=activation, bins=bins)
         ok = classify(s, th) == category
-        acc_w.append(w[ok]), acc_s.append(s[ok])
+        acc_w.append(w[ok]), acc_s.append(s[ok].assign(guide=chosen))
         drawn += b
         i += 1
         if progress:
             progress(drawn, int(sum(map(len, acc_w))))
     hits = int(sum(map(len, acc_w)))
     w = np.concatenate(acc_w)[:n] if acc_w else np.zeros((0, nbrdf.N_PARAMS), np.float32)
-    s = pd.concat(acc_s, ignore_index=True).iloc[:n] if acc_s else pd.DataFrame(columns=["name", *STAT_COLUMNS])
+    s = (pd.concat(acc_s, ignore_index=True).iloc[:n] if acc_s
+         else pd.DataFrame(columns=["name", *STAT_COLUMNS, "guide"]))
     return CategoryResult(category, w.astype(np.float32), s, drawn, chosen, pilot, hits)
 
 

@@ -342,6 +342,17 @@ def check_cross_keys():
     if f["kernel"] == "c" and f["batch"] % 16:  # fit_kernel.VECTOR
         errors.append(f"fit.batch {f['batch']} is not a multiple of 16, which fit.kernel: c "
                       f"needs (auto falls back to torch)")
+    # constrained synthesis: medium-specular is medium_peak <= peak < high_peak, so an
+    # inverted pair makes that category unreachable and spends its whole budget
+    c = config["constrained"]
+    lo, hi = c["derive"]["specular_quantiles"]
+    if lo > hi:
+        errors.append(f"constrained.derive.specular_quantiles [{lo}, {hi}]: the first is "
+                      f"medium_peak's quantile, the second high_peak's; give them ascending")
+    t = c["thresholds"]
+    if t["medium_peak"] is not None and t["high_peak"] is not None and t["medium_peak"] > t["high_peak"]:
+        errors.append(f"constrained.thresholds.medium_peak {t['medium_peak']} exceeds high_peak "
+                      f"{t['high_peak']}: no material could be medium-specular")
     if errors:
         raise ValueError("bad config: " + "; ".join(errors))
 

@@ -428,12 +428,13 @@ def _draw_category(args, run: Run, sampler, cfg):
     # the config's thresholds win, as in the workflow (runs whose rules.tsv predates
     # constrained_rules writing the values in use hold only derived ones)
     th = constrained.Thresholds.from_tsv(rules, run.setting("constrained", "thresholds"))
+    auto = run.setting("constrained", "guide") == "auto"  # none: the run drew unguided
     if args.type:
         guide = [args.type]
     else:  # the types whose source materials fall into the category, when classified
         classes = run.path / "constrained" / "classes.tsv"
         guide = []
-        if classes.exists():
+        if classes.exists() and auto:
             c = pd.read_csv(classes, sep="\t", keep_default_na=False)
             c = c[c["set"] == "source"]
             trained = _trained_types(run)
@@ -445,8 +446,8 @@ def _draw_category(args, run: Run, sampler, cfg):
             bar.n = drawn
             bar.set_postfix(accepted=hits)
             bar.refresh()
-        step = (float(run.setting("constrained", "guidance_step")) if args.category_step is None
-                else args.category_step)
+        step = (args.category_step if args.category_step is not None else
+                float(run.setting("constrained", "guidance_step")) if auto else 0.0)
         r = constrained.sample_category(sampler, args.category, th, args.n, args.budget, args.batch,
                                         args.seed, cfg, guide, bins, args.activation, progress,
                                         guidance_step=step, pilot_every_mode=False)
@@ -454,7 +455,8 @@ def _draw_category(args, run: Run, sampler, cfg):
     also = f"; every draw also conditioned on {', '.join(sampler.fixed)}" if isinstance(sampler, Composed) else ""
     print(f"{args.category}: {row['hits']} of {row['drawn']} draws accepted "
           f"(acceptance {row['acceptance']:.3f}; {row['guide']}; pilot {row['pilot']}{also})", file=sys.stderr)
-    table = r.stats.drop(columns="name").assign(category=args.category, guide=r.guide)
+    table = r.stats.drop(columns="name").assign(category=args.category)
+    table = table.assign(guide=table.pop("guide"))  # each sample's own mode, last as before
     table.insert(0, "sample", np.arange(len(table)))
     return r.weights, table
 
@@ -530,10 +532,11 @@ def _settings(args, run: Run) -> None:
         args.budget = int(run.setting("constrained", "budget")) if args.budget is None else args.budget
         bins = run.setting("constrained", "bins") if args.bins is None else args.bins
         args.bins = None if bins in (None, "all") else int(bins)  # None: every valid bin
-        if args.bins is not None and args.bins < n_peak_bins():
-            raise CLIError(f"--bins {args.bins}: give at least {n_peak_bins()} (every "
-                           f"theta_h-bin-0 bin, where highlights peak, plus some of the rest; the "
-                           f"schema's minimum of constrained.bins), or all")
+        if args.bins is not None and args.bins <= n_peak_bins():
+            raise CLIError(f"--bins {args.bins}: give more than {n_peak_bins()} (every "
+                           f"theta_h-bin-0 bin, where highlights peak, plus some of the rest, "
+                           f"which stands for the other bins; the schema's minimum of "
+                           f"constrained.bins is {n_peak_bins() + 1}), or all")
     # DDIM's eta and the x0 clip of the run (diffusion.sample), as its workflow sampled
     args.eta = float(run.setting("diffusion", "sample", "eta"))
     clip = run.setting("diffusion", "sample", "clip")
