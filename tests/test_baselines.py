@@ -47,9 +47,11 @@ def test_pca_n_shapes_determinism_and_round_trip():
     s = f.sample(7, seed=1)
     assert s.shape == (7, nbrdf.N_PARAMS) and s.dtype == np.float32
     np.testing.assert_array_equal(s, f.sample(7, seed=1))
-    # the Gaussian matches the training moments
-    big = pca.WeightPCA(8).fit(w).sample(4000, seed=2)
+    # the Gaussian matches the training moments: the mean, and the spread along each component
+    f8 = pca.WeightPCA(8).fit(w)
+    big = f8.sample(4000, seed=2)
     assert np.abs(big.mean(0) - w.mean(0)).max() < 0.05
+    np.testing.assert_allclose(f8.pca.encode(big).std(0), f8.pca.encode(w).std(0, ddof=1), rtol=0.1)
 
 
 def test_pca_keeps_to_the_rank_of_its_data():

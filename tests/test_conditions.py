@@ -358,6 +358,9 @@ def test_render_psnr_is_image_scores_psnr():
     # w[1] is its own target: the MSE floor's PSNR; the others differ
     assert got[1] == pytest.approx(-10 * np.log10(distances.PSNR_FLOOR_MSE))
     assert (got[[0, 2]] < got[1]).all()
+    # a known answer: sRGB images 0.1 apart everywhere, MSE 0.01, 20 dB
+    a = torch.zeros(2, 3, 4, 4)
+    np.testing.assert_allclose(ev._psnr(a, a + 0.1), [20.0, 20.0], rtol=1e-6)
 
 
 def test_same_source_links_originals_permutations_and_mixtures():

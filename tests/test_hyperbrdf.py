@@ -244,6 +244,11 @@ def test_delta_e_psnr_ssim_known_answers():
     mask = np.ones((16, 16), bool)
     assert rec.delta_e(img, img, mask) == 0.0
     assert rec.ssim(img, img) == pytest.approx(1.0)
+    # flat images: only the luminance term, (2 mu_a mu_b + C1) / (mu_a^2 + mu_b^2 + C1) with
+    # C1 = (0.01 data range)^2, data range 1 (255 would give 0.9986)
+    flat_a, flat_b = np.full((16, 16, 3), 0.5), np.full((16, 16, 3), 0.6)
+    assert rec.ssim(flat_a, flat_b) == pytest.approx((0.6 + 1e-4) / (0.61 + 1e-4), rel=1e-9)
+    assert rec.psnr(flat_a, flat_b) == pytest.approx(20.0)
     assert rec.psnr(img, img) == 100.0
     # sRGB white vs black: L* 100 vs 0, and CIEDE2000 of a pure lightness difference of 100
     # with mean L' = 50 is 100 / S_L, S_L = 1 (the weighting is centred at L' = 50)
