@@ -210,13 +210,7 @@ def test_category_takes_the_runs_threshold_overrides(run, tmp_path):
     """--category judges draws by the thresholds the workflow uses: rules.tsv, then the run's
     constrained.thresholds (here e = 2e6: every draw that is not metallic is diffuse, where
     rules.tsv's e = 0 makes none diffuse)."""
-    import shutil
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "constrained").mkdir(exist_ok=True)
-    constrained.Thresholds(e=0, mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
-                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
-                                                              index=False)
+    rec = _copy_with_rules(run, tmp_path, e=0)
     args = ["sample", "--run", rec, "--category", "diffuse", "-n", 2, "--steps", 3, "--budget", 4,
             "--batch", 4, "--bins", 16384, "--no-binary"]
     assert main(*args, "--out", tmp_path / "a") == cli.EXIT_BUDGET
@@ -229,16 +223,24 @@ def test_category_takes_the_runs_threshold_overrides(run, tmp_path):
     assert len(w) == 2 and (st["n_above"] < 2e6).all()
 
 
-def test_category_draws_as_the_runs_config(run, tmp_path, capsys):
-    """Without --budget, --batch and --bins, --category draws as the run's workflow does: its
-    constrained.budget, batch and bins (here 3, 3 and 16384), not fixed numbers."""
+def _copy_with_rules(run, tmp_path, **thresholds):
+    """A copy of the run with constrained/rules.tsv whose specular, plastic and mirror rules
+    no draw meets (so draws are diffuse or metallic), `thresholds` overriding."""
     import shutil
     rec = tmp_path / "rec"
     shutil.copytree(run, rec)
     (rec / "constrained").mkdir(exist_ok=True)
-    constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
-                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
-                                                              index=False)
+    th = dict(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
+              medium_peak=1e9, **thresholds)
+    constrained.Thresholds(**th).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
+                                                    index=False)
+    return rec
+
+
+def test_category_draws_as_the_runs_config(run, tmp_path, capsys):
+    """Without --budget, --batch and --bins, --category draws as the run's workflow does: its
+    constrained.budget, batch and bins (here 3, 3 and 16384), not fixed numbers."""
+    rec = _copy_with_rules(run, tmp_path)
     (rec / "report").mkdir()
     (rec / "report/index.md").write_text("## Configuration of this run\n\n```yaml\n"
                                          "constrained:\n  budget: 3\n  batch: 3\n  bins: 16384\n```\n")
@@ -252,13 +254,7 @@ def test_category_draws_as_the_runs_config(run, tmp_path, capsys):
 def test_category_keeps_the_runs_guide_none(run, tmp_path, capsys):
     """A run with constrained.guide: none drew every category unguided; --category draws as it
     did (no type or category guidance in the pilot) unless --type or --category-step asks."""
-    import shutil
-    rec = tmp_path / "rec"
-    shutil.copytree(run, rec)
-    (rec / "constrained").mkdir(exist_ok=True)
-    constrained.Thresholds(mirror_peak=1e9, mirror_body=1e9, plastic_sharpness=1e9, high_peak=1e9,
-                           medium_peak=1e9).to_frame().to_csv(rec / "constrained/rules.tsv", sep="\t",
-                                                              index=False)
+    rec = _copy_with_rules(run, tmp_path)
     args = ["sample", "--run", rec, "--category", "metallic", "-n", 2, "--steps", 3, "--budget", 8,
             "--batch", 4, "--bins", 16384, "--no-binary"]
     capsys.readouterr()
