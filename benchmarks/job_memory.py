@@ -222,12 +222,13 @@ def bench_hyperbrdf(tmp: Path, materials: list[int], train_bins: int, shard_bins
 
 def bench_btf_load(tmp: Path, side: int):
     """Peak growth of loading an SH model of a side x side crop (the paper's whole BTF: 400)."""
+    import torch
     from neumat.btf import models
     from neumat.btf.classical import SH
     from neumat.btf.directions import to_cartesian, ubo2014_angles
     d = to_cartesian(ubo2014_angles())
     m = SH(side, side, d, d)
-    m.coef.normal_(generator=__import__("torch").Generator().manual_seed(0))
+    m.coef.normal_(generator=torch.Generator().manual_seed(0))
     path = tmp / "sh.pt"
     models.save(m, path)
     del m

@@ -21,8 +21,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -30,12 +28,11 @@ import pandas as pd
 
 from neumat.data.catalog import drop_colours
 from neumat.io import merl
+from neumat.io.atomic import NPZ_ERRORS
 from neumat.linalg import one_blas_thread
 from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
-# what np.load and reading its members raise on a damaged, truncated or foreign file
-NPZ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
 
 PERMS = ["".join(p) for p in itertools.permutations("rgb")]  # "rgb" (identity) first
 MANIFEST_COLUMNS = ["id", "name", "operation", "sources", "weight", "permutation", "type",

@@ -37,8 +37,6 @@ import json
 import logging
 import math
 import time
-import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +44,7 @@ import torch
 
 from neumat import fit_kernel, nbrdf
 from neumat.io import merl
+from neumat.io.atomic import NPZ_ERRORS
 from neumat.io.atomic import save_npz as _save_npz  # module attribute: tests patch it
 
 log = logging.getLogger(__name__)
@@ -441,7 +440,6 @@ def fit(values, bins, ids, init, settings: FitSettings, seed: int, device="cpu",
 # run finishes the running group at its size, then takes groups of the new size). Both are
 # speed keys (config/speed_keys.yaml).
 RESUMABLE_ACROSS = ("checkpoint_every", "materials_per_batch")
-CHECKPOINT_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
 def fingerprint(settings: FitSettings, seed: int, ids, init, kernel: str, bins, values) -> str:
@@ -474,7 +472,7 @@ def _resume_state(ck: Path, fp: str, keys) -> tuple[dict, dict | None, float] | 
             done = {k: list(z[k]) for k in keys}
             running = {k[4:]: z[k] for k in z.files if k.startswith("run_")} or None
             return done, running, float(z["seconds"])
-    except CHECKPOINT_ERRORS as e:
+    except NPZ_ERRORS as e:
         log.warning("%s: unreadable fit checkpoint (%s: %s); starting over (the file is "
                     "overwritten at the next checkpoint)", ck, type(e).__name__, e)
         return None

@@ -3,14 +3,13 @@ here, and merged into one weight matrix in manifest order."""
 
 from __future__ import annotations
 
-import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from neumat import nbrdf
-from neumat.io.atomic import save_npz
+from neumat.io.atomic import NPZ_ERRORS, save_npz
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -26,7 +25,7 @@ def load_fits(path: str | Path) -> dict[str, np.ndarray]:
     try:
         with np.load(path) as z:
             d = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+    except NPZ_ERRORS as e:
         raise ValueError(f"{path}: not a readable fit result ({type(e).__name__}: {e}); delete "
                          f"it and rebuild it with rule fit_shard") from e
     missing = {"ids", "weights", "train_loss", "val_loss"} - set(d)

@@ -2,9 +2,15 @@
 leaves a truncated output or checkpoint behind."""
 
 import os
+import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
+
+# what np.load, and reading its members, raise on a damaged, truncated or foreign .npz (a
+# killed writer's file, a disk error): callers turn it into an error naming the file and rule
+NPZ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error)
 
 
 def save_npz(path: str | Path, **arrays) -> None:
