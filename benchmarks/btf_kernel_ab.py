@@ -1,8 +1,8 @@
 """Builds of the fused BTF query kernel (`neumat/btf/query_kernel.c`) against each other, in
 alternating rounds: the working tree's kernel and the kernel at each git revision (or C file)
 given, each timed on the plain query and with HPB / hex-tiling inside it, on one 1920 x 1080
-frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area:
-`btf_synthesis.frame`). Per build: ms per frame (CPU time of this process, best of --repeat),
+frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area, or with
+--coherent a x15 plane in pixel order, as a render queries it: `btf_synthesis.frame`). Per build: ms per frame (CPU time of this process, best of --repeat),
 each method's overhead over the same build's plain query, the plain query's fraction of this
 machine's FLOP bound (`btf_query.flops_per_query` over an fp32 torch.mm rate on the same
 threads), and whether its outputs on 4096 queries (log(1 + RGB), before the clamp at 0) equal the first
@@ -14,11 +14,17 @@ hits one round of every build rather than every round of one.
 
     OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py --rev HEAD~1 [--march x86-64-v3]
                                                         [--methods hpb hextile] [--repeat 9]
+                                                        [--coherent] [--tap-prefetch both]
+
+--tap-prefetch both times every build twice, with HPB's and hex-tiling's tap prefetch on and
+off (NEUMAT_TAP_PREFETCH, `neumat.btf.query.tap_prefetch`); the default, auto, leaves it to
+this machine's choice.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import tempfile
@@ -75,6 +81,10 @@ def main():
     ap.add_argument("--methods", nargs="+", default=["hpb", "hextile"], choices=["hpb", "hextile"])
     ap.add_argument("--march", default="native", help="-march of every build (x86-64-v3: AVX2)")
     ap.add_argument("--repeat", type=int, default=9, help="alternating rounds (best kept)")
+    ap.add_argument("--tap-prefetch", choices=["auto", "both"], default="auto",
+                    help="both: time each build with the synthesis kernels' tap prefetch on and off")
+    ap.add_argument("--coherent", action="store_true",
+                    help="u of a x15 plane in pixel order (a rendered frame), not uniform random u")
     a = ap.parse_args()
     if a.repeat < 1:
         ap.error("--repeat must be at least 1")
@@ -82,12 +92,19 @@ def main():
     tmp = Path(tempfile.mkdtemp(prefix="btf_kernel_ab_"))
     sources = {"working tree": Path(__file__).resolve().parents[1] / KERNEL}
     sources.update({r: kernel_source(r, tmp) for r in a.rev})
-    libs = {name: build(src, a.march) for name, src in sources.items()}
+    built = {name: build(src, a.march) for name, src in sources.items()}
+    # label -> (library, NEUMAT_TAP_PREFETCH or None for this machine's choice)
+    if a.tap_prefetch == "both":
+        libs = {f"{name}, pf {'on' if pf == '1' else 'off'}": (lib, pf)
+                for name, lib in built.items() for pf in ("1", "0")}
+    else:
+        libs = {name: (lib, None) for name, lib in built.items()}
+    env0 = os.environ.get("NEUMAT_TAP_PREFETCH")
 
     torch.manual_seed(0)  # the random model
     m = models.TriplePlane(400, 400).eval()
     m.requires_grad_(False)
-    u, u32, w = frame()
+    u, u32, w = frame(a.coherent)
     synth = {me: syn.build(m, me, 1, {}) for me in a.methods}
     kinds = ["plain", *a.methods]
 
@@ -97,7 +114,10 @@ def main():
         return query.query(m, u[s], w[s], w[s], features_u=synth[kind], raw=raw, march=a.march)
 
     def use(name):  # query.query looks its library up through _library
-        query._library = lambda march="native", lib=libs[name]: lib
+        lib, pf = libs[name]
+        query._library = lambda march="native", lib=lib: lib
+        if pf is not None:
+            os.environ["NEUMAT_TAP_PREFETCH"] = pf
 
     saved = query._library
     outs, best = {}, {}
@@ -118,26 +138,31 @@ def main():
                         best[name, k] = min(best.get((name, k), float("inf")), dt)
     finally:
         query._library = saved
+        if env0 is None:
+            os.environ.pop("NEUMAT_TAP_PREFETCH", None)
+        else:
+            os.environ["NEUMAT_TAP_PREFETCH"] = env0
 
     _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
     bound = FRAME * flops_per_query(m) / peak_cpu  # CPU-s per frame at the FLOP bound
     first = next(iter(libs))
     print(f"machine: {machine.describe(a.march)}; torch threads {torch.get_num_threads()}; "
-          f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} CPU-ms/frame")
-    print(f"{'build':24s} {'plain CPU-ms':>12s} {'of bound':>8s}  "
+          f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} CPU-ms/frame; "
+          f"u {'coherent (a x15 plane in pixel order)' if a.coherent else 'uniform random'}")
+    print(f"{'build':28s} {'plain CPU-ms':>12s} {'of bound':>8s}  "
           + "  ".join(f"{k + ' CPU-ms (overhead)':>26s}" for k in a.methods) + "  outputs")
     for name in libs:
         p = best[name, "plain"]
         same = all(torch.equal(outs[name][k], outs[first][k]) for k in kinds)
         cells = "  ".join(f"{best[name, k] * 1e3:12.1f} ({(best[name, k] / p - 1) * 100:+6.1f} %)     "
                           for k in a.methods)
-        print(f"{name:24s} {p * 1e3:12.1f} {bound / p:8.3f}  {cells}  "
+        print(f"{name:28s} {p * 1e3:12.1f} {bound / p:8.3f}  {cells}  "
               f"{'same' if same else 'DIFFER'} as {first}")
     for k in a.methods:
         ref = [n for n in libs if n != first]
         for n in ref:
             d = best[first, k] - best[n, k]
-            print(f"{k}: working tree against {n}: {d * 1e3:+.1f} CPU-ms a frame "
+            print(f"{k}: {first} against {n}: {d * 1e3:+.1f} CPU-ms a frame "
                   f"({(best[first, k] / best[n, k] - 1) * 100:+.1f} %)")
 
 

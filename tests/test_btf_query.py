@@ -151,6 +151,34 @@ def test_fused_synthesis_query_is_a_pure_function_of_u_and_seed(method, seed):
     assert not torch.allclose(a, query.query(m, u, wi, wo, features_u=synthesis.build(m, method, 10)))
 
 
+@pytest.mark.parametrize("method", FUSED_METHODS)
+def test_tap_prefetch_changes_no_output(method, monkeypatch):
+    """The synthesis kernels' tap prefetch (on except on Intel) is a hint: the queries equal
+    each other to the bit with it on and off, at u around 0 and +-1e5."""
+    from neumat.btf import synthesis
+    m, (u, wi, wo) = model(), hpb_queries(3000, 12)
+    s = synthesis.build(m, method, 4)
+    out = {}
+    for pf in ("0", "1"):
+        monkeypatch.setenv("NEUMAT_TAP_PREFETCH", pf)
+        assert query.tap_prefetch() is (pf == "1")
+        out[pf] = query.query(m, u, wi, wo, features_u=s, raw=True)
+    assert torch.equal(out["0"], out["1"])
+
+
+def test_tap_prefetch_follows_the_vendor_and_the_override(monkeypatch):
+    from neumat import machine
+    monkeypatch.delenv("NEUMAT_TAP_PREFETCH", raising=False)
+    for vendor, want in (("GenuineIntel", False), ("AuthenticAMD", True), ("", True)):
+        monkeypatch.setattr(machine, "cpu_vendor", lambda v=vendor: v)
+        assert query.tap_prefetch() is want
+    monkeypatch.setenv("NEUMAT_TAP_PREFETCH", "1")
+    assert query.tap_prefetch() is True
+    monkeypatch.setenv("NEUMAT_TAP_PREFETCH", "yes")
+    with pytest.raises(ValueError, match="NEUMAT_TAP_PREFETCH must be 0 or 1, got 'yes'"):
+        query.tap_prefetch()
+
+
 def test_synthesized_queries_use_the_fused_path(monkeypatch):
     """Synthesized(model, synth)(u, wi, wo) runs the kernel on the CPU and equals its torch
     path, for HPB and hex-tiling (both synthesised inside the kernel)."""

@@ -38,6 +38,19 @@ def cpu_flags() -> frozenset[str]:
     return frozenset()
 
 
+@cache
+def cpu_vendor() -> str:
+    """The CPU's vendor id (/proc/cpuinfo's vendor_id, e.g. "GenuineIntel", "AuthenticAMD"),
+    or "" where it does not say."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("vendor_id"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
 def _isa_name(has) -> str:
     """The widest float vector ISA among the names `has` accepts."""
     for name, keys in (("AVX-512", ("avx512f", "__AVX512F__")), ("AVX2", ("avx2", "__AVX2__")),

@@ -29,6 +29,7 @@ neumat.cbuild).
 from __future__ import annotations
 
 import ctypes
+import os
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
@@ -36,7 +37,7 @@ from typing import Callable
 
 import torch
 
-from neumat import cbuild
+from neumat import cbuild, machine
 from neumat.btf.fold import check_lut, fold_pca
 from neumat.btf import query_triton
 
@@ -59,11 +60,11 @@ def _library(march: str = "native"):
     lib.btf_triple_plane.restype = None
     u32 = ctypes.c_uint32
     lib.btf_triple_plane_hpb.argtypes = [l, p, p, p, p, i, i, i, p, i, u32, p, p, i, i, i, p, p,
-                                         p, i]
+                                         p, i, i]
     lib.btf_triple_plane_hpb.restype = None
     d, f = ctypes.c_double, ctypes.c_float
     lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
-                                         p, p, p, i]
+                                         p, p, p, i, i]
     lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
     lib.hpb_features.restype = None
@@ -114,6 +115,25 @@ def hex_planes(hexs) -> torch.Tensor:
     plane = torch.cat([p[..., :-1].to(torch.float16).view(torch.int16), lum], -1).contiguous()
     hexs._kernel_planes = (pl, plane)
     return plane
+
+
+def tap_prefetch() -> bool:
+    """Whether the HPB and hex-tiling queries prefetch a tile's taps two tiles ahead (struct
+    hpb's `prefetch` in query_kernel.c; the plain query always prefetches its f_U taps, which
+    pays on both vendors). Outputs are the same either way. On Intel CPUs they do not: the
+    prefetch bursts (768 lines a tile for hex-tiling) cost more than they hide. Without them,
+    per 1920 x 1080 frame, HPB took 7.0 CPU-ms less (AVX-512 build) and 10.4 less (AVX2
+    build), hex-tiling 6.6 and 10.9 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py
+    --rev HEAD --tap-prefetch both`, and with `--march x86-64-v3`; Intel Xeon AVX-512, idle,
+    2026-11-29; README, "BTF synthesis on the positional plane"). Elsewhere they do:
+    the kernel was designed with them on an AMD EPYC, where going without has not been
+    measured. NEUMAT_TAP_PREFETCH=0 or 1 overrides the choice (read on every query)."""
+    env = os.environ.get("NEUMAT_TAP_PREFETCH")
+    if env is not None:
+        if env not in ("0", "1"):
+            raise ValueError(f"NEUMAT_TAP_PREFETCH must be 0 or 1, got {env!r}")
+        return env == "1"
+    return machine.cpu_vendor() != "GenuineIntel"
 
 
 def available(march: str = "native") -> bool:
@@ -208,6 +228,7 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
                              f"the model {cu}")
         plane = hex_planes(hpb)
         H, W = hpb.plane_lum.shape[:2]
+        pf = int(tap_prefetch())
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hex(
@@ -216,12 +237,13 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
                 float(st["rotation"]), float(st["contrast"]),
                 float(st["exponent"]), float(st["gain"]), fh.data_ptr(), fd.data_ptr(),
                 fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),
-                out_ptr, int(raw))
+                out_ptr, int(raw), pf)
     else:
         u = u.detach().double().contiguous()
         weights[:2] = fold_pca(weights[0], weights[1], cu, hpb.mean, hpb.basis)
         gauss, lut = hpb_plane(hpb), lut_pairs(hpb.lut)
         H, W = hpb.gauss.shape[:2]
+        pf = int(tap_prefetch())
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hpb(
@@ -229,7 +251,7 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
                 wo.data_ptr() + 3 * f4 * a, gauss.data_ptr(), H, W, cu, lut.data_ptr(),
                 lut.shape[1], hpb.seed & 0xFFFFFFFF, fh.data_ptr(), fd.data_ptr(), fh.shape[0],
                 fh.shape[2], len(lin), dims.data_ptr(),
-                params.data_ptr(), out_ptr, int(raw))
+                params.data_ptr(), out_ptr, int(raw), pf)
     params = torch.cat([t.reshape(-1) for t in weights]).float()
     out = torch.empty(N, 3)
     threads = max(1, min(threads or torch.get_num_threads(), N // 4096 + 1))

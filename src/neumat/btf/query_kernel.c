@@ -214,6 +214,8 @@ struct hpb {
     int L;
     uint32_t seed;
     int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
+    int prefetch;           /* grid_prepare prefetches the tile's taps (neumat.btf.query.
+                               tap_prefetch says where that pays) */
     float rotation, contrast, exponent, gain;  /* the angle is formed in float (sincos_polyf) */
     const float *planar;    /* HPB, L = LUT_REG: (C, 2, L) values then slopes, for the register
                                lookup (hpb_fill_c); else NULL */
@@ -314,7 +316,8 @@ static inline __attribute__((always_inline)) IEEE void sincos_polyf(float a, flo
 }
 
 /* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
- * compiler vectorises), then the texels prefetched while the previous tile runs its MLP.
+ * compiler vectorises), then, where s->prefetch, the texels prefetched while the previous tile
+ * runs its MLP.
  * `hex` is a constant after inlining (hpb_prepare, hex_prepare): a run-time branch in the
  * vertex loop kept GCC from vectorising it and doubled HPB's cost. */
 static inline __attribute__((always_inline)) IEEE void
@@ -431,6 +434,8 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         p->inv[q] = (float)(1 / sqrt((double)ww));
         p->bias[q] = 0.5f - 0.5f * ((p->w[0][q] + p->w[1][q]) + p->w[2][q]) * p->inv[q];
     }
+    if (!s->prefetch)
+        return;
     if (!hex) {  /* a 2 x 2 footprint: two rows of 2C floats, each in one or two lines, so
                     both ends of each row (a scratch build prefetching only each row's first
                     line was clearly slower; figures in issue #18's note) */
@@ -994,10 +999,11 @@ void btf_triple_plane(long N, const float *u, const float *wi, const float *wo,
 void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float *wo,
                           const uint16_t *gauss, int H, int W, int Cu, const float *lut, int Lut,
                           uint32_t seed, const float *fh, const float *fd, int R, int C, int L,
-                          const int *dims, const float *params, float *out, int raw)
+                          const int *dims, const float *params, float *out, int raw, int prefetch)
 {
     struct hpb s = {u, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
+    s.prefetch = prefetch;
     float planar[Lut == LUT_REG && Cu <= MAXW ? 2 * Cu * LUT_REG : 1];
     s.planar = lut_planar(&s, Cu, planar);
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
@@ -1011,11 +1017,11 @@ void btf_triple_plane_hex(long N, const double *u, const float *wi, const float 
                           uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
-                          const int *dims, const float *params, float *out, int raw)
+                          const int *dims, const float *params, float *out, int raw, int prefetch)
 {
-    struct hpb s = {u, H, W, NULL, 0, seed, 1, (float)rotation, contrast, exponent,
-                    gain};
+    struct hpb s = {u, H, W, NULL, 0, seed, 1, 0, (float)rotation, contrast, exponent, gain};
     s.gauss16 = plane;
+    s.prefetch = prefetch;
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
@@ -1027,6 +1033,7 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
 {
     struct hpb s = {u, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
+    s.prefetch = 1;  /* as before the flag existed (not measured without) */
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);
     struct hpb_taps p;
