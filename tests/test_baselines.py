@@ -128,3 +128,58 @@ def test_a_file_that_is_not_a_vae_baseline_names_the_file(tmp_path):
     vae.save(tmp_path / "m.pt", net, "vae_n", {"latent": 8, "hidden": 16})  # config != weights
     with pytest.raises(ValueError, match=r"m\.pt: its state does not fit its config"):
         vae.load(tmp_path / "m.pt")
+
+
+RUN_SCRIPT = """
+import runpy, sys, json
+from types import SimpleNamespace as NS
+a = json.loads(sys.argv[1])
+smk = NS(params=NS(**a["params"]), wildcards=NS(model=a["model"]), input=NS(**a["input"]),
+         output=NS(**a["output"]), log=[a["log"]], threads=1, rule=a["rule"])
+runpy.run_path(a["script"], init_globals={"snakemake": smk}, run_name="__main__")
+"""
+
+
+@pytest.mark.parametrize("rule, model", [("baseline_pca", "pca_n"), ("train_vae", "vae_n")])
+def test_weight_baselines_check_the_weights_against_the_manifest(tmp_path, rule, model):
+    """PCA-N and VAE-N, as their rules run them: weights of as many rows as the manifest train
+    and sample; one row short is refused, naming the manifest and both counts (before, PCA-N
+    indexed past the end or took other materials' rows)."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import pandas as pd
+    root = Path(__file__).resolve().parents[1]
+    w = nbrdf.init_weights(8, torch.Generator().manual_seed(0)).numpy()
+    pd.DataFrame({"id": range(8), "name": [f"m{i}" for i in range(8)], "operation": "original",
+                  "type": "", "split": ["train"] * 6 + ["test"] * 2}).to_csv(
+        tmp_path / "manifest.tsv", sep="\t", index=False)
+    if model == "pca_n":
+        params, output = dict(components=3, seeds=[1, 2]), dict(
+            samples=str(tmp_path / "weights_out.npy"), info=str(tmp_path / "info.tsv"))
+    else:
+        params = dict(cfg=dict(latent=4, hidden=16, steps=3, batch_size=4, lr=1e-3, beta=1e-3), seed=3)
+        output = dict(model=str(tmp_path / "vae.pt"), history=str(tmp_path / "history.tsv"))
+
+    def run(weights):
+        np.save(tmp_path / "weights.npy", weights)
+        args = dict(params=params, model=model, rule=rule, log=str(tmp_path / "job.log"),
+                    script=str(root / f"workflow/scripts/{rule}.py"), output=output,
+                    input=dict(manifest=str(tmp_path / "manifest.tsv"),
+                               weights=str(tmp_path / "weights.npy")))
+        return subprocess.run([sys.executable, "-c", RUN_SCRIPT, json.dumps(args)],
+                              capture_output=True, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"})
+
+    ok = run(w)
+    assert ok.returncode == 0, ok.stderr[-3000:]
+    if model == "pca_n":
+        assert np.load(tmp_path / "weights_out.npy").shape == (2 * 2, nbrdf.N_PARAMS)
+    else:
+        assert (tmp_path / "vae.pt").is_file()
+    bad = run(w[:7])
+    assert bad.returncode != 0
+    assert "manifest.tsv: 8 rows but the NeuMERL weights have 7" in bad.stderr

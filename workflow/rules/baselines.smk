@@ -12,7 +12,6 @@ BASE = config["baselines"]
 rule baseline_pca:
     input:
         manifest=out("neumerl/manifest.tsv"),
-        weights=out("neumerl/weights.npy"),
         recipe=out("augmerl/recipe.npz"),
         log_tables=out("augmerl/log_tables.npy"),
         log_index=out("augmerl/log_tables_index.npz"),

@@ -14,11 +14,11 @@ from neumat.metrics import distances, materials
 
 with script_logging(snakemake) as log:
     p, inp, out, model = snakemake.params, snakemake.input, snakemake.output, snakemake.wildcards.model
-    man = dataset.read_manifest(inp.manifest)
+    weights = np.load(inp.weights) if model == "pca_n" else None
+    man = dataset.read_manifest(inp.manifest, None if weights is None else len(weights))
     train, n_ref = dataset.training_rows(man, "ours"), len(dataset.reference_rows(man))
     t0 = time.perf_counter()
     if model == "pca_n":
-        weights = np.load(inp.weights)
         fitted = pca.WeightPCA(p.components).fit(weights[train])
         explained = fitted.pca.explained
         draws = [fitted.sample(n_ref, s) for s in p.seeds]

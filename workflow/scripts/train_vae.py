@@ -13,13 +13,14 @@ from neumat.logs import script_logging
 
 with script_logging(snakemake) as log:
     p, inp, out, model = snakemake.params, snakemake.input, snakemake.output, snakemake.wildcards.model
-    man = dataset.read_manifest(inp.manifest)
+    weights = np.load(inp.weights) if model == "vae_n" else None
+    man = dataset.read_manifest(inp.manifest, None if weights is None else len(weights))
     train = dataset.training_rows(man, "ours")
     c = dict(p.cfg)
     t0 = time.perf_counter()
     if model == "vae_n":
         arch = {"latent": c.pop("latent"), "hidden": c.pop("hidden")}
-        net, history = vae.train_weight_vae(np.load(inp.weights)[train], **arch, **c,
+        net, history = vae.train_weight_vae(weights[train], **arch, **c,
                                             seed=p.seed, log=log)
     else:
         # a fixed random subset of the stored bins of every training material, shard by shard
@@ -38,6 +39,10 @@ with script_logging(snakemake) as log:
             keep = np.isin(s["ids"], list(ids))
             values.append(s["values"][keep][:, :, pick])
         values = np.concatenate(values)
+        if len(values) != len(ids):
+            raise ValueError(f"VAE-A: the AugMERL shards hold {len(values)} of the {len(ids)} "
+                             f"training materials of {inp.manifest}; rebuild the AugMERL shards "
+                             f"and NeuMERL of this run together")
         th, td, pd_ = (a[bins] for a in merl.grid_angles())
         log.info("VAE-A: %d training tables x %d bins", len(values), len(bins))
         arch = {"latent": c.pop("latent"), "hidden": c.pop("hidden")}
