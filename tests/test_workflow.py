@@ -634,6 +634,21 @@ def test_measured_colour_words_retrain_only_the_conditioning(tiny_run):
     assert not {"sample_uncond", "sample_type", "metrics"} & set(jobs), jobs
 
 
+@pytest.mark.slow
+def test_a_new_prompt_retrains_nothing(tiny_run):
+    """conditions.text.prompts is a param of prompt_embeddings alone (not of text_embeddings,
+    whose text.npy the image encoder and the multimodal model train on): a prompt added
+    re-embeds the prompts and reruns the draws that read them, and trains no model."""
+    import yaml
+    cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+    _set(cfg, "conditions.text.prompts", [*cfg["conditions"]["text"]["prompts"], "blue rubber"])
+    (tiny_run / "config/new_prompt.yaml").write_text(yaml.safe_dump(cfg))
+    jobs = _planned_jobs(tiny_run, "config/new_prompt.yaml")
+    assert {"prompt_embeddings", "sample_text"} <= set(jobs), jobs
+    assert not [j for j in jobs if j.startswith(HEAVY)], jobs
+    assert not {"text_embeddings", "image_embeddings", "sample_image", "metrics"} & set(jobs), jobs
+
+
 def test_every_model_file_loads_with_weights_only(tiny_run):
     """Users share model files: all the tiny run writes are tensors and plain values."""
     import torch

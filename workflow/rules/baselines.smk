@@ -11,7 +11,9 @@ BASE = config["baselines"]
 
 rule baseline_pca:
     input:
-        manifest=out("neumerl/manifest.tsv"),
+        # AugMERL's manifest: NeuMERL's is its byte copy, rewritten (so its readers rerun)
+        # whenever the fits change, which PCA-A does not read
+        manifest=out("augmerl/manifest.tsv"),
         recipe=out("augmerl/recipe.npz"),
         log_tables=out("augmerl/log_tables.npy"),
         log_index=out("augmerl/log_tables_index.npz"),
@@ -65,7 +67,7 @@ use rule baseline_pca as baseline_pca_n with:
 
 rule train_vae:
     input:
-        manifest=out("neumerl/manifest.tsv"),
+        manifest=out("augmerl/manifest.tsv"),  # as baseline_pca's
         weights=lambda wc: out("neumerl/weights.npy") if wc.model == "vae_n" else [],
         shards=lambda wc: augmerl_shards() if wc.model == "vae_a" else [],
     output:
@@ -94,7 +96,7 @@ rule train_vae:
 rule sample_vae:
     input:
         model=out("baselines/{model}/model.pt"),
-        manifest=out("neumerl/manifest.tsv"),
+        manifest=out("augmerl/manifest.tsv"),  # as baseline_pca's
     output:
         samples=out("samples/{model}/weights.npy"),
     wildcard_constraints:

@@ -2,7 +2,8 @@
 # diffusion model conditioned on type, text and image (each dropped independently in training),
 # text- and image-conditioned sampling, their measures against unconditional, type-conditioned
 # and retrieval baselines from the same model, a guidance-scale sweep, Mitsuba figures.
-#   neumerl -> text_embeddings, train_image_encoder -> image_embeddings -> train_multimodal
+#   neumerl -> text_embeddings, prompt_embeddings, train_image_encoder -> image_embeddings
+#   -> train_multimodal
 #   -> sample_text / sample_image / sample_multimodal / sample_mm_type -> conditions_eval,
 #   guidance_sweep, conditions_mitsuba -> conditions_section
 
@@ -40,16 +41,14 @@ COND_MEASURED = COND["text"]["colour_words"] == "measured"
 
 rule text_embeddings:
     input:
-        manifest=out("neumerl/manifest.tsv"),
+        # AugMERL's manifest (NeuMERL's is its byte copy, rewritten whenever the fits change);
+        # the fits only where the colour words are measured from them
+        manifest=out("augmerl/manifest.tsv"),
         **({"weights": out("neumerl/weights.npy")} if COND_MEASURED else {}),
     output:
         text=out("conditions/text.npy"),
-        prompts=out("conditions/prompts.tsv"),
-        prompt_embeddings=out("conditions/prompts.npy"),
         **({"descriptions": out("conditions/descriptions.tsv")} if COND_MEASURED else {}),
     params:
-        prompts=COND["text"]["prompts"],
-        test_prompts=COND["text"]["test_prompts"],
         **neutral_params("conditions.text", ["colour_words"]),
         **({"activation": DIFF_ACTIVATION} if COND_MEASURED else {}),
     log:
@@ -64,6 +63,34 @@ rule text_embeddings:
         runtime=15,
     script:
         "../scripts/text_embeddings.py"
+
+
+# The sampling prompts apart from the descriptions: a prompt added to the config re-embeds the
+# prompts and reruns the draws that read them, not the image encoder or the multimodal model,
+# which train on text.npy alone
+rule prompt_embeddings:
+    input:
+        manifest=out("augmerl/manifest.tsv"),
+        # the descriptions as embedded, to mark a prompt training saw word for word
+        **({"descriptions": out("conditions/descriptions.tsv")} if COND_MEASURED else {}),
+    output:
+        prompts=out("conditions/prompts.tsv"),
+        prompt_embeddings=out("conditions/prompts.npy"),
+    params:
+        prompts=COND["text"]["prompts"],
+        test_prompts=COND["text"]["test_prompts"],
+    log:
+        log("prompt_embeddings"),
+    benchmark:
+        bench("prompt_embeddings")
+    conda:
+        CONDA_ENV
+    threads: 1
+    resources:
+        mem_mb=2000,
+        runtime=15,
+    script:
+        "../scripts/prompt_embeddings.py"
 
 
 rule train_image_encoder:
@@ -441,7 +468,7 @@ rule conditions_section:
         history=out(f"diffusion/{COND_MODEL}/history.tsv"),
         model=out(f"diffusion/{COND_MODEL}/model.pt"),
         timings=expand(out("samples/{set}/timing.tsv"), set=COND_SETS),
-        benchmarks=[bench("text_embeddings"), bench("train_image_encoder"),
+        benchmarks=[bench("text_embeddings"), bench("prompt_embeddings"), bench("train_image_encoder"),
                     bench("image_embeddings"), bench("train_multimodal")],
         figures=[out("report/figures/conditions_text.png"),
                  out("report/figures/conditions_image.png")],

@@ -22,6 +22,8 @@ METRIC_SETTINGS = dict(
 )
 # pairwise SSIM works in bounded chunks (~1 GB); renders add n * res^2 * 12 bytes
 METRICS_MEM_MB = 3000 + config["render"]["resolution"] ** 2 // 40
+# a weights file given in the config is read by the jobs: an input, so replacing it reruns them
+INCEPTION_INPUT = [METRICS["inception_weights"]] if METRICS["inception_weights"] else []
 
 
 rule metrics_reference:
@@ -29,6 +31,7 @@ rule metrics_reference:
     # Inception features, once (50 s of every job of the realistic run before; README Benchmarks)
     input:
         reference=REFERENCE_WEIGHTS,
+        inception=INCEPTION_INPUT,
     output:
         out("metrics/reference.pt"),
     params:
@@ -56,6 +59,7 @@ rule metrics:
         samples=lambda wc: model_weights(wc.model),
         weights=out("neumerl/weights.npy"),  # training materials, for the novelty rows
         manifest=out("neumerl/manifest.tsv"),
+        inception=INCEPTION_INPUT,
     output:
         out("metrics/{model}.csv"),
     wildcard_constraints:

@@ -1,7 +1,6 @@
-"""Embed every AugMERL description once (conditions/text.npy, manifest order) and the sampling
-prompts: test-split descriptions of typed materials plus the config's prompts, meant to be
-unseen (prompts.tsv's in_training marks any prompt that is word for word a training
-description, as embedded). Fails naming the package when the offline text encoder is not
+"""Embed every AugMERL description once (conditions/text.npy, manifest order); with measured
+colour words, as renamed by each field's own colour (descriptions.tsv). The sampling prompts
+are rule prompt_embeddings'. Fails naming the package when the offline text encoder is not
 installed."""
 import time
 from pathlib import Path
@@ -44,24 +43,3 @@ with script_logging(snakemake) as log:
     save_npy(out.text, text.embed(descriptions))
     log.info("%d descriptions (%d distinct) embedded in %.1f s", len(man),
              len(set(descriptions)), time.perf_counter() - t0)
-
-    test = man[(man["split"] == "test") & (man["type"] != "")].drop_duplicates("description")
-    k = p.test_prompts or len(test)
-    pick = np.unique(np.linspace(0, len(test) - 1, min(k, len(test))).round().astype(int)) \
-        if len(test) else []
-    test = test.iloc[pick]
-    # the descriptions training saw, as embedded (measured colour words included): a prompt
-    # word for word among them is not held out as text, whatever its kind
-    seen = {d for d, s in zip(descriptions, man["split"]) if s == "train"}
-    prompts = pd.DataFrame({
-        "prompt": list(test["description"]) + list(p.prompts),
-        "kind": ["test"] * len(test) + ["unseen"] * len(p.prompts),
-        "type": list(test["type"]) + [""] * len(p.prompts)})
-    prompts["colour"] = [evaluate.colour_of(q) for q in prompts["prompt"]]
-    prompts["in_training"] = [q in seen for q in prompts["prompt"]]
-    for kind, g in prompts[prompts["in_training"]].groupby("kind"):
-        log.warning("%d %s prompt(s) occur word for word as training descriptions (scored "
-                    "apart in conditions/eval_summary.tsv): %s", len(g), kind, list(g["prompt"]))
-    prompts.to_csv(out.prompts, sep="\t", index=False)
-    save_npy(out.prompt_embeddings, text.embed(list(prompts["prompt"])))
-    log.info("%d prompts (%d test-split descriptions)", len(prompts), len(test))
