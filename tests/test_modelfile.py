@@ -54,6 +54,22 @@ def test_truncated_file_names_it(tmp_path):
         modelfile.load(tmp_path / "m.pt")
 
 
+def test_a_damaged_checkpoint_is_logged_and_training_starts_over(tmp_path, caplog):
+    """A checkpoint is no Snakemake output (--rerun-incomplete never removes it): a truncated
+    one is ignored with a warning naming it, so a rerun starts over instead of failing every
+    time; a sound one still resumes."""
+    lin = torch.nn.Linear(3, 2)
+    torch.save({"fingerprint": "f", "step": 7, "model": lin.state_dict()}, tmp_path / "ck.pt")
+    other = torch.nn.Linear(3, 2)
+    assert modelfile.resume(tmp_path / "ck.pt", "f", model=other)["step"] == 7
+    assert torch.equal(other.weight, lin.weight)
+    data = (tmp_path / "ck.pt").read_bytes()
+    (tmp_path / "ck.pt").write_bytes(data[: len(data) // 2])
+    with caplog.at_level("WARNING"):
+        assert modelfile.resume(tmp_path / "ck.pt", "f", model=torch.nn.Linear(3, 2)) is None
+    assert "ignoring unreadable checkpoint" in caplog.text and "ck.pt" in caplog.text
+
+
 def test_missing_file_names_it(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"nope\.pt"):
         modelfile.load(tmp_path / "nope.pt")

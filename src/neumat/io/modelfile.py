@@ -39,15 +39,23 @@ def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
            **state) -> dict | None:
     """A training checkpoint at `path`, loaded into `state` (name -> object with
     `load_state_dict`, or a torch.Generator, restored from the checkpoint's entry of that name),
-    or None: no file, or one written for another fingerprint (other data or settings; logged
-    and ignored, so training starts over). `fingerprint` None accepts any checkpoint."""
+    or None: no file, one written for another fingerprint (other data or settings), or one that
+    cannot be read (logged and ignored, so training starts over and overwrites it: a checkpoint
+    is no Snakemake output, so --rerun-incomplete never removes a damaged one, and failing on
+    it would fail every rerun, as in neumat.fit's resume). `fingerprint` None accepts any
+    checkpoint."""
     import logging
 
     log = logging.getLogger(__name__)
     path = Path(path)
     if not path.exists():
         return None
-    ck = load(path, map_location=map_location)
+    try:
+        ck = load(path, map_location=map_location)
+    except ValueError as e:
+        log.warning("ignoring unreadable checkpoint %s, starting over (it is overwritten at the "
+                    "next checkpoint): %s", path, str(e).split(". neumat reads")[0])
+        return None
     if fingerprint is not None and ck.get("fingerprint") != fingerprint:
         log.warning("ignoring %s: written for other data or settings", path)
         return None
