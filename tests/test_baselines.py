@@ -81,6 +81,41 @@ def test_vae_n_trains_and_samples_deterministically(tmp_path):
     assert not np.array_equal(s, vae.prior_samples(back, 6, seed=6))
 
 
+@pytest.mark.parametrize("kind", ["vae_n", "vae_a"])
+def test_vae_training_resumes_bit_for_bit_after_a_kill(tmp_path, monkeypatch, kind):
+    """A VAE training killed after step 7 of 12 resumes from its checkpoint (model, Adam, the
+    draws' generator, step, history) and ends where an unkilled training ends, to the bit."""
+    monkeypatch.setattr(vae, "CHECKPOINT_SECONDS", -1.0)  # a checkpoint at every step
+    if kind == "vae_n":
+        data = nbrdf.init_weights(20, torch.Generator().manual_seed(0)).numpy()
+        train = lambda **k: vae.train_weight_vae(data, latent=4, hidden=16, steps=12,  # noqa: E731
+                                                 batch_size=8, lr=1e-3, beta=1.0, seed=2, **k)
+    else:
+        t, x6, cos = _set_data(4)
+        train = lambda **k: vae.train_set_vae(t, x6, cos, latent=4, hidden=16, steps=12,  # noqa: E731
+                                              batch_size=2, context=32, queries=32, lr=3e-3,
+                                              beta=0.1, seed=2, **k)
+    ref, ref_hist = train()
+    real, calls = torch.nn.utils.clip_grad_norm_, []
+
+    def killed(*a, **k):  # the 8th step dies after the 7th was checkpointed
+        calls.append(1)
+        if len(calls) == 8:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    ck = tmp_path / "checkpoint.pt"
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", killed)
+    with pytest.raises(KeyboardInterrupt):
+        train(checkpoint=ck)
+    monkeypatch.setattr(torch.nn.utils, "clip_grad_norm_", real)
+    assert torch.load(ck, weights_only=True)["step"] == 7
+    got, hist = train(checkpoint=ck)
+    for p, q in zip(ref.state_dict().values(), got.state_dict().values()):
+        assert torch.equal(p, q)
+    assert hist == ref_hist
+
+
 def _set_data(n):
     """n tables at BINS, with the bins' NBRDF inputs and cos(theta_i), for VAE-A."""
     th, td, pd_ = (a[BINS] for a in merl.grid_angles())
@@ -161,7 +196,8 @@ def test_weight_baselines_check_the_weights_against_the_manifest(tmp_path, rule,
         params, output = dict(components=3, seeds=[1, 2]), dict(
             samples=str(tmp_path / "weights_out.npy"), info=str(tmp_path / "info.tsv"))
     else:
-        params = dict(cfg=dict(latent=4, hidden=16, steps=3, batch_size=4, lr=1e-3, beta=1e-3), seed=3)
+        params = dict(cfg=dict(latent=4, hidden=16, steps=3, batch_size=4, lr=1e-3, beta=1e-3), seed=3,
+                      checkpoint=str(tmp_path / "checkpoint.pt"))
         output = dict(model=str(tmp_path / "vae.pt"), history=str(tmp_path / "history.tsv"))
 
     def run(weights):
@@ -178,8 +214,8 @@ def test_weight_baselines_check_the_weights_against_the_manifest(tmp_path, rule,
     assert ok.returncode == 0, ok.stderr[-3000:]
     if model == "pca_n":
         assert np.load(tmp_path / "weights_out.npy").shape == (2 * 2, nbrdf.N_PARAMS)
-    else:
-        assert (tmp_path / "vae.pt").is_file()
+    else:  # trained: the checkpoint is gone, the model file holds the result
+        assert (tmp_path / "vae.pt").is_file() and not (tmp_path / "checkpoint.pt").exists()
     bad = run(w[:7])
     assert bad.returncode != 0
     assert "manifest.tsv: 8 rows but the NeuMERL weights have 7" in bad.stderr

@@ -79,6 +79,8 @@ rule train_vae:
         cfg=lambda wc: settings(f"baselines.{wc.model}"),
         seed=lambda wc: seed_for("train_baseline", wc.model),
         activation=config["fit"]["activation"],
+        # resumable state after a kill (model, Adam, draws, step), removed once trained
+        checkpoint=out("baselines/{model}/checkpoint.pt"),
     log:
         log("train_vae/{model}"),
     benchmark:

@@ -1,6 +1,8 @@
 """Train a VAE baseline: VAE-N on NeuMERL training weights, VAE-A (set encoder -> latent ->
-hypernetwork -> NBRDF) on AugMERL training tables (see neumat.baselines.vae)."""
+hypernetwork -> NBRDF) on AugMERL training tables (see neumat.baselines.vae); resumes from its
+checkpoint beside the output after a kill."""
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -21,7 +23,7 @@ with script_logging(snakemake) as log:
     if model == "vae_n":
         arch = {"latent": c.pop("latent"), "hidden": c.pop("hidden")}
         net, history = vae.train_weight_vae(weights[train], **arch, **c,
-                                            seed=p.seed, log=log)
+                                            seed=p.seed, log=log, checkpoint=p.checkpoint)
     else:
         # a fixed random subset of the stored bins of every training material, shard by shard
         ids = set(man["id"].iloc[train])
@@ -49,8 +51,10 @@ with script_logging(snakemake) as log:
         c.pop("bins")
         net, history = vae.train_set_vae(values, merl.half_diff_cartesian(th, td, pd_),
                                          merl.cos_theta_i(th, td, pd_), **arch, **c,
-                                         seed=p.seed, activation=p.activation, log=log)
+                                         seed=p.seed, activation=p.activation, log=log,
+                                         checkpoint=p.checkpoint)
     vae.save(out.model, net, model, arch)
+    Path(p.checkpoint).unlink(missing_ok=True)  # trained: the model file holds the result
     pd.DataFrame(history).to_csv(out.history, sep="\t", index=False, float_format="%.6g")
     log.info("%s trained in %.1f s (%d parameters)", model, time.perf_counter() - t0,
              sum(q.numel() for q in net.parameters()))

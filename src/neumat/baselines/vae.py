@@ -14,7 +14,11 @@
 
 from __future__ import annotations
 
+import hashlib
+import json
 import math
+import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -174,12 +178,33 @@ def load(path) -> nn.Module:
 # ----------------------------------------------------------------------------- training
 
 
-def _adam_loop(model, batch_loss, steps: int, lr: float, log, log_every: int = 100):
-    """Adam with grad-norm clip 1 (HyperBRDF); returns rows (step, loss, rec, kl)."""
+CHECKPOINT_SECONDS = 30.0  # between checkpoints: when state is saved, not what it computes
+
+
+def fingerprint(data: np.ndarray, seed: int, **settings) -> str:
+    """What a checkpoint was written for: the training data and every setting, so a changed
+    one starts over rather than resuming another training."""
+    h = hashlib.sha256(np.ascontiguousarray(data, dtype=np.float32))
+    h.update(json.dumps([settings, seed], sort_keys=True, default=float).encode())
+    return h.hexdigest()
+
+
+def _adam_loop(model, batch_loss, steps: int, lr: float, log, generator: torch.Generator,
+               checkpoint=None, fp: str | None = None, log_every: int = 100):
+    """Adam with grad-norm clip 1 (HyperBRDF); returns rows (step, loss, rec, kl). With
+    `checkpoint`, model, Adam, the draws' generator, step and history are saved there every
+    CHECKPOINT_SECONDS and at the end, and a run killed before resumes from them, bit for bit
+    (the draws come from `generator` alone; tests/test_baselines.py)."""
     opt = torch.optim.Adam(model.parameters(), lr=lr)
+    step, history = 0, []
+    ck = modelfile.resume(checkpoint, fp, model=model, opt=opt, generator=generator) \
+        if checkpoint else None
+    if ck is not None:
+        step, history = int(ck["step"]), list(ck["history"])
     model.train()
-    history = []
-    for step in range(1, steps + 1):
+    saved = time.monotonic()
+    while step < steps:
+        step += 1
         loss, parts = batch_loss(step)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -190,11 +215,20 @@ def _adam_loop(model, batch_loss, steps: int, lr: float, log, log_every: int = 1
             if log:
                 log.info("step %d: loss %.5f (rec %.5f, kl %.3f)", step, loss.item(),
                          parts["rec"], parts["kl"])
+        if checkpoint and (step == steps or time.monotonic() - saved > CHECKPOINT_SECONDS):
+            Path(checkpoint).parent.mkdir(parents=True, exist_ok=True)
+            save_torch(checkpoint, {"fingerprint": fp, "model": model.state_dict(),
+                                    "opt": opt.state_dict(), "generator": generator.get_state(),
+                                    "step": step, "history": history})
+            saved = time.monotonic()
     return model.eval(), history
 
 
-def train_weight_vae(weights, *, latent, hidden, steps, batch_size, lr, beta, seed, log=None):
-    """VAE-N on NeuMERL training weights (n, 675)."""
+def train_weight_vae(weights, *, latent, hidden, steps, batch_size, lr, beta, seed, log=None,
+                     checkpoint=None):
+    """VAE-N on NeuMERL training weights (n, 675); `checkpoint`: see _adam_loop."""
+    fp = fingerprint(weights, seed, kind="vae_n", latent=latent, hidden=hidden, steps=steps,
+                     batch_size=batch_size, lr=lr, beta=beta)
     torch.manual_seed(seed)
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
     model = WeightVAE(latent, hidden, w.mean(0), w.std(0).clamp_min(1e-6))
@@ -204,14 +238,19 @@ def train_weight_vae(weights, *, latent, hidden, steps, batch_size, lr, beta, se
         idx = torch.randint(len(w), (min(batch_size, len(w)),), generator=g)
         return model.loss(w[idx], beta, g)
 
-    return _adam_loop(model, batch_loss, steps, lr, log)
+    return _adam_loop(model, batch_loss, steps, lr, log, g, checkpoint, fp)
 
 
 def train_set_vae(values, x6, cos_i, *, latent, hidden, steps, batch_size, context, queries,
-                  lr, beta, seed, activation="relu", log=None):
+                  lr, beta, seed, activation="relu", log=None, checkpoint=None):
     """VAE-A on AugMERL training tables: values (n, 3, B) physical BRDF at B bins with
     neural-field inputs x6 (B, 6) and cos θi (B,). Each step: `batch_size` materials,
-    `context` random bins for the encoder and `queries` other random bins for the loss."""
+    `context` random bins for the encoder and `queries` other random bins for the loss.
+    `checkpoint`: see _adam_loop."""
+    fp = fingerprint(np.concatenate([np.ravel(values), np.ravel(x6), np.ravel(cos_i)]), seed,
+                     kind="vae_a", latent=latent, hidden=hidden, steps=steps,
+                     batch_size=batch_size, context=context, queries=queries, lr=lr, beta=beta,
+                     activation=activation)
     torch.manual_seed(seed)
     v = torch.as_tensor(np.asarray(values), dtype=torch.float32).transpose(1, 2)  # (n, B, 3)
     x6 = torch.as_tensor(np.asarray(x6), dtype=torch.float32)
@@ -221,7 +260,9 @@ def train_set_vae(values, x6, cos_i, *, latent, hidden, steps, batch_size, conte
         raise ValueError(f"VAE-A: context {context} + queries {queries} bins exceed the {n_bins} "
                          f"stored per table; lower baselines.vae_a.context or .queries, or raise "
                          f"baselines.vae_a.bins")
-    model = SetVAE(latent, hidden, seed)
+    # the hypernetwork's initial NBRDF from its own stream: seeded with `seed` as well, it
+    # replayed the numbers torch.manual_seed(seed) gave the set encoder's first layer
+    model = SetVAE(latent, hidden, seed_for(seed, "nbrdf_init"))
     g = torch.Generator().manual_seed(seed_for(seed, "draws"))  # not the init's numbers
 
     def batch_loss(step):
@@ -231,4 +272,4 @@ def train_set_vae(values, x6, cos_i, *, latent, hidden, steps, batch_size, conte
         return model.loss(x6[ctx], v[idx][:, ctx], x6[q], v[idx][:, q], cos_i[q], beta,
                           activation, g)
 
-    return _adam_loop(model, batch_loss, steps, lr, log)
+    return _adam_loop(model, batch_loss, steps, lr, log, g, checkpoint, fp)
