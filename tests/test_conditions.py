@@ -85,6 +85,35 @@ def test_image_encoder_deterministic_and_round_trips(tmp_path):
         image.train(views, w, tcfg, 2)
 
 
+def test_image_encoder_training_resumes_bit_for_bit_after_a_kill(tmp_path, monkeypatch):
+    """Killed after step 5 of 9, the image encoder resumes from its checkpoint (model, AdamW,
+    the draws' generator, step, history) and ends where an unkilled training ends, to the bit."""
+    rng = np.random.default_rng(0)
+    w = (0.3 * rng.normal(size=(6, 675))).astype(np.float32)
+    cfg = image.ImageEncoderConfig(resolution=12, crop=10, width=4, embed_dim=8, n_lights=2,
+                                   steps=9, batch_size=4, objective="weights")
+    views = image.render_views(w, cfg.resolution, cfg.n_lights)
+    ref = image.train(views, w, cfg, seed=1)
+    monkeypatch.setattr(image, "CHECKPOINT_SECONDS", -1.0)  # a checkpoint at every step
+    real, calls = torch.optim.AdamW.step, []
+
+    def killed(self, *a, **k):  # the 6th step dies after the 5th was checkpointed
+        calls.append(1)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    ck = tmp_path / "ck.pt"
+    monkeypatch.setattr(torch.optim.AdamW, "step", killed)
+    with pytest.raises(KeyboardInterrupt):
+        image.train(views, w, cfg, seed=1, checkpoint=ck)
+    monkeypatch.setattr(torch.optim.AdamW, "step", real)
+    assert torch.load(ck, weights_only=True)["step"] == 5
+    got = image.train(views, w, cfg, seed=1, checkpoint=ck)
+    assert all(torch.equal(ref["state"][k], got["state"][k]) for k in ref["state"])
+    assert got["history"] == ref["history"]
+
+
 def test_load_image_png_and_exr(tmp_path):
     from PIL import Image
 

@@ -106,6 +106,8 @@ rule train_image_encoder:
         cfg=settings("conditions.image.encoder"),
         seed=cond_seed("image_encoder"),
         activation=DIFF_ACTIVATION,
+        # resumable training state after a kill, removed once trained
+        checkpoint=out("conditions/image_encoder_checkpoint.pt"),
     log:
         log("train_image_encoder"),
     benchmark:

@@ -1,7 +1,9 @@
 """Train the ResNet image encoder on multi-light renders of the NeuMERL training materials, and
 evaluate it on the test split: is a material's metric-view embedding nearest to its own
-embedding under another light (identification), and to a training material of its type."""
+embedding under another light (identification), and to a training material of its type.
+Training resumes from its checkpoint beside the output after a kill."""
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -22,9 +24,10 @@ with script_logging(snakemake) as log:
     log.info("rendered %d materials x %d lights at %d px in %.1f s", len(train), cfg.n_lights,
              cfg.resolution, time.perf_counter() - t0)
     text = np.load(inp.text)[train] if cfg.objective == "text" else None
-    bundle = image.train(views, weights[train], cfg, p.seed, text)
+    bundle = image.train(views, weights[train], cfg, p.seed, text, checkpoint=p.checkpoint)
     bundle["render_seconds"] = time.perf_counter() - t0 - bundle["train_seconds"]
     save_torch(out.model, bundle)
+    Path(p.checkpoint).unlink(missing_ok=True)  # trained: the model file holds the result
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(out.history, sep="\t", index=False)
 
     enc = image.load(out.model)

@@ -24,10 +24,13 @@ The embedding (`embed_dim`) is what the diffusion model sees.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import math
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -35,6 +38,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from neumat.io import images, modelfile
+from neumat.io.atomic import save_torch
 from neumat.render import sphere
 from neumat.seeds import seed_for
 
@@ -184,10 +188,26 @@ def _loss(cfg, pred, target):
                   + torch.sum(-pos * F.log_softmax(logits.T, 1), 1).mean())
 
 
+CHECKPOINT_SECONDS = 30.0  # between checkpoints: when state is saved, not what it computes
+
+
+def fingerprint(views, weights, text, cfg: ImageEncoderConfig, seed: int) -> str:
+    """What a checkpoint was written for: renders, targets, settings and seed."""
+    h = hashlib.sha256()
+    for a in (views, weights, text):
+        if a is not None:
+            h.update(np.ascontiguousarray(torch.as_tensor(a).float().numpy()))
+    h.update(json.dumps([cfg.to_dict(), seed], sort_keys=True).encode())
+    return h.hexdigest()
+
+
 def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, seed: int,
-          text: np.ndarray | None = None) -> dict:
+          text: np.ndarray | None = None, checkpoint=None) -> dict:
     """Train on renders `views` (N, K, H, W, 3) of N materials with weights (N, 675) (and text
-    embeddings (N, 384) for objective 'text'). Returns a bundle (config, state, history)."""
+    embeddings (N, 384) for objective 'text'). Returns a bundle (config, state, history). With
+    `checkpoint`, the training state (model, AdamW, the draws' generator, step, history) is
+    saved there every CHECKPOINT_SECONDS and at the end, and a killed training resumes from it
+    bit for bit (the learning rate is a function of the step)."""
     if views.shape[2] != cfg.resolution:
         raise ValueError(f"renders are {views.shape[2]} px, encoder resolution {cfg.resolution}")
     if not cfg.crop <= cfg.resolution:
@@ -199,8 +219,15 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
     model = ImageEncoder(cfg, target.shape[1])
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     n, k = views.shape[:2]
-    history, running, t0 = [], [], time.perf_counter()
-    for step in range(cfg.steps):
+    history, running, step, elapsed = [], [], 0, 0.0
+    fp = fingerprint(views, weights, text, cfg, seed) if checkpoint else None
+    ck = modelfile.resume(checkpoint, fp, model=model, opt=opt, generator=gen) \
+        if checkpoint else None
+    if ck is not None:
+        step, elapsed = int(ck["step"]), float(ck["elapsed"])
+        history, running = [tuple(r) for r in ck["history"]], list(ck["running"])
+    t0 = saved = time.perf_counter()
+    for step in range(step, cfg.steps):
         lr = cfg.lr * 0.5 * (1 + math.cos(math.pi * step / cfg.steps))  # cosine to 0
         for g in opt.param_groups:
             g["lr"] = lr
@@ -216,9 +243,16 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
             history.append((step + 1, float(np.mean(running))))
             running = []
             log.info("image encoder step %d/%d loss %.4f", step + 1, cfg.steps, history[-1][1])
+        if checkpoint and (step + 1 == cfg.steps or time.perf_counter() - saved > CHECKPOINT_SECONDS):
+            Path(checkpoint).parent.mkdir(parents=True, exist_ok=True)
+            save_torch(checkpoint, {"fingerprint": fp, "model": model.state_dict(),
+                                    "opt": opt.state_dict(), "generator": gen.get_state(),
+                                    "step": step + 1, "history": history, "running": running,
+                                    "elapsed": elapsed + time.perf_counter() - t0})
+            saved = time.perf_counter()
     return {"cfg": cfg.to_dict(), "head_dim": int(target.shape[1]),
             "state": {k_: v.detach().clone() for k_, v in model.state_dict().items()},
-            "history": history, "train_seconds": time.perf_counter() - t0, "n_train": n,
+            "history": history, "train_seconds": elapsed + time.perf_counter() - t0, "n_train": n,
             "seed": seed}
 
 
