@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 from neumat.btf.grid import GridBTF, bilinear_texels
+from neumat.seeds import seed_for
 
 
 def _chunks(n, size):
@@ -66,7 +67,9 @@ class PCA(GridBTF):
         X = _planar(data, sub, chunk)  # (3, n, LV)
         mean = X.mean(1, keepdim=True)
         X -= mean
-        torch.manual_seed(seed)
+        # svd_lowrank's random projection draws from the global generator: seeded from its own
+        # stream (with `seed` itself it replayed the texel subset's numbers)
+        torch.manual_seed(seed_for(seed, "svd"))
         for c in range(3):  # randomized SVD: only the top components of the (n x LV) matrix
             _, _, V = torch.svd_lowrank(X[c], q=min(components + 10, *X[c].shape), niter=4)
             m.basis[c] = V[:, :components].T
