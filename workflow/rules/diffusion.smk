@@ -300,7 +300,6 @@ rule diffusion_section:
         plausibility=out("samples/plausibility.tsv"),
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
-        exports=diffusion_exports(),
         mitsuba=out("render/mitsuba/diffusion.json"),
     output:
         section=out("report/sections/40_diffusion.md"),

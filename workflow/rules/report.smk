@@ -4,6 +4,9 @@
 rule report:
     input:
         sections=REPORT_SECTIONS,
+        # the MERL .binary exports of samples: made with the report, read by no section (as an
+        # input of diffusion_section, diffusion.export_merl reran its gallery renders)
+        exports=diffusion_exports(),
     output:
         md=out("report/index.md"),
         html=out("report/index.html"),
