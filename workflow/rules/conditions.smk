@@ -97,7 +97,9 @@ rule train_image_encoder:
     input:
         weights=out("neumerl/weights.npy"),
         manifest=out("neumerl/manifest.tsv"),
-        text=out("conditions/text.npy"),
+        # the description embeddings are its targets only with the contrastive objective
+        **({"text": out("conditions/text.npy")}
+           if config["conditions"]["image"]["encoder"]["objective"] == "text" else {}),
     output:
         model=out("conditions/image_encoder.pt"),
         history=out("conditions/image_encoder_history.tsv"),
