@@ -171,6 +171,10 @@ def test_tiny_config_runs_every_stage(tiny_run):
     plain = pd.read_csv(res / "samples/ours_plain/timing.tsv", sep="\t").iloc[0]
     assert plain["refit_steps"] == 0 and plain["negative_step"] == 0
     assert "Clamp-aware refit" in (res / "report/sections/40_diffusion.md").read_text()
+    # finished: no draw kept for a resume, no training checkpoint left beside its model
+    assert not list(res.rglob("draws.partial")), list(res.rglob("draws.partial"))
+    assert not list((res / "baselines").rglob("checkpoint.pt"))
+    assert not (res / "conditions/image_encoder_checkpoint.pt").exists()
     q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
     assert len(q) > 0
     assert "Dynamic synthesis on the positional plane" in md

@@ -12,13 +12,17 @@ diffusion.sample.keep_look (dB, unconditional draws of `ours`, with the clamp st
 sample again from its seed without the step and keeps that draw where the step moved its
 metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look`).
 diffusion.sample.particle_step (unconditional draws of `ours` and `ours_plain`) draws the samples
-of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance)."""
+of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance).
+Unconditional draws are kept one by one in draws.partial/ beside the output
+(neumat.diffusion.draws): a killed job resumes at its next draw, and the folder goes once the
+output is written."""
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from neumat.diffusion import Sampler, dataset, symmetry
+from neumat.diffusion import Sampler, dataset, draws, symmetry
 from neumat.diffusion.sample import keep_look
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
@@ -60,14 +64,22 @@ with script_logging(snakemake) as log:
                                       s["eta"], guidance, s["batch_size"], s["clip"], step,
                                       p.activation, refit_steps=s["refit_steps"],
                                       particle_step=s.get("particle_step", 0.0))
-            w = at(s["negative_step"])
+            w, k = at(s["negative_step"]), None
             if look:  # the same seed without the clamp step, kept where the step moved the look
                 w, k = keep_look(w, at(0.0), look, p.cfg["look_resolution"], p.activation)
-                kept.append(k)
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
-            return w
-        w = np.concatenate([one_draw(seed) for seed in p.seeds])
+            return {"w": w} if k is None else {"w": w, "kept": k}
+
+        # a draw depends on its seed, the model, the manifest (its reference size, the types
+        # drawn as in training) and the settings
+        cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
+            [snakemake.input.model, snakemake.input.manifest],
+            {"sample": s, "look": look, "look_resolution": p.cfg.get("look_resolution"),
+             "activation": p.activation, "device": snakemake.config["device"]}))
+        done = [cache.get(seed, lambda seed=seed: one_draw(seed)) for seed in p.seeds]
+        w = np.concatenate([d["w"] for d in done])
+        kept = [d["kept"] for d in done if "kept" in d]
         if s.get("rgb_permute"):
             log.info("each sample in a random RGB channel order (diffusion.sample.rgb_permute)")
         if s.get("particle_step"):  # neutral 0: absent from params
@@ -92,3 +104,5 @@ with script_logging(snakemake) as log:
                    "negative_step": s["negative_step"], "refit_steps": s["refit_steps"]}]).to_csv(
         out.timing, sep="\t", index=False, float_format="%.6g")
     log.info("%d samples (%s) in %.2f s: %.1f samples/s", n, p.mode, dt, n / max(dt, 1e-9))
+    if draw is not None:
+        cache.clear()  # written: the kept draws are no longer needed

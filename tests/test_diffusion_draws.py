@@ -1,0 +1,38 @@
+"""A sampling job's finished draws are kept and reused only for the same model and settings."""
+import numpy as np
+
+from neumat.diffusion import draws
+
+
+def test_draws_resume_only_for_their_fingerprint(tmp_path, caplog):
+    model = tmp_path / "model.pt"
+    model.write_bytes(b"model one")
+    fp = draws.fingerprint([model], {"steps": 100})
+    made = []
+
+    def make(seed):
+        made.append(seed)
+        return {"w": np.full((3, 2), seed, np.float32), "kept": np.array([True, False, True])}
+
+    cache = draws.DrawCache(tmp_path / "draws.partial", fp)
+    first = [cache.get(s, lambda s=s: make(s)) for s in (5, 6)]
+    assert made == [5, 6]
+    # a killed job's rerun: both draws come back from their files, equal to the bit
+    again = [cache.get(s, lambda s=s: make(s)) for s in (5, 6)]
+    assert made == [5, 6]
+    for a, b in zip(first, again):
+        assert a.keys() == b.keys() and all(np.array_equal(a[k], b[k]) for k in a)
+    # another model or other settings draw again
+    model.write_bytes(b"model two")
+    assert draws.fingerprint([model], {"steps": 100}) != fp
+    assert draws.fingerprint([tmp_path / "model.pt"], {"steps": 50}) != fp
+    other = draws.DrawCache(tmp_path / "draws.partial", draws.fingerprint([model], {"steps": 100}))
+    other.get(5, lambda: make(5))
+    assert made == [5, 6, 5]
+    # a damaged file is logged and drawn again
+    (tmp_path / "draws.partial/draw_6.npz").write_bytes(b"not a zip")
+    with caplog.at_level("WARNING"):
+        other.get(6, lambda: make(6))
+    assert made == [5, 6, 5, 6] and "draw_6.npz: unreadable" in caplog.text
+    other.clear()
+    assert not (tmp_path / "draws.partial").exists()
