@@ -1,7 +1,7 @@
 """NBRDF layers channel-major (`nbrdf.forward_raw` on shared inputs, since 2026-11-26: W @ H,
 the N inputs last) against row-major (H @ W^T, the N inputs first: the version before, the
 baseline, in the same run), on the passes the workflow runs most: a forward pass at 2^15
-shared inputs for 1 and 8 fields (MERL export, metrics, renders), and a forward and backward
+shared inputs for 1 field and at 2^12 for 8 (MERL export, metrics, renders), and a forward and backward
 pass at 4096 directions for 32 fields (the clamp-aware constraint at every DDIM step, and each
 step of the clamp refit). Prints ms per call (best of --repeat), the ratio, the largest
 difference of the values (float32 rounding), and the matmuls' rate as a fraction of this

@@ -8,7 +8,7 @@ FIT_KEYS = ["steps", "template_steps", "lr", "lr_final", "batch", "activation", 
             "val_fraction", "eval_every", "eval_bins", "kernel"]
 FIT_SETTINGS = settings("fit", FIT_KEYS)
 FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch order
-# Peak RSS of a fit job (`python benchmarks/job_memory.py --jobs fit`, and `--kernel torch
+# Peak RSS of a fit job (`python benchmarks/job_memory.py --jobs fit --kernel c`, and `--kernel torch
 # --materials 100` / `25`; Intel Xeon AVX-512, torch 2.13 CPU, 1 thread, 2026-11-29; 100
 # materials in one batch, 2 steps with an evaluation):
 #   C kernel: 267 MB + 2.08 x the shard (its values, their log targets in the fitter's
@@ -19,7 +19,8 @@ FIT_SEED = seed_for("fit")  # template and shards share splits and minibatch ord
 #   evaluations' activations (32768 points a pass) add about 9 MB per material of a batch at
 #   100 materials and 14 at 25 (the fitted intercepts: 1153 and 605 MB). On a GPU the host
 #   holds what the C path does. Budget: 1000 + 2.5 x (+ 13 MB per material of a batch off the
-#   C kernel): 0.42-0.61 of it on the C path at 151-604 MB, 0.55 on torch's at 151 MB.
+#   C kernel): 0.42-0.61 of it on the C path at 151-604 MB (`--kernel c`; 0.22-0.40 of the
+#   budget at fit.kernel auto, which adds the 13 MB a material), 0.55 on torch's at 151 MB.
 FIT_MEM_EVAL = 0 if FIT["kernel"] == "c" else 13 * min(FIT["materials_per_batch"],
                                                          config["augmerl"]["shard_size"])
 
