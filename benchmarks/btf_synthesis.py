@@ -50,6 +50,7 @@ import time
 import torch
 
 import neumat.btf.synthesis as syn
+from btf_query import flops_per_query
 from neumat import machine
 from neumat.btf import models, query, query_triton
 from neumat.btf.neural import fetch
@@ -196,6 +197,12 @@ def main():
             ow, oc = wall[k] / wall[r] - 1, cpu[k] / cpu[r] - 1
             line += f"   {ow * 100:+7.1f} %  {oc * 100:+7.1f} %   vs {r}"
         print(line, flush=True)
+    if dev.type == "cpu" and fused:  # the baseline against the machine: its FLOP bound
+        _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
+        bound = FRAME * flops_per_query(m) / peak_cpu
+        print(f"plain (fused C): {bound * 1e3:.1f} CPU-ms/frame at the FLOP bound (fp32 torch.mm "
+              f"{peak_cpu / 1e9:.1f} GFLOP/CPU-s in this run): {bound / cpu['plain (fused C)']:.3f} "
+              f"of it")
     for method in [x for x in ("hpb", "hextile") if fused and x in a.methods]:
         r, k = f"plain ({K})", f"{method} ({K})"
         if dev.type == "cuda":  # the kernels' own times: query.query's dispatch is host time
