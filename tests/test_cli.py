@@ -428,8 +428,8 @@ def test_text_sampling_is_deterministic_and_recorded(mm_run, tmp_path):
 
 
 def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
-    """A prompt that rule text_embeddings embedded (conditions/prompts.npy, or a training
-    description in text.npy) is read from the run, not encoded: here its row holds the
+    """A prompt the run embedded (rule prompt_embeddings' conditions/prompts.npy, or a training
+    description in rule text_embeddings' text.npy) is read from the run, not encoded: here its row holds the
     embedding of "green metal", so "red plastic" draws green metal's samples. A table and array
     of different lengths (a half-rebuilt run) fall back to the encoder."""
     import shutil

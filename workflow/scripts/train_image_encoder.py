@@ -21,11 +21,13 @@ with script_logging(snakemake) as log:
     cfg = image.ImageEncoderConfig(**p.cfg)
     t0 = time.perf_counter()
     views = image.render_views(weights[train], cfg.resolution, cfg.n_lights, p.activation)
+    render_s = time.perf_counter() - t0
     log.info("rendered %d materials x %d lights at %d px in %.1f s", len(train), cfg.n_lights,
-             cfg.resolution, time.perf_counter() - t0)
+             cfg.resolution, render_s)
     text = np.load(inp.text)[train] if cfg.objective == "text" else None
     bundle = image.train(views, weights[train], cfg, p.seed, text, checkpoint=p.checkpoint)
-    bundle["render_seconds"] = time.perf_counter() - t0 - bundle["train_seconds"]
+    # this job's renders (train_seconds also counts a killed job's training before a resume)
+    bundle["render_seconds"] = render_s
     save_torch(out.model, bundle)
     Path(p.checkpoint).unlink(missing_ok=True)  # trained: the model file holds the result
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(out.history, sep="\t", index=False)

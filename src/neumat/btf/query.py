@@ -119,15 +119,16 @@ def hex_planes(hexs) -> torch.Tensor:
 
 def tap_prefetch() -> bool:
     """Whether the HPB and hex-tiling queries prefetch a tile's taps two tiles ahead (struct
-    hpb's `prefetch` in query_kernel.c; the plain query always prefetches its f_U taps, which
-    pays on both vendors). Outputs are the same either way. On Intel CPUs they do not: the
-    prefetch bursts (768 lines a tile for hex-tiling) cost more than they hide. Without them,
-    per 1920 x 1080 frame, HPB took 7.0 CPU-ms less (AVX-512 build) and 10.4 less (AVX2
+    hpb's `prefetch` in query_kernel.c). Outputs are the same either way. On Intel CPUs they do
+    not: the bursts of prefetches (768 a tile of 64 queries) cost more than they hide. Without
+    them, per 1920 x 1080 frame, HPB took 7.0 CPU-ms less (AVX-512 build) and 10.4 less (AVX2
     build), hex-tiling 6.6 and 10.9 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py
-    --rev HEAD --tap-prefetch both`, and with `--march x86-64-v3`; Intel Xeon AVX-512, idle,
-    2026-11-29; README, "BTF synthesis on the positional plane"). Elsewhere they do:
-    the kernel was designed with them on an AMD EPYC, where going without has not been
-    measured. NEUMAT_TAP_PREFETCH=0 or 1 overrides the choice (read on every query)."""
+    --rev 9504fb1 --tap-prefetch both`, its working-tree rows, and with `--march x86-64-v3`;
+    Intel Xeon AVX-512, idle, 2026-11-29; README, "BTF synthesis on the positional plane").
+    Elsewhere they do: the kernel was designed with them on an AMD EPYC, where going without
+    has not been measured. The plain query prefetches its f_U taps everywhere (a scratch build
+    without took 6.3 CPU-ms a frame more on the same Intel host). NEUMAT_TAP_PREFETCH=0 or 1
+    overrides the choice (read on every query)."""
     env = os.environ.get("NEUMAT_TAP_PREFETCH")
     if env is not None:
         if env not in ("0", "1"):

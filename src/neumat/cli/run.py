@@ -111,9 +111,9 @@ class Run:
         return bundle
 
     def text_embedding(self, prompt: str):
-        """(1, 384) float32: the run's own embedding of `prompt` when rule text_embeddings made
-        one (a config or test-split prompt, `conditions/prompts.npy`, or a training description,
-        `conditions/text.npy`), with the file it came from; else (None, None). The row is what
+        """(1, 384) float32: the run's own embedding of `prompt` when the run made one (a config
+        or test-split prompt, rule prompt_embeddings' `conditions/prompts.npy`, or a training
+        description, rule text_embeddings' `conditions/text.npy`), with the file it came from; else (None, None). The row is what
         the run's workflow conditioned on (the encoder, run on a batch, can differ from one
         prompt alone in the last bits), and the encoder's ~5 s of loading are saved."""
         import numpy as np
