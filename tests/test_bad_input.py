@@ -58,6 +58,16 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
      "constrained.derive.specular_quantiles [0.9, 0.1]"),
     ({"constrained": {"thresholds": {"high_peak": 10, "medium_peak": 100}}},
      "constrained.thresholds.medium_peak 100.0 exceeds high_peak 10.0"),
+    # each failed in a job, after the fits and the trainings: Table 2's sanity row (a test
+    # split of 2), export_samples, sample_type (acrylic: only held-out sources in tiny),
+    # train_vae, btf_pca, every download (a KeyError naming no key)
+    ({"augmerl": {"permutations": False, "size": 8}, "fit": {"export": []}},
+     "the test split holds 2 materials"),
+    ({"diffusion": {"export_merl": 40}}, "diffusion.export_merl 40 exceeds the samples a set holds (16 test materials x metrics.draws 2)"),
+    ({"diffusion": {"types": ["acrylic"]}}, "diffusion.types ['acrylic']: only test-split materials have that type"),
+    ({"baselines": {"vae_a": {"context": 5000}}}, "baselines.vae_a.context 5000 + queries"),
+    ({"btf": {"pca": {"components": 10, "fit_texels": 4}}}, "btf.pca.components 10 exceeds btf.pca.fit_texels 4"),
+    ({"merl": {"url": "http://x/{nam}.binary"}}, "merl.url 'http://x/{nam}.binary': KeyError 'nam'"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
@@ -251,6 +261,10 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     ({"augmerl": {"figure_pair": ["nickel"]}}, "augmerl.figure_pair", "['nickel'] is not valid"),
     ({"btf": {"methods": []}}, "btf.methods", "[] should be non-empty"),
     ({"constrained": {"categories": []}}, "constrained.categories", "[] should be non-empty"),
+    # an empty guidance sweep failed in conditions_section (pandas' EmptyDataError); run ".."
+    # wrote every output into the checkout
+    ({"conditions": {"sweep": {"scales": []}}}, "conditions.sweep.scales", "[] should be non-empty"),
+    ({"run": ".."}, "run", "'..' does not match"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

@@ -105,24 +105,31 @@ def template_id(rows: pd.DataFrame) -> int:
     return int(hit[0])
 
 
-def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
-    """Draw `n_interp` (row_a, row_b, weight_a) triples inside splits, in proportion to their size.
-
-    Rows of different source materials are paired when the split has more than one source."""
-    rng = np.random.default_rng(seed_for(seed, "augmerl_pairs"))
+def interpolation_counts(rows: pd.DataFrame, n_interp: int) -> dict[str, int]:
+    """Interpolations per split (plan_pairs draws them): `n_interp` in proportion to the
+    splits' rows, none in a split of one row (one source, no permutations)."""
     splits = sorted(rows["split"].unique())
     sizes = np.array([(rows["split"] == s).sum() for s in splits])
-    sizes[sizes < 2] = 0  # a split of one row (one source, no permutations) has no pair
+    sizes[sizes < 2] = 0  # a split of one row has no pair
     if n_interp > 0 and not sizes.any():
         raise ValueError(f"{n_interp} interpolations asked (augmerl.size), but no split has two "
                          f"rows to mix: set augmerl.permutations: true, add source materials, "
                          f"or set augmerl.size <= {len(rows)}")
     if not sizes.any():
-        return []
+        return {s: 0 for s in splits}
     counts = np.floor(n_interp * sizes / sizes.sum()).astype(int)
     counts[np.argmax(sizes)] += n_interp - counts.sum()
+    return dict(zip(splits, counts.tolist()))
+
+
+def plan_pairs(rows: pd.DataFrame, n_interp: int, seed: int):
+    """Draw `n_interp` (row_a, row_b, weight_a) triples inside splits, in proportion to their size.
+
+    Rows of different source materials are paired when the split has more than one source."""
+    rng = np.random.default_rng(seed_for(seed, "augmerl_pairs"))
+    counts = interpolation_counts(rows, n_interp)
     pairs = []
-    for s, n in zip(splits, counts):
+    for s, n in counts.items():
         idx = np.flatnonzero(rows["split"].to_numpy() == s)
         src = rows["sources"].to_numpy()
         multi = len(set(src[idx])) > 1

@@ -207,9 +207,24 @@ def pca_a_mem_mb():
     return int(3000 + 38 * 3 * tables * bins / 1e6)
 # the template material (fit first; its weights start every other fit): the first train-split
 # original, from the split augmerl_pca draws (the same function, config and seed)
-TEMPLATE_ID = _augment.template_id(_augment.plan_rows(
+_PLANNED_ROWS = _augment.plan_rows(
     MERL, config["augmerl"]["permutations"],
-    _augment.split_sources(MERL_NAMES, config["augmerl"]["test_fraction"], seed_for("augmerl"))))
+    _augment.split_sources(MERL_NAMES, config["augmerl"]["test_fraction"], seed_for("augmerl")))
+TEMPLATE_ID = _augment.template_id(_PLANNED_ROWS)
+
+
+def split_sizes():
+    """Rows of the train and test splits of the manifest augmerl_pca will write (the same
+    split, rows and interpolation counts), known before any job runs."""
+    rows = _PLANNED_ROWS
+    mixes = _augment.interpolation_counts(rows, augmerl_count() - len(rows))
+    return {s: int((rows["split"] == s).sum()) + mixes.get(s, 0) for s in ("train", "test")}
+
+
+def train_split_types():
+    """Types of the source materials in the train split (what a type-conditioned draw needs)."""
+    rows = _PLANNED_ROWS
+    return set(rows.loc[rows["split"] == "train", "type"]) - {""}
 TEMPLATE_SHARD = f"{TEMPLATE_ID // config['augmerl']['shard_size']:03d}"
 
 
@@ -310,9 +325,35 @@ def check_cross_keys():
                       f"name, <name>@<permutation>, or " + (f"mix0000 to mix{n_mix - 1:04d}" if n_mix
                                                            else "no mixNNNN: augmerl.size adds none") + ")")
     missing = sorted(set(d["types"]) - set(MERL["type"]))
+    trained = train_split_types()
     if missing:
-        errors.append(f"diffusion.types {missing}: no material of this run has that type "
-                      f"(config/merl_materials.tsv's `type` column)")
+        errors.append(f"diffusion.types {missing}: no material of this run has that type; its "
+                      f"types: {sorted(set(MERL['type']) - {''})}")
+    elif set(d["types"]) - trained:
+        errors.append(f"diffusion.types {sorted(set(d['types']) - trained)}: only test-split "
+                      f"materials have that type, so no model trains on it; types in training: "
+                      f"{sorted(trained)}")
+    # Table 2: the reference set is the test split; its sanity row splits it into two halves
+    # of at least 2, and the Training-set column draws metrics.draws subsets of >= 2 rows
+    sizes, draws = split_sizes(), config["metrics"]["draws"]
+    if sizes["test"] < 4:
+        errors.append(f"the test split holds {sizes['test']} materials (augmerl.test_fraction, the "
+                      f"source materials, augmerl.permutations, augmerl.size); Table 2's sanity "
+                      f"row splits it into two halves of at least 2: give it at least 4")
+    if sizes["train"] < 2 * draws:
+        errors.append(f"the train split holds {sizes['train']} materials, too few for "
+                      f"metrics.draws {draws} Training-set subsets of at least 2")
+    if d["export_merl"] > sizes["test"] * draws:
+        errors.append(f"diffusion.export_merl {d['export_merl']} exceeds the samples a set holds "
+                      f"({sizes['test']} test materials x metrics.draws {draws})")
+    for key, pattern, names in (("merl.url", config["merl"]["url"], ("name",)),
+                                ("ubo2014.url", config["ubo2014"]["url"],
+                                 ("name", "category", "file"))):
+        try:
+            pattern.format(**{n: "x" for n in names})
+        except (KeyError, IndexError, ValueError) as e:
+            errors.append(f"{key} {pattern!r}: {type(e).__name__} {e} in its placeholders; it "
+                          f"may use {', '.join('{' + n + '}' for n in names)}")
     # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
     # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
     hb, stored = config["hyperbrdf"], config["augmerl"]["bins"]
@@ -353,6 +394,16 @@ def check_cross_keys():
     if t["medium_peak"] is not None and t["high_peak"] is not None and t["medium_peak"] > t["high_peak"]:
         errors.append(f"constrained.thresholds.medium_peak {t['medium_peak']} exceeds high_peak "
                       f"{t['high_peak']}: no material could be medium-specular")
+    va = config["baselines"]["vae_a"]
+    limit = min(va["bins"], stored) if stored is not None else va["bins"]
+    if va["context"] + va["queries"] > limit:
+        errors.append(f"baselines.vae_a.context {va['context']} + queries {va['queries']} exceed "
+                      f"the {limit} bins VAE-A keeps per material (min of baselines.vae_a.bins "
+                      f"and augmerl.bins); the queries are other bins than the context's")
+    bp = config["btf"]["pca"]
+    if bp["components"] > bp["fit_texels"]:
+        errors.append(f"btf.pca.components {bp['components']} exceeds btf.pca.fit_texels "
+                      f"{bp['fit_texels']} (the texels the basis is fitted on)")
     if errors:
         raise ValueError("bad config: " + "; ".join(errors))
 
