@@ -68,6 +68,8 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     ({"baselines": {"vae_a": {"context": 5000}}}, "baselines.vae_a.context 5000 + queries"),
     ({"btf": {"pca": {"components": 10, "fit_texels": 4}}}, "btf.pca.components 10 exceeds btf.pca.fit_texels 4"),
     ({"merl": {"url": "http://x/{nam}.binary"}}, "merl.url 'http://x/{nam}.binary': KeyError 'nam'"),
+    ({"constrained": {"per_category": 100, "budget": 16}}, "constrained.per_category 100 exceeds constrained.budget 16"),
+    ({"btf": {"tiling": {"lights": [[0.5, 0.5, 0.0]]}}}, "btf.tiling.lights [[0.5, 0.5, 0.0]]: on or below the plane"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
@@ -265,6 +267,8 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     # wrote every output into the checkout
     ({"conditions": {"sweep": {"scales": []}}}, "conditions.sweep.scales", "[] should be non-empty"),
     ({"run": ".."}, "run", "'..' does not match"),
+    ({"conditions": {"text": {"prompts": [""]}}}, "conditions.text.prompts.0", "'' should be non-empty"),
+    ({"metrics": {"models": []}}, "metrics.models", "[] should be non-empty"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

@@ -400,6 +400,12 @@ def check_cross_keys():
         errors.append(f"baselines.vae_a.context {va['context']} + queries {va['queries']} exceed "
                       f"the {limit} bins VAE-A keeps per material (min of baselines.vae_a.bins "
                       f"and augmerl.bins); the queries are other bins than the context's")
+    if c["per_category"] > c["budget"]:
+        errors.append(f"constrained.per_category {c['per_category']} exceeds constrained.budget "
+                      f"{c['budget']} (samples drawn per category): no category could complete")
+    low = [li for li in config["btf"]["tiling"]["lights"] if li[2] <= 0]
+    if low:
+        errors.append(f"btf.tiling.lights {low}: on or below the plane (z = 0); give z > 0")
     bp = config["btf"]["pca"]
     if bp["components"] > bp["fit_texels"]:
         errors.append(f"btf.pca.components {bp['components']} exceeds btf.pca.fit_texels "
