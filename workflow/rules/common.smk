@@ -211,6 +211,7 @@ _PLANNED_ROWS = _augment.plan_rows(
     MERL, config["augmerl"]["permutations"],
     _augment.split_sources(MERL_NAMES, config["augmerl"]["test_fraction"], seed_for("augmerl")))
 TEMPLATE_ID = _augment.template_id(_PLANNED_ROWS)
+TEMPLATE_SHARD = f"{TEMPLATE_ID // config['augmerl']['shard_size']:03d}"
 
 
 def split_sizes():
@@ -225,7 +226,6 @@ def train_split_types():
     """Types of the source materials in the train split (what a type-conditioned draw needs)."""
     rows = _PLANNED_ROWS
     return set(rows.loc[rows["split"] == "train", "type"]) - {""}
-TEMPLATE_SHARD = f"{TEMPLATE_ID // config['augmerl']['shard_size']:03d}"
 
 
 def augmerl_shards():
@@ -353,7 +353,7 @@ def check_cross_keys():
             pattern.format(**{n: "x" for n in names})
         except (KeyError, IndexError, ValueError) as e:
             errors.append(f"{key} {pattern!r}: {type(e).__name__} {e} in its placeholders; it "
-                          f"may use {', '.join('{' + n + '}' for n in names)}")
+                          f"may use {', '.join(f'{{{n}}}' for n in names)}")
     # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
     # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
     hb, stored = config["hyperbrdf"], config["augmerl"]["bins"]
