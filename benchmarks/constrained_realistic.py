@@ -12,9 +12,7 @@ Outputs under benchmarks/out/constrained_realistic/run/.
 """
 
 import argparse
-import platform
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -27,18 +25,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 import diffusion_realistic as dr  # noqa: E402
 
 from neumat import constrained as C  # noqa: E402
+from neumat import machine  # noqa: E402
 from neumat.diffusion import Sampler  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = ROOT / "benchmarks/out/constrained_realistic/run"
-
-
-def cpu_model():
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-        return next(l.split(":", 1)[1].strip() for l in out.splitlines() if l.startswith("Model name"))
-    except Exception:
-        return platform.processor() or "unknown"
 
 
 def main():
@@ -87,7 +78,7 @@ def main():
     acc = pd.DataFrame(rows)
     acc.to_csv(RUN / "constrained/acceptance.tsv", sep="\t", index=False, float_format="%.4g")
     print(acc.drop(columns=["seconds"]).to_markdown(index=False, floatfmt=".3f"))
-    print(f"machine: {cpu_model()}, {platform.machine()}, torch threads {torch.get_num_threads()}")
+    print(f"machine: {machine.describe()}, torch threads {torch.get_num_threads()}")
 
 
 if __name__ == "__main__":

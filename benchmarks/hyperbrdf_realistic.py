@@ -23,8 +23,6 @@ Outputs (and checkpoints: a killed `train` resumes) under benchmarks/out/hyperbr
 
 import argparse
 import json
-import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -32,7 +30,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from neumat import augment, fit, nbrdf
+from neumat import augment, fit, machine, nbrdf
 from neumat.baselines import hyperbrdf as hb
 from neumat.io import merl
 from neumat.io.atomic import save_npy
@@ -104,6 +102,7 @@ def cmd_train(args):
     cfg = hb.HyperTrainConfig(steps=args.steps, lr=args.lr, materials_per_step=args.batch,
                               context=args.context, query=args.query, checkpoint_every=50,
                               log_every=50)
+    print(f"machine: {machine.describe()}; torch threads {torch.get_num_threads()}")
     print(f"{args.model}: {len(tv)} training materials x {len(bins)} bins, {cfg}", flush=True)
     import logging
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -150,9 +149,7 @@ def cmd_evaluate(args):
     scores.to_csv(OUT / "scores.tsv", sep="\t", index=False, float_format="%.6g")
     table.to_csv(OUT / "table3.csv", index=False, float_format="%.6g")
     bundles = {m: torch.load(OUT / f"{m}.pt", weights_only=True) for m in ("merl", "augmerl")}
-    cpu = subprocess.run(["sh", "-c", "lscpu | grep 'Model name'"], capture_output=True,
-                         text=True).stdout.strip()
-    print(f"machine: {cpu}; {platform.machine()}; torch threads {args.threads}")
+    print(f"machine: {machine.describe()}; torch threads {args.threads}")
     print(f"test sources ({len(test)}): {', '.join(tnames)}")
     for m, b in bundles.items():
         print(f"train {m}: {b['n_train']} materials, {b['train_cfg']['steps']} steps x "
