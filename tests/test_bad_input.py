@@ -65,15 +65,30 @@ def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
      "the test split holds 2 materials"),
     ({"diffusion": {"export_merl": 40}}, "diffusion.export_merl 40 exceeds the samples a set holds (16 test materials x metrics.draws 2)"),
     ({"diffusion": {"types": ["acrylic"]}}, "diffusion.types ['acrylic']: only test-split materials have that type"),
-    ({"baselines": {"vae_a": {"context": 5000}}}, "baselines.vae_a.context 5000 + queries"),
-    ({"btf": {"pca": {"components": 10, "fit_texels": 4}}}, "btf.pca.components 10 exceeds btf.pca.fit_texels 4"),
-    ({"merl": {"url": "http://x/{nam}.binary"}}, "merl.url 'http://x/{nam}.binary': KeyError 'nam'"),
-    ({"constrained": {"per_category": 100, "budget": 16}}, "constrained.per_category 100 exceeds constrained.budget 16"),
-    ({"btf": {"tiling": {"lights": [[0.5, 0.5, 0.0]]}}}, "btf.tiling.lights [[0.5, 0.5, 0.0]]: on or below the plane"),
 ])
 def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
     assert rc != 0 and "bad config: " in text and says in text, text[-2000:]
+    assert not (tmp_path / "results").exists()
+
+
+def test_independent_bad_keys_are_refused_together(tmp_path):
+    """Each failed in a job (train_vae, btf_pca, every download with a bare KeyError,
+    sample_constrained spending its budget, the tiling renders): one dry run names them all, a
+    clause each (one run, not five: each dry run costs a DAG build)."""
+    extra = {"baselines": {"vae_a": {"context": 5000}},
+             "btf": {"pca": {"components": 10, "fit_texels": 4},
+                     "tiling": {"lights": [[0.5, 0.5, 0.0]]}},
+             "merl": {"url": "http://x/{nam}.binary"},
+             "constrained": {"per_category": 100, "budget": 16}}
+    rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
+    assert rc != 0 and "bad config: " in text, text[-2000:]
+    for says in ("baselines.vae_a.context 5000 + queries",
+                 "btf.pca.components 10 exceeds btf.pca.fit_texels 4",
+                 "merl.url 'http://x/{nam}.binary': KeyError 'nam'",
+                 "constrained.per_category 100 exceeds constrained.budget 16",
+                 "btf.tiling.lights [[0.5, 0.5, 0.0]]: on or below the plane"):
+        assert says in text, (says, text[-2000:])
     assert not (tmp_path / "results").exists()
 
 
