@@ -15,40 +15,34 @@ from functools import cache
 from pathlib import Path
 
 
-@cache
-def cpu_model() -> str:
-    """The CPU's model name (lscpu's "Model name"), or the platform's processor string."""
+def _cpuinfo(keys) -> str | None:
+    """The value of the first /proc/cpuinfo line starting with `keys` (a prefix or a tuple of
+    them), or None (no such line, no /proc/cpuinfo)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
+            if line.startswith(keys):
                 return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return platform.processor() or platform.machine()
+    return None
+
+
+@cache
+def cpu_model() -> str:
+    """The CPU's model name (lscpu's "Model name"), or the platform's processor string."""
+    return _cpuinfo("model name") or platform.processor() or platform.machine()
 
 
 @cache
 def cpu_flags() -> frozenset[str]:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(("flags", "Features")):
-                return frozenset(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return frozenset()
+    return frozenset((_cpuinfo(("flags", "Features")) or "").split())
 
 
 @cache
 def cpu_vendor() -> str:
     """The CPU's vendor id (/proc/cpuinfo's vendor_id, e.g. "GenuineIntel", "AuthenticAMD"),
     or "" where it does not say."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("vendor_id"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return ""
+    return _cpuinfo("vendor_id") or ""
 
 
 def _isa_name(has) -> str:
