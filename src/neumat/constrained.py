@@ -138,8 +138,8 @@ def field_stats(weights: np.ndarray, names=None, activation: str = "relu", bins:
     A block of fields goes through a chunk of bins a pass, about `points_per_pass` field-bin
     pairs in all (on the CPU 2^15, as nbrdf.materials_per_pass; on a GPU 2^22). Passes of 2^22
     pairs mapped and zeroed fresh pages for their ~0.35 GB of activations every time: 64 fields
-    at 65,536 bins took 3.5-4.1x as long (benchmarks/plausibility.py, 1-2 threads; AMD EPYC
-    AVX-512, 2026-11-26); 2400 fields at 65,536 bins in one pass took 21 GB and were
+    at 65,536 bins took 4.38x as long (`OMP_NUM_THREADS=1 python benchmarks/plausibility.py`;
+    AMD EPYC AVX-512, 2026-11-26; README "Benchmarks"); 2400 fields at 65,536 bins in one pass took 21 GB and were
     OOM-killed in the default-config run. Non-finite weights give NaN statistics (no category)."""
     weights = np.asarray(weights, dtype=np.float32).reshape(-1, nbrdf.N_PARAMS)
     names = names if names is not None else [str(i) for i in range(len(weights))]

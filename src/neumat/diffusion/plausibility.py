@@ -61,8 +61,9 @@ def plausibility(weights: np.ndarray, reference_max: float | None = None, n_angl
     max_albedo (largest directional albedo over directions and channels), passivity_violation
     (max_albedo > 1 + albedo_tol; the tolerance absorbs quadrature error, ~1e-4 for a
     Lambertian BRDF on the default grid). `block` materials per NBRDF pass (default
-    `nbrdf.materials_per_pass`, 1-2 materials: 64 materials' checks took 3.7-4.1x as long at
-    64 a pass, benchmarks/plausibility.py); the values do not depend on it beyond float64
+    `nbrdf.materials_per_pass`, 1-2 materials: 64 materials' checks took 4.24x as long at 64 a
+    pass, `OMP_NUM_THREADS=1 python benchmarks/plausibility.py`, AMD EPYC AVX-512, 2026-11-26,
+    README "Benchmarks"); the values do not depend on it beyond float64
     rounding in the albedo sums (2.7e-15 there)."""
     weights = np.asarray(weights, dtype=np.float32)
     rng = np.random.default_rng(seed)
