@@ -461,6 +461,10 @@ rule conditions_mitsuba:
         "../scripts/conditions_mitsuba.py"
 
 
+COND_REFINED = [m for m, on in (("type", TYPE_REFINER), ("text", TEXT_REFINER),
+                                ("image", IMAGE_REFINER)) if on]
+
+
 rule conditions_section:
     input:
         per_sample=out("conditions/eval_per_sample.tsv"),
@@ -484,10 +488,10 @@ rule conditions_section:
         sweep=report(out("report/figures/conditions_guidance.png"), category="Conditioning",
                      caption="../report/conditions_guidance.rst"),
     params:
-        guidance=settings("conditions.guidance") if isinstance(COND["guidance"], dict) else COND["guidance"],
-        # modalities whose samples the refiner drew (no condition, so no guidance)
-        refined=[m for m, on in (("type", TYPE_REFINER), ("text", TEXT_REFINER),
-                                 ("image", IMAGE_REFINER)) if on],
+        # modalities whose samples the refiner drew (no condition, so no guidance scale: only
+        # the others' scales are params, so a refined modality's scale reruns nothing here)
+        refined=COND_REFINED,
+        guidance={k: v for k, v in settings("conditions.guidance").items() if k not in COND_REFINED},
         image_sampling=image_sampling(),
     log:
         log("conditions_section"),

@@ -30,7 +30,7 @@ def guidance_text(scales, refined) -> str:
     """Each modality's guidance scale, or that the refiner (which takes no condition) drew its
     samples, so no scale applied (the guidance sweep still uses the multimodal model)."""
     return ", ".join(f"{k}: none, its samples drawn by the refiner without a condition"
-                     if k in refined else f"{k} {v}" for k, v in scales.items())
+                     if k in refined else f"{k} {scales[k]}" for k in ("type", "text", "image"))
 
 
 with script_logging(snakemake) as log:
