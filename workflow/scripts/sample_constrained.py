@@ -2,12 +2,17 @@
 `per_category` samples fall into it or `budget` draws are spent (unconditionally, type-guided
 or with category guidance, whichever accepted most in a pilot batch) -> samples/constrained/
 (weights.npy, samples.tsv with each sample's category and statistics) and
-constrained/acceptance.tsv (acceptance rate per category; incomplete categories say so)."""
+constrained/acceptance.tsv (acceptance rate per category; incomplete categories say so).
+Each finished category is kept in draws.partial/ beside the output (neumat.diffusion.draws): a
+killed job resumes at its next category, and the folder goes once the output is written."""
+import json
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 
 from neumat import constrained
-from neumat.diffusion import Sampler, dataset
+from neumat.diffusion import Sampler, dataset, draws
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.seeds import seed_for
@@ -26,6 +31,12 @@ with script_logging(snakemake) as log:
     bins = constrained.grid_bins(cfg["bins"], p.seed)
     # a param only where it acts (guide auto, a guided category listed); none: the paper's setting
     step = cfg.get("guidance_step", 0.0)
+    # a category's draws depend on the model, the manifest (trained types), the derived rules,
+    # the source classes and the settings
+    cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
+        [inp.model, inp.manifest, inp.rules, inp.classes],
+        {"cfg": cfg, "sample": p.sample, "seed": p.seed, "activation": p.activation,
+         "device": snakemake.config["device"]}))
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:
         types = [t for t in guides[cat] if t in sampler.class_names and t in trained] \
@@ -34,20 +45,33 @@ with script_logging(snakemake) as log:
         if cfg["guide"] == "auto" and untrained:
             log.info("%s: guide types %s left out: no training material has them", cat,
                      ", ".join(untrained))
-        r = constrained.sample_category(sampler, cat, th, cfg["per_category"], cfg["budget"],
-                                        cfg["batch"], seed_for(p.seed, "category", cat), p.sample,
-                                        types, bins, p.activation,
-                                        guidance_step=step)
-        row = constrained.acceptance_row(r, cfg["per_category"])
+
+        def draw(cat=cat, types=types):
+            r = constrained.sample_category(sampler, cat, th, cfg["per_category"],
+                                            cfg["budget"], cfg["batch"],
+                                            seed_for(p.seed, "category", cat), p.sample, types,
+                                            bins, p.activation, guidance_step=step)
+            # each sample's own mode (a pilot's hits are kept first, whatever mode won after it)
+            t = r.stats.drop(columns="name").assign(category=cat)
+            t = t.assign(guide=t.pop("guide"))
+            # the table column by column (each keeps its dtype, an empty one too; strings as
+            # unicode arrays: no pickle) and the acceptance row as JSON
+            cols = {f"col_{c}": (t[c].to_numpy() if pd.api.types.is_numeric_dtype(t[c])
+                                 else t[c].to_numpy().astype(str)) for c in t.columns}
+            return {"w": r.weights, "columns": np.array(json.dumps(list(t.columns))), **cols,
+                    "row": np.array(json.dumps(constrained.acceptance_row(r, cfg["per_category"]),
+                                               default=lambda x: x.item()))}  # numpy scalars
+
+        got = cache.get(cat, draw)
+        row = json.loads(str(got["row"]))
         rows.append(row)
         log.info("%s", row)
-        weights.append(r.weights)
-        # each sample's own mode (a pilot's hits are kept first, whatever mode won after it)
-        t = r.stats.drop(columns="name").assign(category=cat)
-        tables.append(t.assign(guide=t.pop("guide")))
+        weights.append(got["w"])
+        tables.append(pd.DataFrame({c: got[f"col_{c}"] for c in json.loads(str(got["columns"]))}))
     w = np.concatenate(weights).astype(np.float32)
     save_npy(out.weights, w)
     table = pd.concat(tables, ignore_index=True)
     table.insert(0, "sample", np.arange(len(table)))
     table.to_csv(out.table, sep="\t", index=False, float_format="%.6g")
     pd.DataFrame(rows).to_csv(out.acceptance, sep="\t", index=False, float_format="%.4g")
+    cache.clear()  # written: the kept categories are no longer needed

@@ -1,7 +1,8 @@
 """Finished draws of a sampling job, kept beside its output so that a killed job resumes at its
-next draw. A draw is a pure function of its seed, the model and the settings (the `fingerprint`),
-so the resumed job writes what an unkilled one writes (tests/test_diffusion_draws.py); the job
-removes the folder once its output is written."""
+next draw. A draw (of a seed, or of a constrained-synthesis category) is a pure function of its
+key, the model and the settings (the `fingerprint`), so the resumed job writes what an unkilled
+one writes (tests/test_diffusion_draws.py); the job removes the folder once its output is
+written."""
 
 from __future__ import annotations
 
@@ -30,15 +31,15 @@ def fingerprint(files, settings: dict) -> str:
 
 
 class DrawCache:
-    """draw_<seed>.npz files in `folder`, each with the fingerprint it was made for."""
+    """draw_<key>.npz files in `folder`, each with the fingerprint it was made for."""
 
     def __init__(self, folder: str | Path, fp: str):
         self.folder, self.fp = Path(folder), fp
 
-    def get(self, seed: int, make: Callable[[], dict]) -> dict:
-        """The arrays of draw `seed`: from its file when that was made for this fingerprint,
-        else `make()`'s (name -> array), saved first. A file of other settings or one that
-        cannot be read is logged and replaced."""
+    def get(self, seed: int | str, make: Callable[[], dict]) -> dict:
+        """The arrays of draw `seed` (a seed, or another key such as a category name): from its
+        file when that was made for this fingerprint, else `make()`'s (name -> array), saved
+        first. A file of other settings or one that cannot be read is logged and replaced."""
         f = self.folder / f"draw_{seed}.npz"
         if f.exists():
             try:
