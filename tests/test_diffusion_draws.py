@@ -34,5 +34,11 @@ def test_draws_resume_only_for_their_fingerprint(tmp_path, caplog):
     with caplog.at_level("WARNING"):
         other.get(6, lambda: make(6))
     assert made == [5, 6, 5, 6] and "draw_6.npz: unreadable" in caplog.text
+    # a category name as the key (constrained synthesis), resumed with its log line
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        other.get("low-specular", lambda: make(7))
+        other.get("low-specular", lambda: make(7))
+    assert made == [5, 6, 5, 6, 7] and "draw low-specular: resumed from" in caplog.text
     other.clear()
     assert not (tmp_path / "draws.partial").exists()

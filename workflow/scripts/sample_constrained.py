@@ -36,7 +36,7 @@ with script_logging(snakemake) as log:
     cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
         [inp.model, inp.manifest, inp.rules, inp.classes],
         {"cfg": cfg, "sample": p.sample, "seed": p.seed, "activation": p.activation,
-         "device": snakemake.config["device"]}))
+         "device": str(sampler.device)}))  # resolved: auto differs between nodes
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:
         types = [t for t in guides[cat] if t in sampler.class_names and t in trained] \

@@ -76,7 +76,7 @@ with script_logging(snakemake) as log:
         cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
             [snakemake.input.model, snakemake.input.manifest],
             {"sample": s, "look": look, "look_resolution": p.cfg.get("look_resolution"),
-             "activation": p.activation, "device": snakemake.config["device"]}))
+             "activation": p.activation, "device": str(sampler.device)}))  # resolved: auto
         done = [cache.get(seed, lambda seed=seed: one_draw(seed)) for seed in p.seeds]
         w = np.concatenate([d["w"] for d in done])
         kept = [d["kept"] for d in done if "kept" in d]

@@ -45,7 +45,7 @@ class DrawCache:
             try:
                 with np.load(f, allow_pickle=False) as z:
                     if str(z["fingerprint"]) == self.fp:
-                        log.info("draw %d: resumed from %s", seed, f)
+                        log.info("draw %s: resumed from %s", seed, f)
                         return {k: z[k] for k in z.files if k != "fingerprint"}
                 log.info("%s: made for another model or settings; drawing again", f)
             except NPZ_ERRORS as e:
