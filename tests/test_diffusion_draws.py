@@ -42,3 +42,22 @@ def test_draws_resume_only_for_their_fingerprint(tmp_path, caplog):
     assert made == [5, 6, 5, 6, 7] and "draw low-specular: resumed from" in caplog.text
     other.clear()
     assert not (tmp_path / "draws.partial").exists()
+
+
+def test_a_table_round_trips_through_a_draw_file_with_its_dtypes(tmp_path):
+    """Constrained synthesis keeps each category's statistics in its draw file: every column
+    comes back with its values and dtype, an empty table's float columns too (as CSV text they
+    came back as object columns, which lost the output's float formatting)."""
+    import pandas as pd
+
+    from neumat.io.atomic import save_npz
+    t = pd.DataFrame({"mean_r": [0.123456789, 2.5], "n_valid": [5, 7], "ok": [True, False],
+                      "guide": ["unconditional", "type: fabric"]})
+    for part in (t, t.iloc[:0]):
+        save_npz(tmp_path / "d.npz", **draws.table_arrays(part))
+        with np.load(tmp_path / "d.npz", allow_pickle=False) as z:
+            back = draws.table({k: z[k] for k in z.files})
+        assert list(back.columns) == list(t.columns)
+        for c in ("mean_r", "n_valid", "ok"):
+            assert back[c].dtype == part[c].dtype and back[c].tolist() == part[c].tolist()
+        assert back["guide"].tolist() == part["guide"].tolist()

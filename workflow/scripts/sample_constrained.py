@@ -54,20 +54,17 @@ with script_logging(snakemake) as log:
             # each sample's own mode (a pilot's hits are kept first, whatever mode won after it)
             t = r.stats.drop(columns="name").assign(category=cat)
             t = t.assign(guide=t.pop("guide"))
-            # the table column by column (each keeps its dtype, an empty one too; strings as
-            # unicode arrays: no pickle) and the acceptance row as JSON
-            cols = {f"col_{c}": (t[c].to_numpy() if pd.api.types.is_numeric_dtype(t[c])
-                                 else t[c].to_numpy().astype(str)) for c in t.columns}
-            return {"w": r.weights, "columns": np.array(json.dumps(list(t.columns))), **cols,
-                    "row": np.array(json.dumps(constrained.acceptance_row(r, cfg["per_category"]),
-                                               default=lambda x: x.item()))}  # numpy scalars
+            # the acceptance row as JSON (numpy scalars as numbers)
+            row = json.dumps(constrained.acceptance_row(r, cfg["per_category"]),
+                             default=lambda x: x.item())
+            return {"w": r.weights, **draws.table_arrays(t), "row": np.array(row)}
 
         got = cache.get(cat, draw)
         row = json.loads(str(got["row"]))
         rows.append(row)
         log.info("%s", row)
         weights.append(got["w"])
-        tables.append(pd.DataFrame({c: got[f"col_{c}"] for c in json.loads(str(got["columns"]))}))
+        tables.append(draws.table(got))
     w = np.concatenate(weights).astype(np.float32)
     save_npy(out.weights, w)
     table = pd.concat(tables, ignore_index=True)

@@ -14,8 +14,6 @@
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
 import time
 from pathlib import Path
@@ -181,14 +179,6 @@ def load(path) -> nn.Module:
 CHECKPOINT_SECONDS = 30.0  # between checkpoints: when state is saved, not what it computes
 
 
-def fingerprint(data: np.ndarray, seed: int, **settings) -> str:
-    """What a checkpoint was written for: the training data and every setting, so a changed
-    one starts over rather than resuming another training."""
-    h = hashlib.sha256(np.ascontiguousarray(data, dtype=np.float32))
-    h.update(json.dumps([settings, seed], sort_keys=True, default=float).encode())
-    return h.hexdigest()
-
-
 def _adam_loop(model, batch_loss, steps: int, lr: float, log, generator: torch.Generator,
                checkpoint=None, fp: str | None = None, log_every: int = 100):
     """Adam with grad-norm clip 1 (HyperBRDF); returns rows (step, loss, rec, kl). With
@@ -227,8 +217,9 @@ def _adam_loop(model, batch_loss, steps: int, lr: float, log, generator: torch.G
 def train_weight_vae(weights, *, latent, hidden, steps, batch_size, lr, beta, seed, log=None,
                      checkpoint=None):
     """VAE-N on NeuMERL training weights (n, 675); `checkpoint`: see _adam_loop."""
-    fp = fingerprint(weights, seed, kind="vae_n", latent=latent, hidden=hidden, steps=steps,
-                     batch_size=batch_size, lr=lr, beta=beta)
+    fp = modelfile.fingerprint([weights], dict(
+        kind="vae_n", latent=latent, hidden=hidden, steps=steps, batch_size=batch_size, lr=lr,
+        beta=beta, seed=seed))
     torch.manual_seed(seed)
     w = torch.as_tensor(np.asarray(weights), dtype=torch.float32)
     model = WeightVAE(latent, hidden, w.mean(0), w.std(0).clamp_min(1e-6))
@@ -247,10 +238,9 @@ def train_set_vae(values, x6, cos_i, *, latent, hidden, steps, batch_size, conte
     neural-field inputs x6 (B, 6) and cos θi (B,). Each step: `batch_size` materials,
     `context` random bins for the encoder and `queries` other random bins for the loss.
     `checkpoint`: see _adam_loop."""
-    fp = fingerprint(np.concatenate([np.ravel(values), np.ravel(x6), np.ravel(cos_i)]), seed,
-                     kind="vae_a", latent=latent, hidden=hidden, steps=steps,
-                     batch_size=batch_size, context=context, queries=queries, lr=lr, beta=beta,
-                     activation=activation)
+    fp = modelfile.fingerprint([values, x6, cos_i], dict(
+        kind="vae_a", latent=latent, hidden=hidden, steps=steps, batch_size=batch_size,
+        context=context, queries=queries, lr=lr, beta=beta, activation=activation, seed=seed))
     torch.manual_seed(seed)
     v = torch.as_tensor(np.asarray(values), dtype=torch.float32).transpose(1, 2)  # (n, B, 3)
     x6 = torch.as_tensor(np.asarray(x6), dtype=torch.float32)

@@ -24,8 +24,6 @@ The embedding (`embed_dim`) is what the diffusion model sees.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import math
 import time
@@ -191,16 +189,6 @@ def _loss(cfg, pred, target):
 CHECKPOINT_SECONDS = 30.0  # between checkpoints: when state is saved, not what it computes
 
 
-def fingerprint(views, weights, text, cfg: ImageEncoderConfig, seed: int) -> str:
-    """What a checkpoint was written for: renders, targets, settings and seed."""
-    h = hashlib.sha256()
-    for a in (views, weights, text):
-        if a is not None:
-            h.update(np.ascontiguousarray(torch.as_tensor(a).float().numpy()))
-    h.update(json.dumps([cfg.to_dict(), seed], sort_keys=True).encode())
-    return h.hexdigest()
-
-
 def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, seed: int,
           text: np.ndarray | None = None, checkpoint=None) -> dict:
     """Train on renders `views` (N, K, H, W, 3) of N materials with weights (N, 675) (and text
@@ -220,7 +208,8 @@ def train(views: torch.Tensor, weights: np.ndarray, cfg: ImageEncoderConfig, see
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     n, k = views.shape[:2]
     history, running, step, elapsed = [], [], 0, 0.0
-    fp = fingerprint(views, weights, text, cfg, seed) if checkpoint else None
+    fp = modelfile.fingerprint([views, weights, text], {"cfg": cfg.to_dict(), "seed": seed}) \
+        if checkpoint else None
     ck = modelfile.resume(checkpoint, fp, model=model, opt=opt, generator=gen) \
         if checkpoint else None
     if ck is not None:

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import pandas as pd
 
 from neumat.io.atomic import NPZ_ERRORS, save_npz
 
@@ -28,6 +29,19 @@ def fingerprint(files, settings: dict) -> str:
         h.update(Path(f).read_bytes())
     h.update(json.dumps(settings, sort_keys=True, default=str).encode())
     return h.hexdigest()
+
+
+def table_arrays(t: pd.DataFrame) -> dict:
+    """A table as arrays a draw file holds without pickle: each column with its dtype (an empty
+    one too), strings as unicode, and the column order as JSON (`table` reads it back)."""
+    cols = {f"col_{c}": (t[c].to_numpy() if pd.api.types.is_numeric_dtype(t[c])
+                         else t[c].to_numpy().astype(str)) for c in t.columns}
+    return {"columns": np.array(json.dumps(list(t.columns))), **cols}
+
+
+def table(arrays: dict) -> pd.DataFrame:
+    """The table `table_arrays` stored."""
+    return pd.DataFrame({c: arrays[f"col_{c}"] for c in json.loads(str(arrays["columns"]))})
 
 
 class DrawCache:

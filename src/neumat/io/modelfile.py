@@ -2,8 +2,11 @@
 `torch.load(weights_only=True)`: tensors and plain values only, never arbitrary pickled objects
 (which would run code on load). Every file neumat writes is of that kind."""
 
+import hashlib
+import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
 
@@ -22,6 +25,18 @@ def load(path: str | Path, map_location="cpu"):
             "and plain values only (torch.load weights_only=True), never pickled objects. If the "
             "file is truncated or from elsewhere, delete it and rebuild it with the snakemake "
             "rule that writes it.") from e
+
+
+def fingerprint(arrays, settings) -> str:
+    """What a training checkpoint was written for: sha256 over `arrays` (their float32 bytes,
+    one after another, without concatenating them; None skipped) and `settings` (JSON), so a
+    changed input or setting starts over rather than resuming another training."""
+    h = hashlib.sha256()
+    for a in arrays:
+        if a is not None:
+            h.update(np.ascontiguousarray(np.asarray(a, dtype=np.float32)))
+    h.update(json.dumps(settings, sort_keys=True, default=float).encode())
+    return h.hexdigest()
 
 
 def require(bundle, keys, source, kind: str) -> dict:
