@@ -317,6 +317,7 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     (["render", "{tmp}/obj.npy", "--out", "{tmp}/x.png"], "neumat loads no pickles"),
     (["render", "{tmp}/str.npy", "--out", "{tmp}/x.png"], "str.npy: holds <U1, not numbers"),
     (["render", "{tmp}/none.npy", "--out", "{tmp}/x.png"], "none.npy: shape (0, 675); expected"),
+    (["render", "{tmp}/nan.npy", "--out", "{tmp}/x.png"], "nan.npy: rows [1] hold NaN or inf (1 of 3)"),
     (["render", "{tmp}/ok.npy", "--out", "{tmp}/noext"], "--out {tmp}/noext: give a PNG file name"),
     (["render", "{tmp}/ok.npy", "--out", "{tmp}/d.png"], "d.png: a directory; give a PNG file name"),
     (["render", "{tmp}/ok.npy", "--out", "{tmp}/afile/x.png"], "afile is a file, not a directory"),
@@ -339,6 +340,9 @@ def test_errors_say_what_to_do(run, tmp_path, capsys, args, message):
     np.save(tmp_path / "obj.npy", np.array([{"w": 1}], dtype=object), allow_pickle=True)
     np.save(tmp_path / "str.npy", np.array(["a"] * nbrdf.N_PARAMS))
     np.save(tmp_path / "none.npy", np.zeros((0, nbrdf.N_PARAMS), np.float32))
+    nan = np.zeros((3, nbrdf.N_PARAMS), np.float32)
+    nan[1, 7] = np.nan  # rendered black, exit 0, before
+    np.save(tmp_path / "nan.npy", nan)
     (tmp_path / "afile").write_text("")
     (tmp_path / "d.png").mkdir()
     args = [a.format(run=run, tmp=tmp_path) for a in args]

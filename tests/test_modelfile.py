@@ -86,3 +86,41 @@ def test_a_model_file_of_another_kind_names_the_file_and_the_rule(tmp_path, load
     torch.save({"a": torch.zeros(2)}, tmp_path / "other.pt")
     with pytest.raises(ValueError, match=rf"other\.pt: not {kind} \(rule.*lacks"):
         loader(tmp_path / "other.pt")
+
+
+def _btf_model_file(path, **args):
+    from neumat.btf.neural import TriplePlane
+    m = TriplePlane(8, 8, dir_res=4, hidden=8, layers=2)
+    btf_models.save(m, path)
+    ck = torch.load(path, weights_only=True)
+    ck["args"].update(args)
+    return m, ck
+
+
+def test_a_model_with_nan_weights_is_refused_by_name(tmp_path):
+    """A shared model file with NaN (a diverged training) loaded silently before: a BTF model
+    was scored as a poor fit, a diffusion model sampled NaN materials into black renders."""
+    _, ck = _btf_model_file(tmp_path / "tp.pt")
+    btf_models.load(tmp_path / "tp.pt")  # sound: loads
+    ck["state"]["f_u"][3, 2, 1] = float("nan")
+    torch.save(ck, tmp_path / "tp.pt")
+    with pytest.raises(ValueError, match=r"tp\.pt: tensor state\.f_u holds NaN or inf"):
+        btf_models.load(tmp_path / "tp.pt")
+    torch.save({"ema": {"w": torch.tensor([1.0, float("inf")])}, "n": 1}, tmp_path / "d.pt")
+    with pytest.raises(ValueError, match=r"d\.pt: tensor ema\.w holds NaN or inf"):
+        Sampler(tmp_path / "d.pt")
+    assert modelfile.load(tmp_path / "d.pt")["n"] == 1  # not asked to check: loads as before
+
+
+def test_a_state_that_does_not_fit_its_config_names_the_file_and_the_rule(tmp_path):
+    """torch's load_state_dict RuntimeError named no file; now each loader says which file and
+    which rule rebuilds it."""
+    from neumat.baselines import hyperbrdf
+    _, ck = _btf_model_file(tmp_path / "tp.pt", width=16)
+    torch.save(ck, tmp_path / "tp.pt")
+    with pytest.raises(ValueError, match=r"tp\.pt: its state does not fit its config .*"
+                                         r"rule btf_triple_plane"):
+        btf_models.load(tmp_path / "tp.pt")
+    torch.save({"a": torch.zeros(2)}, tmp_path / "h.pt")
+    with pytest.raises(ValueError, match=r"h\.pt: not a HyperBRDF model \(rule train_hyperbrdf"):
+        hyperbrdf.load(tmp_path / "h.pt")

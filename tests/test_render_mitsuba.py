@@ -197,3 +197,19 @@ def test_gallery_title_wraps_to_the_grid_width():
     # a single narrow cell: a word longer than the grid widens the canvas, not broken up
     one = gallery.gallery(imgs[:1], ["a"], title="fewer than asked: medium-specular")
     assert one.shape[1] >= 6 * len("medium-specular")
+
+
+def test_a_scene_s_weights_file_is_checked_by_name(tmp_path):
+    """A scene's `.npy` of the wrong shape raised numpy's reshape error, naming no file; NaN
+    weights rendered black."""
+    from neumat import nbrdf
+    from neumat.render.mitsuba_bsdf import material_from_file
+    np.save(tmp_path / "short.npy", np.zeros(21, np.float32))
+    with pytest.raises(ValueError, match=r"short\.npy: holds float32 of shape \(21,\), not NBRDF"):
+        material_from_file(tmp_path / "short.npy")
+    w = np.zeros((2, nbrdf.N_PARAMS), np.float32)
+    w[1, 0] = np.inf
+    np.save(tmp_path / "w.npy", w)
+    assert material_from_file(tmp_path / "w.npy", 0).weights.shape == (nbrdf.N_PARAMS,)
+    with pytest.raises(ValueError, match=r"w\.npy: weight vector 1 holds NaN or inf"):
+        material_from_file(tmp_path / "w.npy", 1)

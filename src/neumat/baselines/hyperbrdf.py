@@ -342,10 +342,13 @@ HISTORY_COLUMNS = ["step", "loss", "mse", "z_reg", "theta_reg"]
 
 def load(bundle, device: str = "cpu") -> HyperBRDF:
     """A trained model from a bundle dict or file (eval mode)."""
+    source = bundle if not isinstance(bundle, dict) else "the HyperBRDF bundle"
     if not isinstance(bundle, dict):
-        bundle = modelfile.load(bundle)
-    model = HyperBRDF(HyperConfig(**bundle["model_cfg"]))
-    model.load_state_dict(bundle["state"])
+        bundle = modelfile.load(bundle, finite=True)
+    rule = "train_hyperbrdf (hyperbrdf/<variant>/model.pt)"
+    modelfile.require(bundle, ("model_cfg", "state"), source, f"a HyperBRDF model (rule {rule})")
+    model = modelfile.build(lambda: HyperBRDF(HyperConfig(**bundle["model_cfg"])),
+                            bundle["state"], source, rule)
     return model.to(device).eval()
 
 

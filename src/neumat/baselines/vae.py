@@ -158,19 +158,13 @@ def save(path, model, kind: str, config: dict) -> None:
 
 
 def load(path) -> nn.Module:
-    ck = modelfile.require(modelfile.load(path), ("kind", "config", "state"), path,
+    ck = modelfile.require(modelfile.load(path, finite=True), ("kind", "config", "state"), path,
                            "a VAE baseline (rule train_vae)")
     cls = {"vae_n": WeightVAE, "vae_a": SetVAE}.get(ck["kind"])
     if cls is None:
         raise ValueError(f"{path}: not a VAE baseline checkpoint (kind {ck['kind']!r})")
-    try:
-        model = cls(**ck["config"])
-        model.load_state_dict(ck["state"])
-    except (TypeError, RuntimeError) as e:  # another config's weights, or an older layout
-        first = str(e).strip().splitlines()[0]
-        raise ValueError(f"{path}: its state does not fit its config ({first}); rebuild it "
-                         f"with rule train_vae") from e
-    return model.eval()
+    # another config's weights, or an older layout: an error naming the file
+    return modelfile.build(lambda: cls(**ck["config"]), ck["state"], path, "train_vae").eval()
 
 
 # ----------------------------------------------------------------------------- training

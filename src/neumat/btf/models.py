@@ -31,19 +31,23 @@ def save(model, path) -> None:
 
 
 def load(path):
-    ck = modelfile.require(modelfile.load(path), ("method", "args", "state"), path,
+    ck = modelfile.require(modelfile.load(path, finite=True), ("method", "args", "state"), path,
                            "a BTF model (rule btf_<method>, e.g. btf_triple_plane)")
     cls = {**NEURAL, **GRID}.get(ck["method"])
     if cls is None:
         raise ValueError(f"{path}: unknown BTF model method {ck['method']!r}; known {METHODS}")
     # built on the meta device and handed the file's tensors (assign): no second, zero-filled
     # copy of a model that can be gigabytes (an SH model of a whole 400 x 400 BTF: 2.4 GB)
-    with torch.device("meta"):
-        model = cls(**ck["args"])
-    model.load_state_dict(ck["state"], assign=True)
+    rule = f"btf_{ck['method']}"
+
+    def on_meta():
+        with torch.device("meta"):
+            return cls(**ck["args"])
+
+    model = modelfile.build(on_meta, ck["state"], path, rule, assign=True)
     if any(t.is_meta for t in (*model.parameters(), *model.buffers())):
-        model = cls(**ck["args"])  # a tensor the state does not hold: build it for real
-        model.load_state_dict(ck["state"])
+        # a tensor the state does not hold: build it for real
+        model = modelfile.build(lambda: cls(**ck["args"]), ck["state"], path, rule)
     return model.eval()
 
 

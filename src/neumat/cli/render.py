@@ -112,7 +112,12 @@ def _read_weights(f: Path) -> np.ndarray:
         raise CLIError(f"{f}: holds {getattr(w, 'dtype', type(w).__name__)}, not numbers; {want}")
     if w.ndim not in (1, 2) or w.shape[-1] != nbrdf.N_PARAMS or w.size == 0:
         raise CLIError(f"{f}: shape {w.shape}; {want}")
-    return w.reshape(-1, nbrdf.N_PARAMS)
+    w = w.reshape(-1, nbrdf.N_PARAMS)
+    bad = np.flatnonzero(~np.isfinite(w).all(1))
+    if len(bad):  # they rendered as black spheres, and the command succeeded
+        raise CLIError(f"{f}: rows {bad[:5].tolist()}{' ...' if len(bad) > 5 else ''} hold NaN "
+                       f"or inf ({len(bad)} of {len(w)}); {want}")
+    return w
 
 
 def cmd_render(args) -> int:

@@ -101,7 +101,7 @@ class Run:
         from neumat.io import modelfile
         rel = f"diffusion/{model}/model.pt"
         try:
-            bundle = modelfile.load(self.path / rel)
+            bundle = modelfile.load(self.path / rel, finite=True)
         except Exception as e:  # refused pickles and bad zips: the cause, under modelfile's error
             raise self.unreadable(rel, model_rule(model), e) from None
         get = bundle.get if isinstance(bundle, dict) else lambda k: None

@@ -249,11 +249,11 @@ def load(bundle) -> ImageEncoder:
     """An encoder from a `train` bundle or its file (weights_only: tensors and plain values)."""
     source = bundle if not isinstance(bundle, dict) else "the encoder bundle"
     if not isinstance(bundle, dict):
-        bundle = modelfile.load(bundle)
+        bundle = modelfile.load(bundle, finite=True)
     modelfile.require(bundle, ("cfg", "head_dim", "state"), source,
                       "an image encoder (rule train_image_encoder: conditions/image_encoder.pt)")
-    model = ImageEncoder(ImageEncoderConfig(**bundle["cfg"]), bundle["head_dim"])
-    model.load_state_dict(bundle["state"])
+    model = modelfile.build(lambda: ImageEncoder(ImageEncoderConfig(**bundle["cfg"]), bundle["head_dim"]),
+                            bundle["state"], source, "train_image_encoder")
     return model.eval()
 
 

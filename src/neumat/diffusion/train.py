@@ -280,17 +280,17 @@ class Sampler:
     def __init__(self, bundle: dict | str | os.PathLike, device: str = "auto"):
         source = bundle if not isinstance(bundle, dict) else "the model bundle"
         if not isinstance(bundle, dict):
-            bundle = modelfile.load(bundle)
+            bundle = modelfile.load(bundle, finite=True)
         modelfile.require(bundle, ("class_names", "model_cfg", "ema", "normalizer", "sched_cfg"),
                           source, "a diffusion model (rules train_diffusion, train_multimodal, "
                           "train_refiner: diffusion/<model>/model.pt)")
         self.device = resolve_device(device)
         self.class_names = bundle["class_names"]
-        self.model = Denoiser(DenoiserConfig.from_dict(bundle["model_cfg"]))
-        self.model.load_state_dict(bundle["ema"])
+        rule = "train_diffusion, train_multimodal or train_refiner"
+        self.model = modelfile.build(lambda: Denoiser(DenoiserConfig.from_dict(bundle["model_cfg"])),
+                                     bundle["ema"], source, rule)
         self.model.to(self.device).eval()
-        self.norm = Normalizer()
-        self.norm.load_state_dict(bundle["normalizer"])
+        self.norm = modelfile.build(Normalizer, bundle["normalizer"], source, rule)
         self.norm.to(self.device)
         self.diffusion = Diffusion(ScheduleConfig(**bundle["sched_cfg"]))
 

@@ -10,14 +10,17 @@ import numpy as np
 import torch
 
 
-def load(path: str | Path, map_location="cpu"):
+def load(path: str | Path, map_location="cpu", finite: bool = False):
     """The contents of a torch file at `path`, refusing anything but tensors and plain values,
-    with an error that names the file and says what to do."""
+    with an error that names the file and says what to do. `finite`: also refuse a floating
+    tensor holding NaN or inf (model files: a shared model with NaN weights would otherwise
+    sample NaN materials and black renders without a word; not for files whose matrices hold
+    inf on purpose, e.g. metrics/reference.pt's distances)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such model file")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        bundle = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as e:  # UnpicklingError for foreign objects, RuntimeError for corrupt zips
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ValueError(
@@ -25,6 +28,28 @@ def load(path: str | Path, map_location="cpu"):
             "and plain values only (torch.load weights_only=True), never pickled objects. If the "
             "file is truncated or from elsewhere, delete it and rebuild it with the snakemake "
             "rule that writes it.") from e
+    if finite:
+        bad = first_non_finite(bundle)
+        if bad is not None:
+            raise ValueError(f"{path}: tensor {bad} holds NaN or inf values, so the model cannot "
+                             f"give valid results; rebuild the file with the snakemake rule that "
+                             f"writes it (a training that diverged: lower its learning rate)")
+    return bundle
+
+
+def first_non_finite(obj, where: str = "") -> str | None:
+    """The key path (e.g. `ema.blocks.0.w`) of the first floating tensor in a nested
+    dict / list holding NaN or inf, or None."""
+    if torch.is_tensor(obj):
+        ok = not obj.is_floating_point() or bool(torch.isfinite(obj).all())
+        return None if ok else (where or "<root>")
+    items = obj.items() if isinstance(obj, dict) else \
+        enumerate(obj) if isinstance(obj, (list, tuple)) else ()
+    for k, v in items:
+        bad = first_non_finite(v, f"{where}.{k}" if where else str(k))
+        if bad is not None:
+            return bad
+    return None
 
 
 def fingerprint(arrays, settings) -> str:
@@ -48,6 +73,20 @@ def require(bundle, keys, source, kind: str) -> dict:
         raise ValueError(f"{source}: not {kind}: it lacks {', '.join(missing)}. Pass the file "
                          f"that rule writes, or rebuild it with that rule.")
     return bundle
+
+
+def build(make, state, source, rule: str, **load_kw):
+    """`make()` with `state` loaded into it, or an error that names the file (`source`) and the
+    rule that rebuilds it where the state does not fit the file's own config (another version's
+    layout, a foreign model), rather than torch's RuntimeError from load_state_dict."""
+    try:
+        model = make()
+        model.load_state_dict(state, **load_kw)
+    except (TypeError, KeyError, RuntimeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"{source}: its state does not fit its config ({first}); rebuild it "
+                         f"with rule {rule}") from e
+    return model
 
 
 def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",

@@ -234,9 +234,15 @@ def material_from_file(path, index: int = 0, activation: str = "relu") -> Materi
     if path.endswith(".binary"):
         return Material(key, table=merl.read_merl(path))
     if path.endswith(".npy"):
-        w = np.load(path).reshape(-1, nbrdf.N_PARAMS)
+        w = np.load(path)  # allow_pickle=False
+        if w.dtype.kind not in "fiu" or w.size == 0 or w.shape[-1] != nbrdf.N_PARAMS:
+            raise ValueError(f"{path}: holds {w.dtype} of shape {w.shape}, not NBRDF weights "
+                             f"(N, {nbrdf.N_PARAMS}) or ({nbrdf.N_PARAMS},)")
+        w = w.reshape(-1, nbrdf.N_PARAMS)
         if not 0 <= index < len(w):
             raise ValueError(f"{path}: holds {len(w)} weight vectors, index {index} asked for")
+        if not np.isfinite(w[index]).all():
+            raise ValueError(f"{path}: weight vector {index} holds NaN or inf")
         return Material(key, weights=w[index].astype(np.float32), activation=activation)
     raise ValueError(f"{path}: {PLUGIN} loads MERL .binary tables or NBRDF weights .npy files")
 
