@@ -364,3 +364,31 @@ def test_tiled_plane_directions_are_in_the_textures_frame():
     u, wi, wo, mask, _ = plane_queries(48, 32, 1.0, [0.0, -3.0, 0.5])
     assert (wi[:, 1] > 0).all()
     assert (wo[:, 1] > 0).all()  # the camera sits at world y = -2.4, in front of the plane
+
+
+def test_fetch_refuses_non_finite_factors_before_recording_the_checksum(tmp_path, tiny_btf):
+    """A first copy with NaN factors had its sha256 pinned in the lock file as the good one;
+    only the fit then said the file was damaged, and fetching again could not mend it."""
+    from neumat.io import dfmf
+    b = dfmf.DFMF(tiny_btf.path)
+    U, SV = b.factors()
+    SV[0][3, 0] = np.nan
+    src = tmp_path / "src"
+    src.mkdir()
+    bad = src / "wood06_resampled_W400xH400_L151xV151.btf"
+    dfmf.write_dfmf(bad, U, SV, b.header.views, b.header.lights, 8, 8,
+                    color_model=b.header.color_model)
+    out, lock = tmp_path / "res" / bad.name, tmp_path / "res" / "lock.tsv"
+    with pytest.raises(dfmf.DFMFError, match=r"channel 0's SV factor hold NaN or inf"):
+        ubo2014.fetch("wood06", out, local_dir=src, lock_file=lock, expect=(8, 8, 151))
+    assert not out.exists() and "wood06" not in (lock.read_text() if lock.exists() else "")
+
+
+def test_a_fit_on_overflowing_colours_fails_naming_the_file(tiny_btf):
+    """Finite factors whose product overflows exp() decoded to inf targets: the fit's losses
+    were NaN, and the model was saved and scored (PSNR NaN)."""
+    data = BTFData(tiny_btf.path)
+    data.SV = [s * 1e4 for s in data.SV]
+    m = models.TriplePlane(8, 8, dir_res=4, hidden=8, layers=2)
+    with pytest.raises(ValueError, match=r"wood\.btf: its decoded colours overflow"):
+        train(m, data, steps=3, batch=64, lr=1e-2, seed=0)

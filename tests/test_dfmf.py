@@ -154,3 +154,15 @@ def test_non_finite_factors_are_refused_naming_the_file(tmp_path):
     with pytest.raises(dfmf.DFMFError, match=r"x\.btf: decoded values hold NaN"):
         b.decode([4], [0], [0])
     assert np.isfinite(b.decode([0], [0], [0])).all()  # the other texels still decode
+
+
+def test_a_non_finite_angle_is_refused_when_the_file_opens(tmp_path):
+    """A NaN view angle opened fine, then a fit failed with an IndexError deep in its fetch."""
+    rng = np.random.default_rng(0)
+    U, SV = _factors(rng, 3, 3, 2)
+    views = ANG.copy()
+    views[2, 0] = np.nan
+    p = tmp_path / "x.btf"
+    dfmf.write_dfmf(p, U, SV, views, ANG, 3, 3, color_model=0, scalar=4)
+    with pytest.raises(dfmf.DFMFError, match=r"x\.btf: corrupt header: view angles hold NaN"):
+        dfmf.DFMF(p)

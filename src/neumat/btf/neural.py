@@ -152,6 +152,17 @@ def fingerprint(model: nn.Module, data, steps: int, batch: int, lr: float, seed:
     return h.hexdigest()
 
 
+def _non_finite(data, target, step):
+    """The error for a non-finite loss: the data's decoded values, or a diverged training."""
+    src = getattr(data, "path", "the BTF")
+    if not torch.isfinite(target).all():
+        raise ValueError(f"{src}: its decoded colours overflow to NaN or inf (finite factors "
+                         f"whose product exceeds float32); the file is damaged: delete it and "
+                         f"fetch it again")
+    raise ValueError(f"{src}: the fit's loss became NaN or inf at step {step + 1}; the "
+                     f"training diverged: lower btf.<method>.lr")
+
+
 def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
           checkpoint: str | os.PathLike | None = None, checkpoint_every: int = 500,
           init_std: float = 0.1) -> list[float]:
@@ -176,6 +187,8 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
         t, l, v, target = data.sample(batch, gen)
         pred = model.raw(data.texel_uv(t), data.light_dirs[l], data.view_dirs[v])
         loss = (pred - torch.log1p(target.clamp_min(0))).abs().mean()
+        if not torch.isfinite(loss):  # saved anyway, a NaN model scored as a poor fit
+            _non_finite(data, target, step)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()

@@ -42,12 +42,15 @@ def sha256(path) -> str:
 
 
 def check_header(path, width=400, height=400, n_dirs=151) -> dfmf.DFMF:
-    """Open as DFMF (size / truncation checked by the reader) and check the UBO2014 extents."""
+    """Open as DFMF (size / truncation checked by the reader), check the UBO2014 extents and
+    that the factors are finite: before the sha256 of a first copy goes into the lock file,
+    which would otherwise pin a damaged file as the good one."""
     b = dfmf.DFMF(path)
     got = (b.header.width, b.header.height, b.n_lights, b.n_views)
     if got != (width, height, n_dirs, n_dirs):
         raise dfmf.DFMFError(f"{path}: {got[0]} x {got[1]} texels, {got[2]} lights, {got[3]} "
                              f"views; UBO2014 files have {width} x {height}, {n_dirs}, {n_dirs}")
+    b.factors()  # DFMFError naming the file and the factor holding NaN or inf
     return b
 
 

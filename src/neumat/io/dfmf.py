@@ -119,6 +119,10 @@ def _read_header(cur: _Cursor) -> Header:
             lights = ls
         elif len(ls) != len(lights):
             raise DFMFError(f"{cur.path}: view {v} has {len(ls)} lights, view 0 has {len(lights)}")
+    for what, a in (("view", views), ("light", lights if lights is not None else views[:0])):
+        if not np.isfinite(a).all():  # a NaN angle failed later, deep in a fit's fetch
+            raise DFMFError(f"{cur.path}: corrupt header: {what} angles hold NaN or inf; the "
+                            f"file is damaged: delete it and fetch it again")
     width, height = cur.unpack("II")
     n_rot = cur.u32()                      # signature ends in 'R': local-frame rotations
     cur.take(36 * n_rot)
