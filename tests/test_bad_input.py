@@ -183,6 +183,14 @@ def test_catalogues_that_are_missing_or_not_text_name_key_and_file(tmp_path):
     with pytest.raises(ValueError, match=rf"config merl.materials: .*dup\.tsv lists the name\(s\) "
                                          rf"{name} more than once"):
         catalog.load_catalog(tmp_path / "dup.tsv")
+    # an empty name or one with a slash: the dry run's only word was a missing
+    # resources/merl/.binary
+    for bad in ("", "sub/dir", " blue"):
+        row = rows[3].split("\t")
+        (tmp_path / "odd.tsv").write_text("\n".join(rows[:3] + ["\t".join([bad] + row[1:])]) + "\n")
+        with pytest.raises(ValueError, match=rf"config merl.materials: .*odd\.tsv line 4: name "
+                                             rf"{bad!r} is empty, has a slash"):
+            catalog.load_catalog(tmp_path / "odd.tsv")
 
 
 def test_missing_catalogue_fails_when_the_dag_is_built(tmp_path):
