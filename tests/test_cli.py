@@ -295,6 +295,32 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
     assert "config: seed 3, merl.source synthetic, augmerl.size 64, fit.activation relu" in o
     assert "None" not in o
 
+@pytest.mark.parametrize("damage, says", [
+    ("samples/ours/weights.npy", "samples/ours/weights.npy: damaged, or not written (ValueError"),
+    ("constrained/acceptance.tsv", "constrained/acceptance.tsv: damaged, or not written by rule "
+                                   "constrained_section (no column acceptance, complete)"),
+    ("report/index.md", "report/index.md: damaged, or not written by rule report"),
+])
+def test_info_names_a_damaged_run_file_and_how_to_rebuild_it(run, tmp_path, capsys, damage, says):
+    """A truncated array, a table without its columns or bad YAML in the report gave numpy's,
+    pandas' or PyYAML's bare traceback, naming no file."""
+    import shutil
+    rec = tmp_path / "rec"
+    shutil.copytree(run, rec)
+    f = rec / damage
+    f.parent.mkdir(parents=True, exist_ok=True)
+    if damage.endswith(".npy"):
+        np.save(f, np.zeros((4, nbrdf.N_PARAMS), np.float32))
+        f.write_bytes(f.read_bytes()[:90])  # a cut copy
+    elif damage.endswith(".tsv"):
+        f.write_text("category\tdrawn\ndiffuse\t3\n")
+    else:
+        f.write_text("## Configuration of this run\n\n```yaml\nseed: [3\n```\n")
+    assert main("info", rec) == cli.EXIT_USAGE
+    err = capsys.readouterr().err
+    assert says in err and "rebuild it: `snakemake --cores 2 results/rec/" in err, err
+
+
 @pytest.mark.parametrize("args, message", [
     (["info", "{tmp}/nope"], "snakemake --cores 2 report"),
     (["sample", "--run", "{run}", "--model", "merl100", "--out", "{tmp}/o"], "rule train_diffusion"),

@@ -28,7 +28,8 @@ def cmd_info(args) -> int:
               f"`{run.target('report/index.md')}`)")
     neu = run.path / "neumerl" / "weights.npy"
     if neu.exists():
-        print(f"NeuMERL: {np.load(neu, mmap_mode='r').shape[0]} fitted fields ({neu})")
+        print(f"NeuMERL: {run.array('neumerl/weights.npy', 'neumerl', mmap=True).shape[0]} "
+              f"fitted fields ({neu})")
     models = run.models()
     print(f"models ({len(models)}):" if models else
           f"models: none (rule train_diffusion: `{run.target('diffusion/ours/model.pt')}`)")
@@ -47,7 +48,8 @@ def cmd_info(args) -> int:
     sets = sorted(run.path.glob("samples/*/weights.npy"))
     print(f"sample sets ({len(sets)}):" if sets else "sample sets: none")
     for p in sets:
-        print(f"  {p.parent.name:<12} {np.load(p, mmap_mode='r').shape[0]} samples")
+        rel = str(p.relative_to(run.path))
+        print(f"  {p.parent.name:<12} {run.array(rel, None, mmap=True).shape[0]} samples")
     tables = [p for p in [run.path / "metrics/table2.csv", run.path / "constrained/rules.tsv",
                           run.path / "constrained/acceptance.tsv", run.path / "constrained/purity.tsv",
                           run.path / "btf/quality.tsv", run.path / "report/index.html"] if p.exists()]
@@ -56,7 +58,8 @@ def cmd_info(args) -> int:
         print(f"  {p.relative_to(run.path)}")
     acc = run.path / "constrained/acceptance.tsv"
     if acc.exists():
-        a = pd.read_csv(acc, sep="\t", keep_default_na=False)
+        a = run.table("constrained/acceptance.tsv", "constrained_section",
+                      ("category", "acceptance", "complete"))
         print("constrained acceptance: " + ", ".join(
             f"{r.category} {r.acceptance:.2f}" + ("" if str(r.complete) == "True" else " (incomplete)")
             for r in a.itertuples()))

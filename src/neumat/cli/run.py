@@ -73,13 +73,38 @@ class Run:
         return (f"snakemake --cores 2 results/{self.name}/{rel} {flags + ' ' if flags else ''}"
                 f"--configfile <the config whose run: is {self.name!r}>")
 
-    def unreadable(self, rel: str, rule: str, why: Exception | str) -> CLIError:
+    def unreadable(self, rel: str, rule: str | None, why: Exception | str) -> CLIError:
         """The error for the run's file `rel` that is damaged or foreign: rule `rule` remakes it
-        (--forcerun: the file exists, so Snakemake would not rebuild it otherwise)."""
+        (--forcerun: the file exists, so Snakemake would not rebuild it otherwise); None where
+        several rules write such files (samples/<set>/): --force on the file itself."""
         if isinstance(why, Exception):
             why = _cause(why)
-        return CLIError(f"{self.path / rel}: damaged, or not written by rule {rule} ({why}); "
-                        f"rebuild it: `{self.target(rel, f'--forcerun {rule}')}`")
+        by = f" by rule {rule}" if rule else ""
+        flags = f"--forcerun {rule}" if rule else "--force"
+        return CLIError(f"{self.path / rel}: damaged, or not written{by} ({why}); "
+                        f"rebuild it: `{self.target(rel, flags)}`")
+
+    def array(self, rel: str, rule: str, mmap: bool = False):
+        """The run's .npy file `rel` (no pickles), or the `unreadable` error naming it and the
+        rule that remakes it (a truncated file gave numpy's bare EOF error)."""
+        import numpy as np
+        try:
+            return np.load(self.path / rel, mmap_mode="r" if mmap else None)
+        except (OSError, ValueError, EOFError) as e:
+            raise self.unreadable(rel, rule, e) from None
+
+    def table(self, rel: str, rule: str, columns=()):
+        """The run's TSV `rel` as text-keeping pandas, with `columns`, or the `unreadable`
+        error naming it and its rule."""
+        import pandas as pd
+        try:
+            t = pd.read_csv(self.path / rel, sep="\t", keep_default_na=False)
+        except (OSError, ValueError, UnicodeDecodeError) as e:  # ParserError, EmptyDataError
+            raise self.unreadable(rel, rule, e) from None
+        missing = [c for c in columns if c not in t.columns]
+        if missing:
+            raise self.unreadable(rel, rule, f"no column {', '.join(missing)}")
+        return t
 
     def models(self) -> dict[str, Path]:
         return {p.parent.name: p for p in sorted(self.path.glob("diffusion/*/model.pt"))}
@@ -166,7 +191,13 @@ class Run:
         m = re.search(r"## Configuration of this run.*?```yaml\n(.*?)```", md.read_text(), re.S)
         if not m:
             return None
-        return yaml.load(m.group(1), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+        try:
+            cfg = yaml.load(m.group(1), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+        except yaml.YAMLError as e:
+            raise self.unreadable("report/index.md", "report", e) from None
+        if not isinstance(cfg, dict):
+            raise self.unreadable("report/index.md", "report", "its configuration is not a mapping")
+        return cfg
 
     def activation(self) -> str:
         cfg = self.config() or {}

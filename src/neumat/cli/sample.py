@@ -205,7 +205,8 @@ def _training_set(run: Run):
     """(NeuMERL weights, manifest, `ours`'s training rows) of the run: where --start draws from."""
     from neumat.diffusion import dataset
 
-    weights = np.load(_run_file(run, "neumerl/weights.npy", "neumerl"))
+    _run_file(run, "neumerl/weights.npy", "neumerl")
+    weights = run.array("neumerl/weights.npy", "neumerl")
     man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
     return weights, man, dataset.training_rows(man, "ours")
 
