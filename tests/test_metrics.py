@@ -228,6 +228,11 @@ def test_inception_state_dict_and_features(tmp_path):
     with pytest.raises(ValueError, match=r"cut.pth \(metrics.inception_weights\): not a weights file") as e:
         load_fid_inception(tmp_path / "cut.pth")
     assert "weights_only" not in str(e.value)  # not torch's advice to load it unsafely
+    state = torch.load(tmp_path / "w.pth", weights_only=True)
+    next(v for v in state.values() if v.is_floating_point()).view(-1)[0] = float("nan")
+    torch.save(state, tmp_path / "nan.pth")  # the metrics job failed in an SVD, naming no file
+    with pytest.raises(ValueError, match=r"nan.pth \(metrics.inception_weights\): tensor .* holds NaN"):
+        load_fid_inception(tmp_path / "nan.pth")
 
 
 def test_packaged_weights_match_the_torchscript_model():

