@@ -313,6 +313,9 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     ({"run": ".."}, "run", "'..' does not match"),
     ({"conditions": {"text": {"prompts": [""]}}}, "conditions.text.prompts.0", "'' should be non-empty"),
     ({"metrics": {"models": []}}, "metrics.models", "[] should be non-empty"),
+    # its Gram matrices grow with the 4th power of the side: 160 was killed for memory
+    ({"ubo2014": {"synthetic": {"size": 160}}}, "ubo2014.synthetic.size",
+     "160 is greater than the maximum of 128"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,
@@ -323,3 +326,23 @@ def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     assert f"bad config ({key}): " in text and says in text and "config/schema.yaml" in text
     assert len(text.splitlines()) < 15, text[:3000]
     assert not (tmp_path / "results").exists()
+
+
+def test_btf_jobs_ask_for_the_memory_they_were_measured_to_use(tmp_path):
+    """Slurm kills a job above its mem_mb. Measured max_rss (Intel Xeon, 2026-11-29):
+    synthetic_btf 4,918 MB and 11 min at 96^2 texels, where it asked for 2,000 MB and 10 min;
+    btf_eval 911 MB at 96^2 (its Tucker query, blocked since; 2,115 MB before)."""
+    import re
+    for item in ("Snakefile", "workflow", "config", "src"):
+        src = ROOT / item
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, tmp_path / item)
+    (tmp_path / "extra.yaml").write_text(yaml.safe_dump(
+        {"ubo2014": {"synthetic": {"size": 96}}, "btf": {"crop": None}}))
+    res = subprocess.run([sys.executable, "-m", "snakemake", "--cores", "1", "report", "--dry-run",
+                          "--configfile", "config/tiny.yaml", "extra.yaml"], cwd=tmp_path,
+                         capture_output=True, text=True)
+    asked = {rule: (int(mem), int(minutes)) for rule, minutes, mem in re.findall(
+        r"^rule (\w+):\n(?:    .*\n)*?    resources: tmpdir=[^,]*, runtime=(\d+),(?: gpu=\d,)? mem_mb=(\d+)",
+        res.stdout, re.M)}
+    assert asked["synthetic_btf"][0] >= 1.2 * 4918 and asked["synthetic_btf"][1] >= 1.5 * 11, asked
+    assert asked["btf_eval"][0] >= 1.5 * 911, asked

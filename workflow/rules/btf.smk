@@ -20,8 +20,8 @@ if UBO["source"] == "synthetic":
             CONDA_ENV
         threads: 1
         resources:
-            mem_mb=2000,
-            runtime=10,
+            mem_mb=synthetic_btf_mem_mb(),
+            runtime=synthetic_btf_runtime(),
         script:
             "../scripts/synthetic_btf.py"
 
@@ -99,7 +99,7 @@ rule btf_eval:
         CONDA_ENV
     threads: BTF["threads"]
     resources:
-        mem_mb=4000,
+        mem_mb=btf_eval_mem_mb(),
         runtime=60,
     script:
         "../scripts/btf_eval.py"

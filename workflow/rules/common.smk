@@ -194,17 +194,30 @@ def augmerl_count():
 AUG_SHARDS = [f"{i:03d}" for i in range(math.ceil(augmerl_count() / config["augmerl"]["shard_size"]))]
 
 
+def metric_bins_upper():
+    """An upper bound of the MERL bins a table set is stored at (the BRDF-L1 bins plus every
+    row of the metric view)."""
+    brdf = config["metrics"]["brdf_samples"]
+    res = config["render"]["resolution"]
+    return min(1_096_216, (1_096_216 if brdf == "all" else brdf) + math.pi / 4 * res ** 2 + 24 * 32 * 16)
+
+
 def pca_a_mem_mb():
     """Memory of PCA-A's fit (baseline_pca): its training tables at the metric bins, about
     38 bytes per stored value at the peak (float32 tables, their float64 log mapping, the centred
     copy, and a second mapping for the coefficients: max_rss 17,012 MB for 1,920 tables x 3 x
-    78,985 bins on real40, 2026-11-28), on an upper bound of the bins (the BRDF-L1 bins plus
-    every row of the metric view), + 3 GB."""
-    brdf = config["metrics"]["brdf_samples"]
-    res = config["render"]["resolution"]
-    bins = min(1_096_216, (1_096_216 if brdf == "all" else brdf) + math.pi / 4 * res ** 2 + 24 * 32 * 16)
+    78,985 bins on real40, 2026-11-28), on an upper bound of the bins, + 3 GB."""
     tables = augmerl_count() * (1 - config["augmerl"]["test_fraction"])
-    return int(3000 + 38 * 3 * tables * bins / 1e6)
+    return int(3000 + 38 * 3 * tables * metric_bins_upper() / 1e6)
+
+
+def metrics_mem_mb(model):
+    """Memory of a metrics job: METRICS_MEM_MB (renders, pairwise SSIM chunks), plus for a
+    table-set model (PCA-A) its float32 tables, held whole: on real41 (2026-11-29) its job
+    peaked at 4,394 MB against 3,409 declared, its 1,440 tables of 3 x 81,200 bins (1.40 GB)
+    loaded twice (a float32 copy of float32 values, since dropped)."""
+    tables = DRAWS * split_sizes()["test"] if model == "pca_a" else 0
+    return int(METRICS_MEM_MB + 4 * 3 * tables * metric_bins_upper() / 1e6)
 # the template material (fit first; its weights start every other fit): the first train-split
 # original, from the split augmerl_pca draws (the same function, config and seed)
 _PLANNED_ROWS = _augment.plan_rows(
@@ -454,6 +467,18 @@ def diffusion_runtime():
     return 10 + math.ceil(t["steps"] * per_step / 60)
 
 
+def diffusion_mem_mb(floor=2500):
+    """Memory of a denoiser's training (train_diffusion, train_multimodal, train_refiner):
+    `floor`, or 1.5 x (610 MB + 51 bytes a parameter) where that is more, with about
+    12 depth width^2 parameters. A reviewer's probe (Denoiser, AdamW and EMA, 3 steps, one
+    thread, 2026-11-29) peaked at 586 MB at width 256, depth 4, batch 128 and 2,424 MB at
+    paper.yaml's 512, 12, 256 (39.1M parameters); real41's train_diffusion job at the former
+    773 MB max_rss. paper.yaml's jobs had 2,500 MB declared."""
+    m = config["diffusion"]["model"]
+    params = 12 * m["depth"] * m["width"] ** 2 + 150_000
+    return max(floor, int(1.5 * (610 + 51e-6 * params)))
+
+
 def diffusion_exports():
     """MERL .binary exports of the first `diffusion.export_merl` samples of ours and merl100."""
     return expand(out("samples/{set}/merl/sample_{i:03d}.binary"), set=["ours", "merl100"],
@@ -494,6 +519,37 @@ def btf_roi(name):
         return None
     o = (size - c) // 2
     return [o, o, c, c]
+
+
+def btf_texels():
+    """Texels of each BTF this run fits and evaluates (btf.crop of the texture, or all)."""
+    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+    c = BTF["crop"]
+    return min(size, c if c is not None else size) ** 2
+
+
+def synthetic_btf_mem_mb():
+    """synthetic_btf's memory: its SVD holds three texel Gram matrices and eigh's workspace
+    (about 64 bytes x texels^2) and, below 512 MiB, the whole decorrelated matrix (22801 rows
+    x texels x 3 float32); max_rss 595 / 1,229 / 4,918 MB at 32^2 / 64^2 / 96^2 texels
+    (Intel Xeon, 2026-11-29), against 1,047 / 1,774 / 6,136 MB here."""
+    t = UBO["synthetic"]["size"] ** 2
+    held = 22801 * t * 12 if 22801 * t * 12 <= 1 << 29 else 0
+    return int(700 + 64e-6 * t ** 2 + held / 1e6)
+
+
+def synthetic_btf_runtime():
+    """Minutes: its Gram pass costs about 9.6 us x texels^2 (7 / 103 / 667 s at 32^2 / 64^2 /
+    96^2 texels, same machine), doubled for slower cores, + 5."""
+    return int(5 + 2 * 9.65e-6 * UBO["synthetic"]["size"] ** 4 / 60)
+
+
+def btf_eval_mem_mb():
+    """btf_eval's memory: every model of a material loaded at once (the SH one 16 KB a texel)
+    beside bounded query chunks: max_rss 853 / 911 MB at 64^2 / 96^2 synthetic texels (Intel
+    Xeon, 2026-11-29), 11 KB a texel; here 1.2 GB + 30 KB a texel (6.0 GB for a whole 400^2
+    UBO2014 texture, btf.crop null)."""
+    return int(1200 + 0.03 * btf_texels())
 
 
 def btf_seed(name, method):

@@ -171,7 +171,7 @@ rule train_multimodal:
         CONDA_ENV
     threads: DIFF["threads"]
     resources:
-        mem_mb=3000,
+        mem_mb=diffusion_mem_mb(3000),
         runtime=diffusion_runtime(),
         gpu=1 if config["device"] == "cuda" else 0,
     script:
@@ -202,7 +202,7 @@ rule train_refiner:
         CONDA_ENV
     threads: DIFF["threads"]
     resources:
-        mem_mb=2500,
+        mem_mb=diffusion_mem_mb(2500),
         runtime=diffusion_runtime(),
         gpu=1 if config["device"] == "cuda" else 0,
     script:

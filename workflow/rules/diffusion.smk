@@ -49,7 +49,7 @@ rule train_diffusion:
         CONDA_ENV
     threads: DIFF["threads"]
     resources:
-        mem_mb=2500,
+        mem_mb=diffusion_mem_mb(2500),
         runtime=diffusion_runtime(),
         gpu=1 if config["device"] == "cuda" else 0,
     script:

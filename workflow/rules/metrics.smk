@@ -87,7 +87,7 @@ rule metrics:
         CONDA_ENV
     threads: 2
     resources:
-        mem_mb=METRICS_MEM_MB,
+        mem_mb=lambda wc: metrics_mem_mb(wc.model),
         runtime=120 * DRAWS,
         gpu=GPU,  # its script runs torch on config device
     script:
