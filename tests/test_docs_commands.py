@@ -1,5 +1,5 @@
-"""Every command written in README.md is tested as written, so a documented command cannot rot
-unnoticed. Commands are found, not listed: a new command in the README is tested without
+"""Every command written in README.md and docs/*.md is tested as written, so a documented
+command cannot rot unnoticed. Commands are found, not listed: a new command in the README is tested without
 touching this file.
 
 - `snakemake ...` (README, Snakefile header, profiles' headers): run verbatim with --dry-run
@@ -28,8 +28,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ["README.md", "Snakefile", *sorted(str(p.relative_to(ROOT)) for p in
-                                          (ROOT / "profiles").glob("*/config.yaml"))]
+DOCS = ["README.md", *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").glob("*.md")),
+        "Snakefile", *sorted(str(p.relative_to(ROOT)) for p in
+                             (ROOT / "profiles").glob("*/config.yaml"))]
 
 
 def _commands_in(text: str) -> list[str]:
@@ -234,7 +235,9 @@ def neumat_commands(text: str) -> list[str]:
     return cmds
 
 
-NEUMAT = neumat_commands(README.read_text())
+# the README and the pages under docs/ (docs/stages.md: each stage and its measurements)
+DOC_TEXT = "\n".join((ROOT / d).read_text() for d in DOCS if d.endswith(".md"))
+NEUMAT = neumat_commands(DOC_TEXT)
 
 
 def test_neumat_commands_are_found():
@@ -335,7 +338,7 @@ def other_commands(text: str) -> list[str]:
     return cmds
 
 
-OTHER = other_commands(README.read_text())
+OTHER = other_commands(DOC_TEXT)
 
 
 def _accepts(prog: list[str], flags: list[str]) -> str | None:

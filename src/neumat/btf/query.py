@@ -124,7 +124,7 @@ def tap_prefetch() -> bool:
     them, per 1920 x 1080 frame, HPB took 7.0 CPU-ms less (AVX-512 build) and 10.4 less (AVX2
     build), hex-tiling 6.6 and 10.9 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py
     --rev 9504fb1 --tap-prefetch both`, its working-tree rows, and with `--march x86-64-v3`;
-    Intel Xeon AVX-512, idle, 2026-11-29; README, "BTF synthesis on the positional plane").
+    Intel Xeon AVX-512, idle, 2026-11-29; docs/stages.md, "BTF synthesis on the positional plane").
     Elsewhere they do: the kernel was designed with them on an AMD EPYC, where going without
     has not been measured. The plain query prefetches its f_U taps everywhere (a scratch build
     without took 6.3 CPU-ms a frame more on the same Intel host). NEUMAT_TAP_PREFETCH=0 or 1

@@ -238,7 +238,7 @@ struct hpb {
                                feature taps read: in a plane of its own, the luminance's lines
                                were a further 2 per vertex, fetched at random, and its taps
                                stalled on them (`perf`; figures before and after this and the
-                               loop split in grid_prepare: README, "BTF synthesis on the
+                               loop split in grid_prepare: docs/stages.md, "BTF synthesis on the
                                positional plane") */
 };
 
@@ -358,7 +358,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     }
     /* Three loops over the vertices' lanes, not one: the hash, hex-tiling's rotation, then the
        coordinates and taps. In one loop GCC spilled vector registers to the stack (16 on AVX2);
-       split, it keeps them in registers, most on AVX2 (README, "BTF synthesis on the
+       split, it keeps them in registers, most on AVX2 (docs/stages.md, "BTF synthesis on the
        positional plane") */
     uint32_t hxa[3][T], h0a[3][T], ha[3][T], mxa[2][T];
     for (int q = 0; q < T; q++)  /* vertices 0 and 1 share their column i0 + !up, so its mix:

@@ -3,7 +3,7 @@ an embedding, trained here on renders of the AugMERL training materials.
 
 torchvision has no CPU build in this environment, so the network is written out (BasicBlocks,
 three stages). The paper used CLIP's image tower (CLIP-PAE), whose weights are not obtainable
-offline (README, Multi-modal conditioning).
+offline (docs/stages.md, Multi-modal conditioning).
 
 Training data (`render_views`): each material is rendered by `neumat.render.sphere` under
 several point-light positions (the metric light plus `n_lights - 1` others; for a sphere seen

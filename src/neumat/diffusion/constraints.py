@@ -8,7 +8,7 @@ valid MERL directions, and moved one gradient step down the clamp penalty
     P(x0) = mean over directions and channels of relu(-x),
     x0 <- x0 - lambda * dP/dx0   (per sample; lambda = 0: unchanged),
 before the DDIM update. It adds an NBRDF forward and backward pass at those directions per
-step: 2.3x the sampling time of the realistic run's denoiser on a 2-core CPU (README,
+step: 2.3x the sampling time of the realistic run's denoiser on a 2-core CPU (docs/stages.md,
 Hyperdiffusion).
 
 2. Category guidance (`CategoryConstraint`, config constrained.guidance_step = lambda), for the
@@ -36,7 +36,7 @@ kernel whose bandwidth h is the median squared pairwise distance over log B (SVG
     P(x0_1..B) = (1/B) sum_{i,j} exp(-|f_i - f_j|^2 / h),    x0 <- x0 - lambda * dP/dx0,
 after the clamp-aware step. Independent draws bunch near common materials and leave distinct
 ones uncovered; the repulsion spreads a batch over looks (Table 2's image coverage +4.5 to
-+4.8 points at lambda 0.05 on the realistic run, with more samples clamping: README,
++4.8 points at lambda 0.05 on the realistic run, with more samples clamping: docs/stages.md,
 Hyperdiffusion). A sample then depends on the others of its batch (diffusion.sample.batch_size),
 deterministically.
 
@@ -59,7 +59,7 @@ TAU = float(np.log1p(1.0 / np.pi))  # raw value at which the NBRDF output reache
 # The penalty pushes the raw value MARGIN past TAU: it sees 4096 directions while the rule judges
 # 65,536, and a margin carries the directions it did not see across too. At step 10, of 64 draws
 # of the realistic default-config model: metallic 30 accepted at margin 0, 59 at 0.1; diffuse 57
-# and 62 (`python benchmarks/category_guidance.py --run <run>`, AMD EPYC AVX-512; README
+# and 62 (`python benchmarks/category_guidance.py --run <run>`, AMD EPYC AVX-512; docs/stages.md
 # "Constrained synthesis").
 MARGIN = 0.1
 GUIDED_CATEGORIES = ("diffuse", "metallic")  # the categories with a published formula

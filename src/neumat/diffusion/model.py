@@ -7,7 +7,7 @@ tell the tokens apart. The output of each tensor token is projected back to its 
 and the pieces are concatenated to the 675-vector again. A token reaches only d - 1 directions
 (its final LayerNorm removes the mean), so a piece with more values than that cannot take every
 value: W2's 441 values through one 256-wide token put a floor under the default model's error at
-low noise. token_values below d splits it (opt-in: README, Hyperdiffusion).
+low noise. token_values below d splits it (opt-in: docs/stages.md, Hyperdiffusion).
 
 Conditions plug in as modules that turn a batch of condition values into one (B, d) token and
 own a learned "null" token for classifier-free guidance:

@@ -12,7 +12,7 @@ noise the network adds a small correction to x_t instead of rebuilding x0, and i
 it implies (`loss: x0`). v with the x0 loss keeps the skip connection, so the low-noise x0 error
 is sqrt(1 - ab) times the network's and has no floor, while every noise level keeps the weight
 that x0 training gives it. On the realistic run it removed the floor but lost Table 2's image
-rows as v does (README, "x0 prediction"), so the skip connection, not the weighting, costs them.
+rows as v does (docs/stages.md, "x0 prediction"), so the skip connection, not the weighting, costs them.
 
 DDIM (Song et al. 2021, eq. 12) on a sub-sequence tau_1 > ... > tau_S of timesteps:
   x_prev = sqrt(ab_prev) x0_hat + sqrt(1 - ab_prev - sigma^2) eps_hat + sigma z,
