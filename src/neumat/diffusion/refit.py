@@ -4,7 +4,7 @@ The NBRDF output max(exp(x) - 1, 0) hides every bin whose log-space value x < 0,
 renderer only ever sees max(x, 0). Samples of `ours` leave many bins well below 0: dark
 materials sit near x = 0, and the denoiser's error floor scatters them across it. The per-step
 constraint (`constraints.NegativeConstraint`) lifts those bins by pulling the whole field up,
-which brightens dark samples and costs Table 2 its image coverage (README, Table 2).
+which brightens dark samples and costs Table 2 its image coverage (docs/results.md, Table 2).
 
 The refit changes what the sample *is* as little as possible instead: each sample's NBRDF is fitted
 again, from its own weights, to its own clamped output raised to a small floor,
