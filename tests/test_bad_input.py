@@ -188,7 +188,7 @@ def test_catalogues_that_are_missing_or_not_text_name_key_and_file(tmp_path):
     for bad in ("", "sub/dir", " blue"):
         row = rows[3].split("\t")
         (tmp_path / "odd.tsv").write_text("\n".join(rows[:3] + ["\t".join([bad] + row[1:])]) + "\n")
-        with pytest.raises(ValueError, match=rf"config merl.materials: .*odd\.tsv line 4: name "
+        with pytest.raises(ValueError, match=rf"config merl.materials: .*odd\.tsv row 3: name "
                                              rf"{bad!r} is empty, has a slash"):
             catalog.load_catalog(tmp_path / "odd.tsv")
 

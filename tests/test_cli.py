@@ -298,7 +298,7 @@ def test_info_shows_the_recorded_config_without_speed_only_keys(run, tmp_path, c
 @pytest.mark.parametrize("damage, says", [
     ("samples/ours/weights.npy", "samples/ours/weights.npy: damaged, or not written (ValueError"),
     ("constrained/acceptance.tsv", "constrained/acceptance.tsv: damaged, or not written by rule "
-                                   "constrained_section (no column acceptance, complete)"),
+                                   "sample_constrained (no column acceptance, complete)"),
     ("report/index.md", "report/index.md: damaged, or not written by rule report"),
 ])
 def test_info_names_a_damaged_run_file_and_how_to_rebuild_it(run, tmp_path, capsys, damage, says):

@@ -233,6 +233,14 @@ def test_inception_state_dict_and_features(tmp_path):
     torch.save(state, tmp_path / "nan.pth")  # the metrics job failed in an SVD, naming no file
     with pytest.raises(ValueError, match=r"nan.pth \(metrics.inception_weights\): tensor .* holds NaN"):
         load_fid_inception(tmp_path / "nan.pth")
+    # the workflow's check when it builds the DAG: memory-mapped, the same verdicts
+    assert set(inception.check_fid_weights(tmp_path / "w.pth", mmap=True)) == set(state)
+    with pytest.raises(ValueError, match=r"nan.pth \(metrics.inception_weights\): tensor"):
+        inception.check_fid_weights(tmp_path / "nan.pth", mmap=True)
+    torch.save({"fc.weight": 3}, tmp_path / "num.pth")  # a number where a tensor belongs
+    with pytest.raises(ValueError, match=r"num.pth \(metrics.inception_weights\): not a pytorch-fid "
+                                         r"Inception checkpoint \(shapes differ: \['fc.weight int"):
+        inception.check_fid_weights(tmp_path / "num.pth", mmap=True)
 
 
 def test_packaged_weights_match_the_torchscript_model():

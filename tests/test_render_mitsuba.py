@@ -207,6 +207,9 @@ def test_a_scene_s_weights_file_is_checked_by_name(tmp_path):
     np.save(tmp_path / "short.npy", np.zeros(21, np.float32))
     with pytest.raises(ValueError, match=r"short\.npy: holds float32 of shape \(21,\), not NBRDF"):
         material_from_file(tmp_path / "short.npy")
+    np.save(tmp_path / "zero_d.npy", np.float32(1))  # numpy's IndexError before
+    with pytest.raises(ValueError, match=r"zero_d\.npy: holds float32 of shape \(\), not NBRDF"):
+        material_from_file(tmp_path / "zero_d.npy")
     w = np.zeros((2, nbrdf.N_PARAMS), np.float32)
     w[1, 0] = np.inf
     np.save(tmp_path / "w.npy", w)

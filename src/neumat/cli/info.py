@@ -58,7 +58,7 @@ def cmd_info(args) -> int:
         print(f"  {p.relative_to(run.path)}")
     acc = run.path / "constrained/acceptance.tsv"
     if acc.exists():
-        a = run.table("constrained/acceptance.tsv", "constrained_section",
+        a = run.table("constrained/acceptance.tsv", "sample_constrained",
                       ("category", "acceptance", "complete"))
         print("constrained acceptance: " + ", ".join(
             f"{r.category} {r.acceptance:.2f}" + ("" if str(r.complete) == "True" else " (incomplete)")

@@ -48,11 +48,11 @@ def read_tsv(path: str | Path, key: str, columns) -> pd.DataFrame:
     # a name is a material's file name and wildcard: empty, "resources/merl/.binary" was the
     # only error; a slash or outer blanks would put it elsewhere or fail far downstream
     if "name" in cat.columns:
-        odd = [(i + 2, n) for i, n in enumerate(cat["name"])
+        odd = [(i + 1, n) for i, n in enumerate(cat["name"])
                if not n or n != n.strip() or "/" in n or n in (".", "..")]
-        if odd:
-            line, n = odd[0]
-            raise ValueError(f"config {key}: {path} line {line}: name {n!r} is empty, has a "
+        if odd:  # rows as pandas counts them (blank lines skipped), the header not counted
+            row, n = odd[0]
+            raise ValueError(f"config {key}: {path} row {row}: name {n!r} is empty, has a "
                              f"slash or blanks around it ({len(odd)} such row(s)); each name "
                              f"becomes a file name: give a plain one")
     # a name is a material's key (its file, its split, its wildcard): a repeated one would

