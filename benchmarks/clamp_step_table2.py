@@ -16,7 +16,7 @@ reference, metrics/reference.pt). It is set beside the run's other generative co
 (metrics/<model>.csv). Per lambda the script prints:
 - each Table 2 row, mean +- std over the draws;
 - the rows where `ours` is best of the generative columns, or tied within one std (the larger
-  of the two), as the README's table counts them;
+  of the two), as the Table 2 tables of docs/results.md count them;
 - the share of samples with a clamped negative bin (rule diffusion_plausibility's measure);
 - the brightness of the first draw's metric-view renders (mean sRGB over the sphere, per
   material: median and 10th / 90th percentiles), beside the reference set's and the other

@@ -11,7 +11,7 @@ Paper eqs. 7-10 fix two categories: f_diffuse = 1/pi (a constant BRDF reflecting
 energy), *diffuse* = fewer than e = 8e4 bins above f_diffuse (eq. 9), *metallic* = every bin
 above it (eq. 10). The other five rules (supplement D.4) are not published; ours are formulas
 over the same statistics with thresholds computed from the source materials' per-type medians
-(`derive_thresholds`), written out in README.md. Rules are checked in a fixed order and the
+(`derive_thresholds`), written out in docs/stages.md ("Constrained synthesis"). Rules are checked in a fixed order and the
 first that holds names the category, so every material has exactly one:
 
     metallic        n_above >= n_valid - metallic_exceptions                        (eq. 10)

@@ -58,8 +58,8 @@ CONSTRAINT_DIRECTIONS = 4096  # valid MERL bins the clamp penalty is evaluated a
 TAU = float(np.log1p(1.0 / np.pi))  # raw value at which the NBRDF output reaches f_diffuse = 1/pi
 # The penalty pushes the raw value MARGIN past TAU: it sees 4096 directions while the rule judges
 # 65,536, and a margin carries the directions it did not see across too. At step 10, of 64 draws
-# of the realistic default-config model: metallic 30 accepted at margin 0, 59 at 0.1; diffuse 57
-# and 62 (`python benchmarks/category_guidance.py --run <run>`, AMD EPYC AVX-512; docs/stages.md
+# of the realistic default-config model: metallic 30 accepted at margin 0, 59 at 0.1; diffuse 58
+# and 63 (`python benchmarks/category_guidance.py --run <run>`, AMD EPYC AVX-512; docs/stages.md
 # "Constrained synthesis").
 MARGIN = 0.1
 GUIDED_CATEGORIES = ("diffuse", "metallic")  # the categories with a published formula
