@@ -61,3 +61,11 @@ def test_a_table_round_trips_through_a_draw_file_with_its_dtypes(tmp_path):
         for c in ("mean_r", "n_valid", "ok"):
             assert back[c].dtype == part[c].dtype and back[c].tolist() == part[c].tolist()
         assert back["guide"].tolist() == part["guide"].tolist()
+
+
+def test_a_resumed_job_times_every_draw_it_holds():
+    """timing.tsv of a resumed sampling job counted only the draws it made itself; each draw now
+    keeps its own time, and a draw file from before that falls back to the job's time."""
+    done = [{"w": np.zeros(2), "seconds": np.array(3.5)}, {"w": np.zeros(2), "seconds": np.array(4.0)}]
+    assert draws.seconds(done, fallback=4.1) == 7.5
+    assert draws.seconds(done + [{"w": np.zeros(2)}], fallback=4.1) == 4.1

@@ -14,8 +14,8 @@ metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look
 diffusion.sample.particle_step (unconditional draws of `ours` and `ours_plain`) draws the samples
 of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance).
 Unconditional draws are kept one by one in draws.partial/ beside the output
-(neumat.diffusion.draws): a killed job resumes at its next draw, and the folder goes once the
-output is written."""
+(neumat.diffusion.draws), each with its sampling time: a killed job resumes at its next draw,
+timing.tsv counts every draw, and the folder goes once the output is written."""
 import time
 from pathlib import Path
 
@@ -59,6 +59,8 @@ with script_logging(snakemake) as log:
                      sum(bool(t) for ts in prior.values() for t in ts), n)
 
         def one_draw(seed):
+            t = time.perf_counter()
+
             def at(step):
                 return sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"],
                                       s["eta"], guidance, s["batch_size"], s["clip"], step,
@@ -69,7 +71,10 @@ with script_logging(snakemake) as log:
                 w, k = keep_look(w, at(0.0), look, p.cfg["look_resolution"], p.activation)
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
-            return {"w": w} if k is None else {"w": w, "kept": k}
+            # its own sampling time, kept with it: timing.tsv then counts every draw the
+            # output holds, those a resumed job read back included
+            d = {"w": w, "seconds": np.array(time.perf_counter() - t)}
+            return d if k is None else {**d, "kept": k}
 
         # a draw depends on its seed, the model, the manifest (its reference size, the types
         # drawn as in training) and the settings
@@ -90,6 +95,8 @@ with script_logging(snakemake) as log:
                      "their draw without the clamp step (each drawn again from its seed)", look,
                      int(np.sum(kept)), n)
     dt = time.perf_counter() - t0
+    if draw is not None:  # every draw's own time, resumed ones included
+        dt = draws.seconds(done, dt)
     save_npy(out.weights, w.astype(np.float32))
     table = pd.DataFrame({"sample": np.arange(n), "type": requested})
     if draw is not None:

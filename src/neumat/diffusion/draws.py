@@ -44,6 +44,15 @@ def table(arrays: dict) -> pd.DataFrame:
     return pd.DataFrame({c: arrays[f"col_{c}"] for c in json.loads(str(arrays["columns"]))})
 
 
+def seconds(done: list[dict], fallback: float) -> float:
+    """The sampling time of the draws `done` (each draw's "seconds", kept with it, so a resumed
+    job's timing counts the draws it read back too), or `fallback` (this job's own time) where a
+    draw file from before the time was kept lacks it."""
+    if all("seconds" in d for d in done):
+        return float(sum(float(d["seconds"]) for d in done))
+    return fallback
+
+
 class DrawCache:
     """draw_<key>.npz files in `folder`, each with the fingerprint it was made for."""
 
