@@ -84,7 +84,7 @@ class Run:
         return CLIError(f"{self.path / rel}: damaged, or not written{by} ({why}); "
                         f"rebuild it: `{self.target(rel, flags)}`")
 
-    def array(self, rel: str, rule: str, mmap: bool = False):
+    def array(self, rel: str, rule: str | None, mmap: bool = False):
         """The run's .npy file `rel` (no pickles), or the `unreadable` error naming it and the
         rule that remakes it (a truncated file gave numpy's bare EOF error)."""
         import numpy as np
@@ -93,7 +93,7 @@ class Run:
         except (OSError, ValueError, EOFError) as e:
             raise self.unreadable(rel, rule, e) from None
 
-    def table(self, rel: str, rule: str, columns=()):
+    def table(self, rel: str, rule: str | None, columns=()):
         """The run's TSV `rel` as text-keeping pandas, with `columns`, or the `unreadable`
         error naming it and its rule."""
         import pandas as pd

@@ -41,7 +41,9 @@ def first_non_finite(obj, where: str = "") -> str | None:
     """The key path (e.g. `ema.blocks.0.w`) of the first floating tensor in a nested
     dict / list holding NaN or inf, or None."""
     if torch.is_tensor(obj):
-        ok = not obj.is_floating_point() or bool(torch.isfinite(obj).all())
+        flat = obj.reshape(-1)  # in blocks: no boolean copy of a 2.6 GB SH model at once
+        ok = not obj.is_floating_point() or all(
+            bool(torch.isfinite(flat[s:s + (1 << 24)]).all()) for s in range(0, len(flat), 1 << 24))
         return None if ok else (where or "<root>")
     items = obj.items() if isinstance(obj, dict) else \
         enumerate(obj) if isinstance(obj, (list, tuple)) else ()
