@@ -470,8 +470,8 @@ def diffusion_runtime():
 def diffusion_mem_mb(floor=2500):
     """Memory of a denoiser's training (train_diffusion, train_multimodal, train_refiner):
     `floor`, or 1.5 x (610 MB + 51 bytes a parameter) where that is more, with about
-    12 depth width^2 parameters. A reviewer's probe (Denoiser, AdamW and EMA, 3 steps, one
-    thread, 2026-11-29) peaked at 586 MB at width 256, depth 4, batch 128 and 2,424 MB at
+    12 depth width^2 parameters. A reviewer's one-off probe, not a committed benchmark
+    (Denoiser, AdamW and EMA, 3 steps, one thread, Intel Xeon, 2026-11-29) peaked at 586 MB at width 256, depth 4, batch 128 and 2,424 MB at
     paper.yaml's 512, 12, 256 (39.1M parameters); real41's train_diffusion job at the former
     773 MB max_rss. paper.yaml's jobs had 2,500 MB declared."""
     m = config["diffusion"]["model"]
@@ -511,9 +511,14 @@ def btf_file(name):
     return f"resources/ubo2014/{name}{BTF_SUFFIX}"
 
 
+def btf_size():
+    """Texels per side of this run's BTFs (UBO2014's are 400)."""
+    return UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+
+
 def btf_roi(name):
     """Centre crop (x0, y0, w, h) from config btf.crop, or None for the whole texture."""
-    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+    size = btf_size()
     c = BTF["crop"]
     if c is None or c >= size:
         return None
@@ -523,7 +528,7 @@ def btf_roi(name):
 
 def btf_texels():
     """Texels of each BTF this run fits and evaluates (btf.crop of the texture, or all)."""
-    size = UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+    size = btf_size()
     c = BTF["crop"]
     return min(size, c if c is not None else size) ** 2
 
@@ -532,7 +537,10 @@ def synthetic_btf_mem_mb():
     """synthetic_btf's memory: its SVD holds three texel Gram matrices and eigh's workspace
     (about 64 bytes x texels^2) and, below 512 MiB, the whole decorrelated matrix (22801 rows
     x texels x 3 float32); max_rss 595 / 1,229 / 4,918 MB at 32^2 / 64^2 / 96^2 texels
-    (Intel Xeon, 2026-11-29), against 1,047 / 1,774 / 6,136 MB here."""
+    (Intel Xeon AVX-512, 2026-11-29; the jobs' benchmark files of `snakemake --cores 2
+    results/<run>/btf/eval/synthetic_wood/metrics.tsv` with config/tiny.yaml and an overlay
+    setting run, ubo2014.synthetic.size S and btf.crop null), against 1,047 / 1,774 / 6,136 MB
+    here."""
     t = UBO["synthetic"]["size"] ** 2
     held = 22801 * t * 12 if 22801 * t * 12 <= 1 << 29 else 0
     return int(700 + 64e-6 * t ** 2 + held / 1e6)
@@ -547,7 +555,7 @@ def synthetic_btf_runtime():
 def btf_eval_mem_mb():
     """btf_eval's memory: every model of a material loaded at once (the SH one 16 KB a texel)
     beside bounded query chunks: max_rss 853 / 911 MB at 64^2 / 96^2 synthetic texels (Intel
-    Xeon, 2026-11-29), 11 KB a texel; here 1.2 GB + 30 KB a texel (6.0 GB for a whole 400^2
+    Xeon AVX-512, 2026-11-29, the runs of synthetic_btf_mem_mb), 11 KB a texel; here 1.2 GB + 30 KB a texel (6.0 GB for a whole 400^2
     UBO2014 texture, btf.crop null)."""
     return int(1200 + 0.03 * btf_texels())
 

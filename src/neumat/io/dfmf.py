@@ -214,11 +214,15 @@ class DFMF:
         self._finite(raw, "decoded values")
         return to_rgb(raw, self.header.color_model)
 
-    def _finite(self, a: np.ndarray, what: str) -> None:
-        """Refuse NaN or inf in the factors: a fit would train on NaN loss and save the model."""
-        if not np.isfinite(a).all():
-            raise DFMFError(f"{self.path}: {what} hold NaN or inf ({np.size(a) - np.isfinite(a).sum()} "
-                            f"of {np.size(a)}); the file is damaged: delete it and fetch it again")
+    def _finite(self, a: np.ndarray, what: str, rows: int | None = None) -> None:
+        """Refuse NaN or inf in the factors: a fit would train on NaN loss and save the model.
+        `rows`: counted in blocks of that many rows (a memory-mapped factor, not copied whole)."""
+        step = rows or max(len(a), 1)
+        bad = sum(int(np.size(a[s:s + step]) - np.isfinite(a[s:s + step]).sum())
+                  for s in range(0, len(a), step))
+        if bad:
+            raise DFMFError(f"{self.path}: {what} hold NaN or inf ({bad} of {np.size(a)}); the "
+                            f"file is damaged: delete it and fetch it again")
 
     def image(self, light: int, view: int) -> np.ndarray:
         """(height, width, 3) RGB texture for one light/view pair."""
@@ -230,12 +234,7 @@ class DFMF:
         rows: no float32 copy of a 400 x 400 texture's SV (the check of a fetched file)."""
         for c, ch in enumerate(self.channels):
             for what, a in (("U", ch.U), ("SV", ch.SV)):
-                bad = sum(int(np.size(a[s:s + rows]) - np.isfinite(a[s:s + rows]).sum())
-                          for s in range(0, len(a), rows))
-                if bad:
-                    raise DFMFError(f"{self.path}: channel {c}'s {what} factor hold NaN or inf "
-                                    f"({bad} of {np.size(a)}); the file is damaged: delete it "
-                                    f"and fetch it again")
+                self._finite(a, f"channel {c}'s {what} factor", rows)
 
     def factors(self, dtype=np.float32):
         """In-memory (U list, SV list) restricted to the roi, for fast batched decoding."""
