@@ -18,6 +18,13 @@ and what the job builds from it, and nothing from the run before:
 - btf_load (`--jobs btf_load`): `neumat.btf.models.load` of a saved SH model (btf_eval loads
   every model of a material) against the way it loaded before: built zero-filled, then the
   state copied in.
+- diffusion (`--jobs diffusion`): a denoiser's training (rules train_diffusion, train_multimodal,
+  train_refiner: workflow/rules/diffusion.smk, conditions.smk) as train_diffusion.py runs it,
+  `neumat.diffusion.train` on 1920 random weight rows (the realistic training set's size), 3
+  steps with a checkpoint, at each `--dn-sizes` width/depth/heads/batch (the default config's
+  and paper.yaml's). Its memory does not depend on the steps or the rows (675 floats each), so
+  its budget is a function of the model: common.smk `diffusion_mem_mb`, whose floor (2,500 MB)
+  the script reads from the rule (`--dn-floor`).
 
 Per size it prints the input, the peak, the RSS after imports, the growth per input unit (per MB
 of shard; per material-bin), the rule's budget and the peak's fraction of that budget (the
@@ -28,6 +35,7 @@ budget's factor must cover; at small sizes the fixed costs dominate the per-unit
     python benchmarks/job_memory.py [--jobs fit hyperbrdf btf_load] [--fit-bins 131072 262144 524288]
                                     [--materials 100] [--kernel auto|c|torch]
                                     [--hb-materials 200 400] [--hb-bins 32768]
+                                    [--dn-sizes 256/4/8/128 512/12/16/256]
 """
 from __future__ import annotations
 
@@ -130,6 +138,32 @@ def child_btf_load(path: str, plain: bool) -> dict:
     return dict(imports=base, peak=peak, model=size)
 
 
+def child_diffusion(width: int, depth: int, heads: int, batch: int, out: str) -> dict:
+    """train_diffusion's path (workflow/scripts/train_diffusion.py), 3 steps, 1920 rows."""
+    from neumat import nbrdf
+    from neumat.diffusion import DenoiserConfig, ScheduleConfig, TrainConfig, train
+    base = rss_mb()
+    rng = np.random.default_rng(0)
+    weights = rng.normal(0, 0.5, (1920, nbrdf.N_PARAMS)).astype(np.float32)
+    labels = np.where(rng.random(1920) < 0.25, rng.integers(0, 24, 1920), -1)
+    names = [f"type{i}" for i in range(24)]
+    model = DenoiserConfig(width=width, depth=depth, heads=heads, n_classes=len(names))
+    cfg = TrainConfig(steps=3, batch_size=batch, warmup_steps=1, checkpoint_every=2, log_every=1)
+    train(weights, labels, names, model, ScheduleConfig(), cfg, Path(out) / "model.pt",
+          Path(out) / "checkpoint.pt", 0, "cpu")
+    return dict(imports=base, peak=peak_mb(), params=diffusion_params(width, depth))
+
+
+def diffusion_params(width: int, depth: int) -> int:
+    """Parameters of a Denoiser (counted on the meta device: no memory)."""
+    import torch
+    from neumat.diffusion import DenoiserConfig
+    from neumat.diffusion.model import Denoiser
+    with torch.device("meta"):
+        m = Denoiser(DenoiserConfig(width=width, depth=depth, n_classes=24))
+    return sum(p.numel() for p in m.parameters())
+
+
 def run_child(args: list[str]) -> dict:
     env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
     r = subprocess.run([sys.executable, __file__, "--child", json.dumps(args)], env=env,
@@ -156,6 +190,35 @@ def template_budget(shard_mb: float) -> float:
 def hb_budget(shard_mb: float, shards: int, materials: int, train_bins: int) -> float:
     """mem_mb of rule train_hyperbrdf (workflow/rules/hyperbrdf.smk); shard_mb: all shards."""
     return 2000 + 2 * shard_mb // shards + 26 * materials * train_bins // MB
+
+
+def dn_budget(width: int, depth: int, floor: int) -> float:
+    """mem_mb of rules train_diffusion / train_multimodal / train_refiner (common.smk
+    diffusion_mem_mb, the same formula: keep the two in step)."""
+    params = 12 * depth * width ** 2 + 150_000
+    return max(floor, int(1.5 * (610 + 51e-6 * params)))
+
+
+def bench_diffusion(tmp: Path, sizes: list[str], floor: int):
+    print("diffusion: a denoiser's training on 1920 rows, 3 steps with a checkpoint, one thread, "
+          "a fresh process each")
+    print(f"{'width/depth/heads/batch':>24s} {'params':>10s} {'peak MB':>8s} {'imports':>8s} "
+          f"{'B/param':>8s} {'budget':>7s} {'of it':>6s}")
+    rows = []
+    for size in sizes:
+        w, d, h, b = (int(x) for x in size.split("/"))
+        r = run_child(["diffusion", w, d, h, b, str(tmp)])
+        budget = dn_budget(w, d, floor)
+        rows.append((r["params"], r["peak"]))
+        print(f"{size:>24s} {r['params']:10d} {r['peak']:8.0f} {r['imports']:8.0f} "
+              f"{(r['peak'] - r['imports']) * MB / r['params']:8.1f} {budget:7.0f} "
+              f"{r['peak'] / budget:6.2f}" + ("  EXCEEDED" if r["peak"] > budget else ""))
+    if len(rows) >= 2:
+        x, y = np.array(rows, dtype=float).T
+        slope, icpt = np.polyfit(x, y, 1)
+        print(f"diffusion: peak = {icpt:.0f} MB + {slope * MB:.1f} bytes per parameter (least "
+              f"squares over {len(rows)} sizes); budgeted max({floor}, 1.5 x (610 MB + 51 bytes "
+              "per parameter))")
 
 
 def bench_fit(tmp: Path, materials: int, sizes: list[int], kernel: str):
@@ -244,8 +307,8 @@ def bench_btf_load(tmp: Path, side: int):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load"],
-                    choices=["fit", "hyperbrdf", "btf_load"])
+    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load", "diffusion"],
+                    choices=["fit", "hyperbrdf", "btf_load", "diffusion"])
     ap.add_argument("--materials", type=int, default=100, help="fit: materials in the shard")
     ap.add_argument("--kernel", default="auto", choices=["auto", "c", "torch"],
                     help="fit: the step on the CPU (fit.kernel; auto: the C kernel on x86)")
@@ -256,12 +319,17 @@ def main():
     ap.add_argument("--btf-side", type=int, default=200,
                     help="btf_load: the SH model's crop side (400: a whole UBO2014 BTF, 2.4 GB)")
     ap.add_argument("--hb-bins", type=int, default=32768, help="hyperbrdf: train_bins")
+    ap.add_argument("--dn-sizes", nargs="+", default=["256/4/8/128", "512/12/16/256"],
+                    help="diffusion: width/depth/heads/batch (config/config.yaml's, paper.yaml's)")
+    ap.add_argument("--dn-floor", type=int, default=2500,
+                    help="diffusion: diffusion_mem_mb's floor (train_diffusion's; 3000 for "
+                         "train_multimodal and train_refiner)")
     ap.add_argument("--hb-shard-bins", type=int, default=65536, help="hyperbrdf: bins the shards store")
     a = ap.parse_args()
     if a.child:
         kind, *rest = json.loads(a.child)
         out = {"fit": child_fit, "hyperbrdf": child_hyperbrdf,
-               "btf_load": child_btf_load}[kind](*rest)
+               "btf_load": child_btf_load, "diffusion": child_diffusion}[kind](*rest)
         print(json.dumps(out))
         return
     if a.hb_bins > a.hb_shard_bins:
@@ -277,6 +345,8 @@ def main():
             bench_btf_load(Path(d), a.btf_side)
         if "hyperbrdf" in a.jobs:
             bench_hyperbrdf(Path(d), a.hb_materials, a.hb_bins, a.hb_shard_bins)
+        if "diffusion" in a.jobs:
+            bench_diffusion(Path(d), a.dn_sizes, a.dn_floor)
 
 
 if __name__ == "__main__":

@@ -470,10 +470,12 @@ def diffusion_runtime():
 def diffusion_mem_mb(floor=2500):
     """Memory of a denoiser's training (train_diffusion, train_multimodal, train_refiner):
     `floor`, or 1.5 x (610 MB + 51 bytes a parameter) where that is more, with about
-    12 depth width^2 parameters. A reviewer's one-off probe, not a committed benchmark
-    (Denoiser, AdamW and EMA, 3 steps, one thread, Intel Xeon, 2026-11-29) peaked at 586 MB at width 256, depth 4, batch 128 and 2,424 MB at
-    paper.yaml's 512, 12, 256 (39.1M parameters); real41's train_diffusion job at the former
-    773 MB max_rss. paper.yaml's jobs had 2,500 MB declared."""
+    12 depth width^2 parameters. `python benchmarks/job_memory.py --jobs diffusion` (train_diffusion's
+    path, 3 steps with a checkpoint, one thread, Intel Xeon AVX-512, 2026-11-29): 607 MB peak
+    at width 256, depth 4, batch 128 and 2,394 MB at paper.yaml's 512, 12, 256 (39.1M
+    parameters), i.e. 423 MB + 52.9 bytes a parameter; real41's train_diffusion job at the
+    former 773 MB max_rss. paper.yaml's jobs had 2,500 MB declared. The benchmark's dn_budget
+    repeats this formula."""
     m = config["diffusion"]["model"]
     params = 12 * m["depth"] * m["width"] ** 2 + 150_000
     return max(floor, int(1.5 * (610 + 51e-6 * params)))
