@@ -24,7 +24,7 @@ layout before the float16 planes), the baseline of that change.
 
     OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3] [--coherent]
                                                           [--model results/<run>/btf/models/<m>/triple_plane.pt]
-                                                          [--march x86-64-v3]
+                                                          [--march x86-64-v3] [--size 200]
 --march builds the fused query for another target (x86-64-v3: the AVX2 kernel on an AVX-512
 host); "synthesis alone" stays native.
 
@@ -94,7 +94,10 @@ def frame(coherent: bool = False):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--model", help="trained triple_plane.pt (default: random 400 x 400 model)")
+    ap.add_argument("--model", help="trained triple_plane.pt (default: random --size model)")
+    ap.add_argument("--size", type=int, default=400,
+                    help="the random model's plane side (400: UBO2014's; 200: HPB's and "
+                         "hex-tiling's float16 planes fit a 2 MB L2)")
     ap.add_argument("--methods", nargs="+", default=["linear", "hpb", "hextile"])
     ap.add_argument("--quilt-scale", type=int, default=2,
                     help="quilting (if in --methods) is built at this scale first (not timed)")
@@ -110,7 +113,7 @@ def main():
                     help="u of a x15 plane across the frame in pixel order (a rendered frame), "
                          "not uniform random u")
     a = ap.parse_args()
-    m = (models.load(a.model) if a.model else models.TriplePlane(400, 400)).eval()
+    m = (models.load(a.model) if a.model else models.TriplePlane(a.size, a.size)).eval()
     m.requires_grad_(False)
     u, u32, w = frame(a.coherent)
     dev = torch.device(a.device)
