@@ -18,6 +18,13 @@ and what the job builds from it, and nothing from the run before:
 - btf_load (`--jobs btf_load`): `neumat.btf.models.load` of a saved SH model (btf_eval loads
   every model of a material) against the way it loaded before: built zero-filled, then the
   state copied in.
+- pca_a (`--jobs pca_a`): PCA-A's fit and sampling (rule baseline_pca, workflow/scripts/
+  baseline_pca.py: `NielsenPCA.fit_source`, which reads the tables a block of bins at a time,
+  then the draws written into one float32 array) on synthetic tables generated per block, at
+  each `--pca-sizes` training tables x bins, with `--pca-ref` samples per draw and 3 draws;
+  `--pca-whole` adds the fit before fit_source, on the tables held whole (`NielsenPCA.fit`,
+  whose peak grew ~38 bytes a stored value), at the first size. Against common.smk
+  `pca_a_mem_mb` (repeated here as pca_budget), the job's time beside it.
 - diffusion (`--jobs diffusion`): a denoiser's training (rules train_diffusion, train_multimodal,
   train_refiner: workflow/rules/diffusion.smk, conditions.smk) as train_diffusion.py runs it,
   `neumat.diffusion.train` on 1920 random weight rows (the realistic training set's size), 3
@@ -36,6 +43,7 @@ budget's factor must cover; at small sizes the fixed costs dominate the per-unit
                                     [--materials 100] [--kernel auto|c|torch]
                                     [--hb-materials 200 400] [--hb-bins 32768]
                                     [--dn-sizes 256/4/8/128 512/12/16/256]
+                                    [--pca-sizes 1920x80000 1920x160000] [--pca-whole]
 """
 from __future__ import annotations
 
@@ -154,6 +162,36 @@ def child_diffusion(width: int, depth: int, heads: int, batch: int, out: str) ->
     return dict(imports=base, peak=peak_mb(), params=diffusion_params(width, depth))
 
 
+def _synthetic_tables(n: int, sl: slice) -> np.ndarray:
+    """(n, 3, len) positive tables at bins sl.start ... sl.stop - 1, the same for the same bin
+    whatever the block (a generator per bin would be slow: a fixed pattern of materials x bins,
+    scaled per bin)."""
+    bins = np.arange(sl.start, sl.stop)
+    mat = np.random.default_rng(0).gamma(1.0, 0.2, (n, 3, 1)).astype(np.float32)
+    wave = (1.1 + np.sin(np.outer(np.arange(1, n + 1), bins * 1e-3)))[:, None, :]
+    return (mat * wave * (1 + (bins % 7) / 7)).astype(np.float32)
+
+
+def child_pca_a(n: int, nbins: int, ref: int, whole: bool) -> dict:
+    """baseline_pca's path for PCA-A (32 components, 3 draws of `ref`)."""
+    import time
+    from neumat.baselines import pca
+    from neumat.io import merl
+    base = rss_mb()
+    t0 = time.perf_counter()
+    bins = np.flatnonzero(merl.valid_mask())[:nbins]
+    f = pca.NielsenPCA(32, bins)
+    if whole:
+        f.fit(_synthetic_tables(n, slice(0, nbins)))
+    else:
+        f.fit_source(lambda sl: _synthetic_tables(n, sl), n)
+    values = np.zeros((3 * ref, 3, nbins), dtype=np.float32)
+    for i in range(3):
+        values[i * ref:(i + 1) * ref] = f.sample(ref, i)
+    return dict(imports=base, peak=peak_mb(), seconds=time.perf_counter() - t0,
+                explained=float(f.pca.explained))
+
+
 def diffusion_params(width: int, depth: int) -> int:
     """Parameters of a Denoiser (counted on the meta device: no memory)."""
     import torch
@@ -219,6 +257,29 @@ def bench_diffusion(tmp: Path, sizes: list[str], floor: int):
         print(f"diffusion: peak = {icpt:.0f} MB + {slope * MB:.1f} bytes per parameter (least "
               f"squares over {len(rows)} sizes); budgeted max({floor}, 1.5 x (610 MB + 51 bytes "
               "per parameter))")
+
+
+def pca_budget(n: int, nbins: int, ref: int, components: int = 32) -> float:
+    """mem_mb of rule baseline_pca for PCA-A (common.smk pca_a_mem_mb, the same formula)."""
+    rows = 3 * n
+    return 1500 + (4 * 8 * rows ** 2 + 8 * (components + 4) * nbins
+                   + 4 * 3 * 3 * ref * nbins * 2) / MB
+
+
+def bench_pca_a(sizes: list[str], ref: int, whole: bool):
+    print(f"pca_a: fit_source on synthetic tables, 32 components, 3 draws x {ref}, one thread, "
+          "a fresh process each")
+    print(f"{'tables x bins':>16s} {'peak MB':>8s} {'imports':>8s} {'seconds':>8s} "
+          f"{'budget':>7s} {'of it':>6s}")
+    for i, size in enumerate(sizes):
+        n, nbins = (int(x) for x in size.split("x"))
+        runs = [("fit_source", False)] + ([("whole (before)", True)] if whole and i == 0 else [])
+        for name, w in runs:
+            r = run_child(["pca_a", n, nbins, ref, w])
+            budget = pca_budget(n, nbins, ref)
+            print(f"{size:>16s} {r['peak']:8.0f} {r['imports']:8.0f} {r['seconds']:8.1f} "
+                  f"{budget:7.0f} {r['peak'] / budget:6.2f}  {name}, explained {r['explained']:.4f}"
+                  + ("  EXCEEDED" if r["peak"] > budget and not w else ""))
 
 
 def bench_fit(tmp: Path, materials: int, sizes: list[int], kernel: str):
@@ -307,8 +368,8 @@ def bench_btf_load(tmp: Path, side: int):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load", "diffusion"],
-                    choices=["fit", "hyperbrdf", "btf_load", "diffusion"])
+    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load", "diffusion", "pca_a"],
+                    choices=["fit", "hyperbrdf", "btf_load", "diffusion", "pca_a"])
     ap.add_argument("--materials", type=int, default=100, help="fit: materials in the shard")
     ap.add_argument("--kernel", default="auto", choices=["auto", "c", "torch"],
                     help="fit: the step on the CPU (fit.kernel; auto: the C kernel on x86)")
@@ -321,6 +382,11 @@ def main():
     ap.add_argument("--hb-bins", type=int, default=32768, help="hyperbrdf: train_bins")
     ap.add_argument("--dn-sizes", nargs="+", default=["256/4/8/128", "512/12/16/256"],
                     help="diffusion: width/depth/heads/batch (config/config.yaml's, paper.yaml's)")
+    ap.add_argument("--pca-sizes", nargs="+", default=["1920x80000", "1920x160000"],
+                    help="pca_a: training tables x bins (the default config's: 1920 x ~80,000)")
+    ap.add_argument("--pca-ref", type=int, default=480, help="pca_a: samples a draw")
+    ap.add_argument("--pca-whole", action="store_true",
+                    help="pca_a: also the fit on tables held whole, at the first size")
     ap.add_argument("--dn-floor", type=int, default=2500,
                     help="diffusion: diffusion_mem_mb's floor (train_diffusion's; 3000 for "
                          "train_multimodal and train_refiner)")
@@ -329,7 +395,7 @@ def main():
     if a.child:
         kind, *rest = json.loads(a.child)
         out = {"fit": child_fit, "hyperbrdf": child_hyperbrdf,
-               "btf_load": child_btf_load, "diffusion": child_diffusion}[kind](*rest)
+               "btf_load": child_btf_load, "diffusion": child_diffusion, "pca_a": child_pca_a}[kind](*rest)
         print(json.dumps(out))
         return
     if a.hb_bins > a.hb_shard_bins:
@@ -347,6 +413,8 @@ def main():
             bench_hyperbrdf(Path(d), a.hb_materials, a.hb_bins, a.hb_shard_bins)
         if "diffusion" in a.jobs:
             bench_diffusion(Path(d), a.dn_sizes, a.dn_floor)
+        if "pca_a" in a.jobs:
+            bench_pca_a(a.pca_sizes, a.pca_ref, a.pca_whole)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,32 @@ def test_pca_a_reconstructs_training_tables_and_samples_deterministically():
     assert not np.array_equal(s, few.sample(5, seed=4))
 
 
+def test_pca_a_fits_block_by_block_as_on_the_whole_tables():
+    """fit_source reads the tables a block of bins at a time (twice), never whole, and gives
+    the fit on the whole tables to float64 rounding: components, coefficients, samples."""
+    t = _tables(12, BINS)
+    whole = pca.NielsenPCA(8, BINS).fit(t)
+    asked = []
+
+    def read(sl):
+        asked.append(sl.stop - sl.start)
+        return t[:, :, sl]
+
+    blocks = pca.NielsenPCA(8, BINS, block=37).fit_source(read, len(t))
+    assert max(asked) == 37 and sum(asked) == 2 * len(BINS)
+    np.testing.assert_allclose(np.abs(blocks.pca.components), np.abs(whole.pca.components),
+                               atol=1e-9)  # a component's sign is the eigensolver's
+    np.testing.assert_allclose(blocks.median, whole.median, rtol=0, atol=0)
+    np.testing.assert_allclose(np.abs(blocks.coefficients(t)), np.abs(whole.coefficients(t)),
+                               atol=1e-8)
+    # the Gaussian is fitted to the rows' own coefficients (U S): their encoding
+    np.testing.assert_allclose(blocks.pca.scores.reshape(len(t), -1), blocks.coefficients(t),
+                               atol=1e-8)
+    a, b = whole.sample(4, 5), blocks.sample(4, 5)
+    assert a.dtype == b.dtype == np.float32
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
 def test_pca_n_shapes_determinism_and_round_trip():
     w = nbrdf.init_weights(30, torch.Generator().manual_seed(0)).numpy()
     f = pca.WeightPCA(29).fit(w)

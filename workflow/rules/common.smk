@@ -203,12 +203,18 @@ def metric_bins_upper():
 
 
 def pca_a_mem_mb():
-    """Memory of PCA-A's fit (baseline_pca): its training tables at the metric bins, about
-    38 bytes per stored value at the peak (float32 tables, their float64 log mapping, the centred
-    copy, and a second mapping for the coefficients: max_rss 17,012 MB for 1,920 tables x 3 x
-    78,985 bins on real40, 2026-11-28), on an upper bound of the bins, + 3 GB."""
-    tables = augmerl_count() * (1 - config["augmerl"]["test_fraction"])
-    return int(3000 + 38 * 3 * tables * metric_bins_upper() / 1e6)
+    """Memory of PCA-A's fit and draws (baseline_pca), which reads the training tables a block
+    of bins at a time (neumat.baselines.pca fit_source): 1.5 GB, 4 copies of the float64 Gram
+    matrix of the 3n observations (itself, eigh's vectors and workspace), the components,
+    mean, median and cos map per bin, and twice the float32 draws (all draws, and one being
+    made), on an upper bound of the bins. `python benchmarks/job_memory.py --jobs pca_a
+    --pca-sizes 480x80000 1920x80000 --pca-whole` (Intel Xeon AVX-512, 2026-11-29): 1,941 and
+    1,886 MB peak, 0.46 and 0.36 of this; the fit on the tables held whole, as before, 2,141 MB
+    at 480 x 80,000 and 17,012 MB max_rss for 1,920 tables x 3 x 78,985 bins on real40."""
+    rows = 3 * int(augmerl_count() * (1 - config["augmerl"]["test_fraction"]))
+    bins, k = metric_bins_upper(), config["baselines"]["pca_a"]["components"]
+    draws = DRAWS * split_sizes()["test"]
+    return int(1500 + (32 * rows ** 2 + 8 * (k + 4) * bins + 2 * 4 * 3 * draws * bins) / 2 ** 20)
 
 
 def metrics_mem_mb(model):

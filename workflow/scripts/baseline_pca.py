@@ -30,10 +30,15 @@ with script_logging(snakemake) as log:
         aug = augment.AugMERL(inp.recipe, inp.log_tables, inp.log_index)
         ok = np.isin(bins, aug.valid_bins) & merl.valid_mask()[bins]
         log.info("PCA-A: %d training tables at %d of %d metric bins", len(train), ok.sum(), len(bins))
-        fitted = pca.NielsenPCA(p.components, bins[ok]).fit(aug.values(man["id"].iloc[train], bins[ok]))
+        # the tables a block of bins at a time, each read twice (neumat.baselines.pca
+        # fit_source): all of them at once are tens of GB at paper scale
+        ids, fit_bins = man["id"].iloc[train], bins[ok]
+        fitted = pca.NielsenPCA(p.components, fit_bins).fit_source(
+            lambda sl: aug.values(ids, fit_bins[sl]), len(train))
         explained = fitted.pca.explained
         values = np.zeros((n_ref * len(p.seeds), 3, len(bins)), dtype=np.float32)
-        values[:, :, ok] = np.concatenate([fitted.sample(n_ref, s) for s in p.seeds])
+        for i, s in enumerate(p.seeds):  # each draw into its rows: no second copy of them all
+            values[i * n_ref:(i + 1) * n_ref, :, ok] = fitted.sample(n_ref, s)
         materials.save(out.samples, materials.TableSet(bins, values))
     dt = time.perf_counter() - t0
     pd.DataFrame([{"model": model, "train_materials": len(train), "components": p.components,

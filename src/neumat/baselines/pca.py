@@ -22,12 +22,14 @@ from neumat.linalg import one_blas_thread
 
 log = logging.getLogger(__name__)
 EPS = 0.001  # Nielsen et al.'s offset in the log mapping
+BLOCK_BYTES = 1 << 26  # PCA-A's float64 observations a block of bins holds (64 MiB)
 COS_FLOOR = 0.01
 
 
 class GaussianPCA:
     """PCA with k components of rows X (n, D), and a full-covariance Gaussian over the rows'
-    coefficients. SVD of the (n, n) Gram matrix when n < D (float64), so D can be large."""
+    coefficients. SVD of the (n, n) Gram matrix when n < D (float64), so D can be large; and
+    `fit_blocks` reads X a block of columns at a time, so X need never be held whole."""
 
     def __init__(self, k: int):
         if k < 1:
@@ -36,12 +38,24 @@ class GaussianPCA:
 
     def fit(self, X: np.ndarray) -> "GaussianPCA":
         X = np.asarray(X, dtype=np.float64)
-        n = len(X)
-        self.mean = X.mean(0)
-        Xc = X - self.mean
-        k = min(self.k, n - 1 if n > 1 else 1, X.shape[1])
+        return self.fit_blocks(lambda sl: X[:, sl], len(X), X.shape[1], max(X.shape[1], 1))
+
+    def fit_blocks(self, columns, n: int, D: int, block: int) -> "GaussianPCA":
+        """Fit on X (n, D) given as `columns(sl)` -> X[:, sl] (float64), in two passes over
+        blocks of `block` columns: the means and the Gram matrix, then the components. Each
+        block is read twice and X never whole (PCA-A's tables at every bin are tens of GB at
+        paper scale). One block gives the bits of the whole-matrix fit."""
+        spans = [slice(a, min(a + block, D)) for a in range(0, D, block)]
+        self.mean, G = np.empty(D), np.zeros((n, n))
         with one_blas_thread():  # the same bits on any core count
-            evals, U = np.linalg.eigh(Xc @ Xc.T)  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
+            for sl in spans:
+                Xc = columns(sl)
+                self.mean[sl] = Xc.mean(0)
+                Xc = Xc - self.mean[sl]
+                G += Xc @ Xc.T  # Gram: Xc = U S V^T -> Xc Xc^T = U S^2 U^T
+            evals, U = np.linalg.eigh(G)
+            del G
+            k = min(self.k, n - 1 if n > 1 else 1, D)
             # the rank first: a round-off eigenvalue would divide a component by ~1e-150 (rows
             # repeat under RGB permutations, so a small AugMERL can have fewer than k)
             rank = int(np.sum(evals > n * np.finfo(np.float64).eps * max(evals.max(), 1e-300)))
@@ -50,7 +64,12 @@ class GaussianPCA:
                 k = max(rank, 1)
             order = np.argsort(evals)[::-1][:k]
             s = np.sqrt(np.clip(evals[order], 1e-300, None))
-            self.components = (U[:, order].T @ Xc) / s[:, None]  # rows = V^T, orthonormal
+            Uk = U[:, order]
+            self.components = np.empty((k, D))  # rows = V^T, orthonormal
+            for sl in spans:
+                self.components[:, sl] = (Uk.T @ (columns(sl) - self.mean[sl])) / s[:, None]
+            # the rows' own coefficients, Xc V = U S: no third pass over X to encode them
+            self.scores = Uk * s
         self.explained = evals[order].clip(0).sum() / max(evals.clip(0).sum(), 1e-300)
         return self
 
@@ -102,23 +121,41 @@ def unmap(mapped, median, cosmap):
 
 
 class NielsenPCA:
-    """PCA-A: fit on tables (n, 3, B) at flat MERL bins `bins`, sample new tables (n, 3, B)."""
+    """PCA-A: fit on tables (n, 3, B) at flat MERL bins `bins`, sample new tables (n, 3, B).
+    `fit_source` reads the tables a block of bins at a time, as do `tables` and `sample`."""
 
-    def __init__(self, k: int, bins):
+    def __init__(self, k: int, bins, block: int | None = None):
         self.k, self.bins = k, np.asarray(bins)
         self.cosmap = cos_map(self.bins)
+        self.block = block  # bins a block; None: BLOCK_BYTES of float64 observations
 
-    def _observations(self, tables) -> np.ndarray:
+    def _observations(self, tables, nbins=None) -> np.ndarray:
         t = np.clip(np.asarray(tables, dtype=np.float64), 0, None)
-        if t.ndim != 3 or t.shape[1:] != (3, len(self.bins)):
-            raise ValueError(f"tables must be (n, 3, {len(self.bins)}), got {t.shape}")
-        return t.reshape(-1, len(self.bins))  # material-major, channel-minor observations
+        nbins = len(self.bins) if nbins is None else nbins
+        if t.ndim != 3 or t.shape[1:] != (3, nbins):
+            raise ValueError(f"tables must be (n, 3, {nbins}), got {t.shape}")
+        return t.reshape(-1, nbins)  # material-major, channel-minor observations
+
+    def _block(self, rows: int) -> int:
+        return self.block or max(1, BLOCK_BYTES // (8 * rows))
 
     def fit(self, tables) -> "NielsenPCA":
-        obs = self._observations(tables)
-        self.median = np.median(obs, 0)
-        self.pca = GaussianPCA(self.k).fit(log_map(obs, self.median, self.cosmap))
-        self.gauss = CoefficientGaussian(self.coefficients(tables))
+        tables = np.asarray(tables)
+        return self.fit_source(lambda sl: tables[:, :, sl], len(tables))
+
+    def fit_source(self, read, n: int) -> "NielsenPCA":
+        """Fit on n tables given as `read(sl)` -> (n, 3, len) tables at bins[sl]. Per block of
+        bins: the observations' median (per bin, so blocks give the same), the log mapping,
+        then GaussianPCA.fit_blocks."""
+        self.median = np.empty(len(self.bins))
+
+        def columns(sl):
+            obs = self._observations(read(sl), sl.stop - sl.start)
+            self.median[sl] = np.median(obs, 0)  # the same in both passes
+            return log_map(obs, self.median[sl], self.cosmap[sl])
+
+        self.pca = GaussianPCA(self.k).fit_blocks(columns, 3 * n, len(self.bins), self._block(3 * n))
+        self.gauss = CoefficientGaussian(self.pca.scores.reshape(n, -1))
         return self
 
     def coefficients(self, tables) -> np.ndarray:
@@ -128,10 +165,17 @@ class NielsenPCA:
         return c.reshape(len(obs) // 3, -1)
 
     def tables(self, coefs) -> np.ndarray:
-        """Coefficients (n, 3k) -> tables (n, 3, B), unmapped and clamped at 0."""
-        c = np.asarray(coefs).reshape(-1, self.pca.components.shape[0])
-        rho = unmap(self.pca.decode(c), self.median, self.cosmap)
-        return np.clip(rho, 0, None).reshape(-1, 3, len(self.bins))
+        """Coefficients (n, 3k) -> tables (n, 3, B) float32, unmapped and clamped at 0, a block
+        of bins at a time (no float64 copy of them all)."""
+        c = np.asarray(coefs, dtype=np.float64).reshape(-1, self.pca.components.shape[0])
+        out = np.empty((len(c), len(self.bins)), dtype=np.float32)
+        step = self._block(len(c))
+        with one_blas_thread():
+            for a in range(0, len(self.bins), step):
+                sl = slice(a, a + step)
+                mapped = c @ self.pca.components[:, sl] + self.pca.mean[sl]
+                out[:, sl] = np.clip(unmap(mapped, self.median[sl], self.cosmap[sl]), 0, None)
+        return out.reshape(-1, 3, len(self.bins))
 
     def sample(self, n: int, seed) -> np.ndarray:
         return self.tables(self.gauss.sample(n, seed))
