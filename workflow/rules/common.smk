@@ -96,6 +96,17 @@ def canon(value):
     return value
 
 
+def named(params):
+    """A rule's keyword `params` plus `named`: their plain (not callable) values by name, canon.
+    Snakemake records a job's params as the set of their values' texts, without their names
+    (snakemake.persistence params_changed): where two params share a value, setting one to a
+    value another holds, or swapping two, changed nothing it compares (a review of 2026-11-29:
+    `conditions.text.start_match: false` reran no sample_text). A dict's text holds its keys.
+    For the rules whose params share a value in a shipped config (tests/test_workflow.py
+    checks them): `params: **named(dict(...))`."""
+    return {**params, "named": canon({k: v for k, v in params.items() if not callable(v)})}
+
+
 def settings(section, keys=None, drop=()):
     """Params value of config `section` ("fit", "diffusion.sample"): its `keys` (default all)
     minus `drop`, without speed-only and (unless listed in `keys`) cosmetic keys, at any depth,

@@ -226,12 +226,14 @@ rule sample_text:
         table=out("samples/text/samples.tsv"),
         timing=out("samples/text/timing.tsv"),
     params:
-        **COND_SAMPLING,
-        guidance=cond_guidance("text", TEXT_REFINER),
-        mode="text",
-        seed=cond_seed("text"),
-        activation=DIFF_ACTIVATION,
-        **neutral_params("conditions.text", ["strength", "refiner", "start_match"]),
+        **named(dict(
+            **COND_SAMPLING,
+            guidance=cond_guidance("text", TEXT_REFINER),
+            mode="text",
+            seed=cond_seed("text"),
+            activation=DIFF_ACTIVATION,
+            **neutral_params("conditions.text", ["strength", "refiner", "start_match"]),
+        )),
     log:
         log("sample_text"),
     benchmark:
@@ -264,19 +266,21 @@ rule sample_image:
         conditioning=out("samples/image/conditioning.npy"),
         embeddings=out("samples/image/conditioning_embeddings.npy"),
     params:
-        **COND_SAMPLING,
-        guidance=cond_guidance("image", IMAGE_REFINER),
-        test_images=COND["image"]["test_images"],
-        strength=COND["image"]["strength"],
-        **neutral_params("conditions.image", ["render_step", "refiner", "candidates",
-                                              "unconstrained_candidates"]),
-        # best of n's penalty and the bins it checks for clamping: params only where used
-        **({"clamp_penalty": COND["image"]["clamp_penalty"], "angles": DIFF["plausibility_angles"]}
-           if IMAGE_DRAWS > 1 else {}),
-        resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
-        activation=DIFF_ACTIVATION,
-        mode="image",
-        seed=cond_seed("image"),
+        **named(dict(
+            **COND_SAMPLING,
+            guidance=cond_guidance("image", IMAGE_REFINER),
+            test_images=COND["image"]["test_images"],
+            strength=COND["image"]["strength"],
+            **neutral_params("conditions.image", ["render_step", "refiner", "candidates",
+                                                  "unconstrained_candidates"]),
+            # best of n's penalty and the bins it checks for clamping: params only where used
+            **({"clamp_penalty": COND["image"]["clamp_penalty"], "angles": DIFF["plausibility_angles"]}
+               if IMAGE_DRAWS > 1 else {}),
+            resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
+            activation=DIFF_ACTIVATION,
+            mode="image",
+            seed=cond_seed("image"),
+        )),
     log:
         log("sample_image"),
     benchmark:
@@ -376,11 +380,13 @@ rule conditions_eval:
         image=out("conditions/eval_image.tsv"),
         summary=out("conditions/eval_summary.tsv"),
     params:
-        bins=DIFF["nn_bins"],
-        angles=DIFF["plausibility_angles"],
-        resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
-        seed=cond_seed("eval"),
-        activation=DIFF_ACTIVATION,
+        **named(dict(
+            bins=DIFF["nn_bins"],
+            angles=DIFF["plausibility_angles"],
+            resolution=config["render"]["resolution"],  # the metric render's, as Table 2's
+            seed=cond_seed("eval"),
+            activation=DIFF_ACTIVATION,
+        )),
     log:
         log("conditions_eval"),
     benchmark:
@@ -406,13 +412,15 @@ rule guidance_sweep:
     output:
         out("conditions/guidance_sweep.tsv"),
     params:
-        sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditions.guidance instead
-        scales=COND["sweep"]["scales"],
-        per_prompt=COND["sweep"]["per_condition"],
-        bins=DIFF["nn_bins"],
-        angles=DIFF["plausibility_angles"],
-        seed=cond_seed("sweep"),
-        activation=DIFF_ACTIVATION,
+        **named(dict(
+            sample=settings("diffusion.sample", drop=["guidance", *OURS_UNCOND_ONLY]),  # conditions.guidance instead
+            scales=COND["sweep"]["scales"],
+            per_prompt=COND["sweep"]["per_condition"],
+            bins=DIFF["nn_bins"],
+            angles=DIFF["plausibility_angles"],
+            seed=cond_seed("sweep"),
+            activation=DIFF_ACTIVATION,
+        )),
     log:
         log("guidance_sweep"),
     benchmark:
@@ -442,11 +450,13 @@ rule conditions_mitsuba:
                      caption="../report/conditions_image.rst"),
         info=out("render/mitsuba/conditions.json"),
     params:
-        cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
-        rows=COND["figure_rows"],
-        per_row=COND["figure_samples"],
-        activation=DIFF_ACTIVATION,
-        seed=cond_seed("mitsuba"),
+        **named(dict(
+            cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
+            rows=COND["figure_rows"],
+            per_row=COND["figure_samples"],
+            activation=DIFF_ACTIVATION,
+            seed=cond_seed("mitsuba"),
+        )),
     log:
         log("conditions_mitsuba"),
     benchmark:

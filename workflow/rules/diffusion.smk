@@ -270,12 +270,14 @@ rule diffusion_mitsuba:
                      caption="../report/diffusion_mitsuba_types.rst"),
         info=out("render/mitsuba/diffusion.json"),
     params:
-        cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
-        n_samples=DIFF["gallery_count"],
-        n_types=DIFF["gallery_types"],
-        per_type=DIFF["per_type"],
-        activation=DIFF_ACTIVATION,
-        seed=seed_for("diffusion_mitsuba"),
+        **named(dict(
+            cfg=settings("render.mitsuba", ["variant", "resolution", "spp", "envmap_size"]),
+            n_samples=DIFF["gallery_count"],
+            n_types=DIFF["gallery_types"],
+            per_type=DIFF["per_type"],
+            activation=DIFF_ACTIVATION,
+            seed=seed_for("diffusion_mitsuba"),
+        )),
     log:
         log("diffusion_mitsuba"),
     benchmark:

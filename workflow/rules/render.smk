@@ -51,11 +51,13 @@ rule render_section:
         mitsuba=report(out("report/figures/render_mitsuba.png"), category="Rendering",
                        caption="../report/render_mitsuba.rst"),
     params:
-        names=RENDER_MERL,
-        resolution=RENDER["resolution"],
-        figure_resolution=config["report"]["sphere_resolution"],
-        n_gallery=RENDER["gallery_count"],
-        activation=config["fit"]["activation"],
+        **named(dict(
+            names=RENDER_MERL,
+            resolution=RENDER["resolution"],
+            figure_resolution=config["report"]["sphere_resolution"],
+            n_gallery=RENDER["gallery_count"],
+            activation=config["fit"]["activation"],
+        )),
     log:
         log("render_section"),
     benchmark:
