@@ -12,6 +12,7 @@ from neumat.btf.data import BTFData
 from neumat.btf.directions import RINGS, half_diff, to_cartesian, ubo2014_angles
 from neumat.btf.neural import fetch, train
 from neumat.data import ubo2014
+from neumat.io import modelfile
 
 
 @pytest.fixture(scope="module")
@@ -155,7 +156,7 @@ def _psnr(a, b):
 
 
 @pytest.mark.slow
-def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path):
+def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path, monkeypatch):
     torch.set_num_threads(1)
     t, l, v, y, u, wi, wo = _queries(tiny_btf, 4000, seed=5)
     m = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
@@ -166,10 +167,30 @@ def test_triple_plane_training_reaches_psnr(tiny_btf, tmp_path):
         p_mean = _psnr(y.mean(0, keepdim=True).expand_as(y), y)
     assert np.mean(losses[-50:]) < 0.5 * np.mean(losses[:20])
     assert p_fit > 36 and p_fit > p_mean + 5, (p_fit, p_mean)  # measured 40.0 vs 33.2
-    # resume: a checkpoint at step 300 continues to the same result as the uninterrupted run
-    assert ck.exists()
+    # the final checkpoint stays: a rerun of the finished fit (Snakemake reruns a job whose
+    # outputs it marked incomplete) trains no step and gives the same model
+    assert not ck.exists() and modelfile.final_path(ck).exists()
+    again = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
+    assert train(again, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=ck, checkpoint_every=300) == []
+    for a, b in zip(m.state_dict().values(), again.state_dict().values()):
+        assert torch.equal(a, b)
+    # resume: a fit killed after its checkpoint at step 300 continues to the same result
+    sample, n = tiny_btf.sample, [0]
+
+    def killed(*a, **k):
+        n[0] += 1
+        if n[0] == 451:
+            raise KeyboardInterrupt
+        return sample(*a, **k)
+
+    monkeypatch.setattr(tiny_btf, "sample", killed)
+    cut = tmp_path / "cut.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        train(models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4), tiny_btf, 600,
+              2048, 1e-2, seed=0, checkpoint=cut, checkpoint_every=300)
+    monkeypatch.setattr(tiny_btf, "sample", sample)
     m2 = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)
-    rest = train(m2, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=ck, checkpoint_every=300)
+    rest = train(m2, tiny_btf, 600, 2048, 1e-2, seed=0, checkpoint=cut, checkpoint_every=300)
     assert len(rest) == 300 and rest[-1] == pytest.approx(losses[-1], rel=1e-4)
     # the checkpoint of other settings is not resumed (it carried its own lr and schedule)
     m3 = models.TriplePlane(8, 8, u_channels=4, dir_res=16, dir_channels=4)

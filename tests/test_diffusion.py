@@ -335,6 +335,14 @@ def test_resume_after_kill_is_identical(tmp_path):
     mcfg = DenoiserConfig(width=32, depth=1, heads=4, n_classes=2)
     args = (w, labels, ["a", "b"], mcfg, TOY_SCHED, cfg)
     full = train(*args, tmp_path / "full.pt", tmp_path / "full_ck.pt", seed=3, device="cpu")
+    # the final checkpoint stays: rerun (Snakemake reruns a finished job whose outputs it
+    # marked incomplete), the training takes no step and writes the same model
+    ran = []
+    again = train(*args, tmp_path / "again.pt", tmp_path / "full_ck.pt", seed=3, device="cpu",
+                  on_step=lambda step, loss: ran.append(step))
+    assert ran == [] and again["history"] == full["history"]
+    for k, v in full["ema"].items():
+        assert torch.equal(v, again["ema"][k]), k
 
     def kill(step, loss):
         if step == 23:  # after the checkpoint at 20: steps 21-23 are lost and redone

@@ -149,6 +149,13 @@ def _train_args(tmp_path, steps=12, tag="a"):
 
 def test_resume_after_kill_is_identical(tmp_path):
     full = hb.train(*_train_args(tmp_path, tag="full"), seed=5)
+    # the final checkpoint stays: a rerun takes no step and writes the same model
+    ran = []
+    again = hb.train(*_train_args(tmp_path, tag="full"), seed=5,
+                     on_step=lambda step, loss: ran.append(step))
+    assert ran == [] and again["history"] == full["history"]
+    for k, v in full["state"].items():
+        assert torch.equal(v, again["state"][k]), k
 
     class Kill(Exception):
         pass

@@ -175,6 +175,10 @@ def test_tiny_config_runs_every_stage(tiny_run):
     assert not list(res.rglob("draws.partial")), list(res.rglob("draws.partial"))
     assert not list((res / "baselines").rglob("checkpoint.pt"))
     assert not (res / "conditions/image_encoder_checkpoint.pt").exists()
+    # ...but the long trainings keep their final checkpoint (a rerun of a finished job that
+    # Snakemake marked incomplete resumes there: README, "When a run is interrupted")
+    assert (res / "diffusion/ours/checkpoint.final.pt").is_file()
+    assert not (res / "diffusion/ours/checkpoint.pt").exists()
     q = pd.read_csv(res / "btf/quality.tsv", sep="\t")
     assert len(q) > 0
     assert "Dynamic synthesis on the positional plane" in md
@@ -362,6 +366,23 @@ def _set(cfg: dict, dotted: str, value):
     for p in path:
         cfg = cfg.setdefault(p, {})
     cfg[last] = value
+
+
+@pytest.mark.parametrize("configs", [["config/tiny.yaml"], [], ["config/paper.yaml"]],
+                         ids=["tiny", "default", "paper"])
+def test_params_that_share_a_value_are_also_given_by_name(configs):
+    """Snakemake compares a job's params as a set of value texts, names left out: two params of
+    one value could change unnoticed (conditions.text.start_match false reran no sample_text,
+    refiner being true too). Every job of the shipped configs whose params share a value (None
+    aside: PCA-N's unused keys) has them by name too (`named`)."""
+    import json
+    res = subprocess.run([sys.executable, str(ROOT / "tests/params_collisions.py"), *configs],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    line = [ln for ln in res.stdout.splitlines() if ln.startswith("COLLISIONS ")]
+    assert res.returncode == 0 and line, res.stderr[-3000:]
+    found = json.loads(line[-1].split(" ", 1)[1])
+    unguarded = {rule: v["shared"] for rule, v in found.items() if not v["named"]}
+    assert not unguarded, unguarded
 
 
 @pytest.mark.slow

@@ -334,6 +334,7 @@ def train(values: np.ndarray, bins: np.ndarray, median: np.ndarray, model_cfg: H
               "history": [list(h) for h in history], "train_seconds": elapsed,
               "n_train": M, "seed": seed, "fingerprint": fp}
     save_torch(out_path, bundle)
+    modelfile.finish(ckpt_path)  # a rerun of the finished job resumes at the last step
     return bundle
 
 

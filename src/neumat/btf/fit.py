@@ -46,7 +46,7 @@ def fit_method(method: str, btf_path, out_path, settings: dict, seed: int, roi=N
         raise ValueError(f"unknown BTF method {method!r}; choose from {models.METHODS}")
     log.info("%s: %d parameters", method, model.n_params())
     models.save(model, out_path)
-    Path(f"{out_path}.ckpt").unlink(missing_ok=True)
+    Path(f"{out_path}.ckpt").unlink(missing_ok=True)  # the last step's is kept (modelfile.finish)
 
 
 def evaluate(name, btf_path, model_paths: dict, roi, pairs, tiling, metrics_out, textures_png,

@@ -197,8 +197,10 @@ def train(model: nn.Module, data, steps: int, batch: int, lr: float, seed: int,
         if (step + 1) % max(steps // 10, 1) == 0:
             log.info("%s step %d/%d loss %.5f (%.1fs)", model.method, step + 1, steps,
                      sum(losses[-50:]) / len(losses[-50:]), time.time() - t0)
-        if checkpoint and (step + 1) % checkpoint_every == 0 and step + 1 < steps:
+        if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
             save_torch(checkpoint, {"fingerprint": fp, "model": model.state_dict(),
                                     "opt": opt.state_dict(), "sched": sched.state_dict(),
                                     "gen": gen.get_state(), "step": step + 1})
+    if checkpoint:  # the last step's: a rerun of the finished fit resumes there (modelfile.finish)
+        modelfile.finish(checkpoint)
     return losses

@@ -245,6 +245,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
               "history": history, "train_seconds": elapsed, "n_train": len(weights),
               "seed": seed, "fingerprint": fp}
     save_torch(out_path, result)
+    modelfile.finish(ckpt_path)  # a rerun of the finished job resumes at the last step
     return result
 
 

@@ -4,6 +4,7 @@
 
 import hashlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,27 @@ def build(make, state, source, rule: str, **load_kw):
     return model
 
 
+def final_path(path: str | Path) -> Path:
+    """Where `finish` keeps a finished training's last checkpoint: checkpoint.pt ->
+    checkpoint.final.pt."""
+    path = Path(path)
+    return path.with_suffix(".final" + path.suffix)
+
+
+def finish(path: str | Path) -> None:
+    """Keep a finished training's last checkpoint as `final_path(path)`, where `resume` finds it.
+    After `kill -INT` of Snakemake alone, a running job finishes, but Snakemake marks its
+    outputs incomplete and --rerun-incomplete runs it again: it then resumes at the last step
+    and only writes its model (before, the job script had deleted the checkpoint, and hours of
+    training at paper scale were redone: a review on the tiny run, 2026-11-29). A separate
+    name, so that the job scripts' removal of `path` (kept as it was, so that existing runs do
+    not retrain for an edited script) leaves it. Its fingerprint keeps it from being resumed
+    for other data or settings."""
+    path = Path(path)
+    if path.exists():
+        os.replace(path, final_path(path))
+
+
 def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
            **state) -> dict | None:
     """A training checkpoint at `path`, loaded into `state` (name -> object with
@@ -105,7 +127,8 @@ def resume(path: str | Path, fingerprint: str | None = None, map_location="cpu",
     log = logging.getLogger(__name__)
     path = Path(path)
     if not path.exists():
-        return None
+        final = final_path(path)  # a finished training's (`finish`): resumed at its last step
+        return resume(final, fingerprint, map_location, **state) if final.exists() else None
     try:
         ck = load(path, map_location=map_location)
     except ValueError as e:
