@@ -368,6 +368,29 @@ def _set(cfg: dict, dotted: str, value):
     cfg[last] = value
 
 
+def _job_params(mode: str, *configs: str) -> dict:
+    """tests/job_params.py's answer for the report DAG of `configs` (no job runs)."""
+    import json
+    res = subprocess.run([sys.executable, str(ROOT / "tests/job_params.py"), mode, *configs],
+                         cwd=ROOT, capture_output=True, text=True, timeout=600)
+    line = [ln for ln in res.stdout.splitlines() if ln.startswith("RESULT ")]
+    assert res.returncode == 0 and line, res.stderr[-3000:]
+    return json.loads(line[-1].split(" ", 1)[1])
+
+
+def test_a_number_spelt_otherwise_changes_no_params(tmp_path):
+    """`fit.steps: 300.0` for the tiny config's 300, `conditions.sweep.scales: [0, 2]` for its
+    [0.0, 2.0] give every job the same params (a review found 42 jobs rerun for the first;
+    common.smk _typed)."""
+    import yaml
+    tiny = yaml.safe_load((ROOT / "config/tiny.yaml").read_text())
+    assert tiny["fit"]["steps"] == 300 and tiny["conditions"]["sweep"]["scales"] == [0.0, 2.0]
+    overlay = tmp_path / "spelt.yaml"
+    overlay.write_text("fit: {steps: 300.0}\nconditions: {sweep: {scales: [0, 2]}}\n")
+    assert _job_params("texts", "config/tiny.yaml", str(overlay)) == \
+        _job_params("texts", "config/tiny.yaml")
+
+
 @pytest.mark.parametrize("configs", [["config/tiny.yaml"], [], ["config/paper.yaml"]],
                          ids=["tiny", "default", "paper"])
 def test_params_that_share_a_value_are_also_given_by_name(configs):
@@ -375,12 +398,7 @@ def test_params_that_share_a_value_are_also_given_by_name(configs):
     one value could change unnoticed (conditions.text.start_match false reran no sample_text,
     refiner being true too). Every job of the shipped configs whose params share a value (None
     aside: PCA-N's unused keys) has them by name too (`named`)."""
-    import json
-    res = subprocess.run([sys.executable, str(ROOT / "tests/params_collisions.py"), *configs],
-                         cwd=ROOT, capture_output=True, text=True, timeout=600)
-    line = [ln for ln in res.stdout.splitlines() if ln.startswith("COLLISIONS ")]
-    assert res.returncode == 0 and line, res.stderr[-3000:]
-    found = json.loads(line[-1].split(" ", 1)[1])
+    found = _job_params("collisions", *configs)
     unguarded = {rule: v["shared"] for rule, v in found.items() if not v["named"]}
     assert not unguarded, unguarded
 

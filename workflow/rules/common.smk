@@ -53,22 +53,30 @@ def seed_for(stage, *items):
 
 # ----------------------------------------------------------------------------- params by value
 # Snakemake compares a rule's params as repr() text: {"a": 1, "b": 2} and {"b": 2, "a": 1} differ,
-# and so do 1 and 1.0. Numbers typed `number` in the schema become floats here, and params that
+# and so do 1 and 1.0. Numbers become the schema's type here (_typed), and params that
 # hold several keys go through canon() (keys sorted at every level). Speed-only keys
 # (config/speed_keys.yaml) never enter params: scripts read them from snakemake.config.
 
 
-def _floats_where_numbers(node, schema):
-    """Config with integers given for `type: number` keys turned into floats (1 -> 1.0)."""
-    props = schema.get("properties", {})
-    for k, v in (node.items() if isinstance(node, dict) else ()):
-        sub = props.get(k, {})
-        types = sub.get("type", [])
-        types = [types] if isinstance(types, str) else types
-        if "number" in types and "integer" not in types and type(v) is int:
-            node[k] = float(v)
-        elif isinstance(v, dict):
-            _floats_where_numbers(v, sub)
+def _typed(value, schema):
+    """`value` as its schema types it: an integer given for a `number` key as a float (1 -> 1.0),
+    an integral float given for an `integer` key as an int (300.0 -> 300; JSON Schema accepts
+    it as an integer, and the scripts then got a float), in dicts and lists at any depth. Each
+    spelling of a number then has one params text (a review on 2026-11-29: `fit.steps: 300.0`
+    reran 42 jobs, `conditions.sweep.scales: [0, 2]` the sweep)."""
+    types = schema.get("type", [])
+    types = [types] if isinstance(types, str) else types
+    if type(value) is int and "number" in types and "integer" not in types:
+        return float(value)
+    if type(value) is float and value.is_integer() and "integer" in types and "number" not in types:
+        return int(value)
+    if isinstance(value, dict):
+        props = schema.get("properties", {})
+        for k, v in value.items():
+            value[k] = _typed(v, props.get(k, {}))
+    elif isinstance(value, list) and isinstance(schema.get("items"), dict):
+        value[:] = [_typed(v, schema["items"]) for v in value]
+    return value
 
 
 def _load_yaml(name):
@@ -79,7 +87,7 @@ def _load_yaml(name):
         return yaml.load(f, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
-_floats_where_numbers(config, _load_yaml("schema.yaml"))
+_typed(config, _load_yaml("schema.yaml"))
 _KEY_KINDS = _load_yaml("speed_keys.yaml")
 SPEED_KEYS = set(_KEY_KINDS["speed"])  # never params
 COSMETIC_KEYS = set(_KEY_KINDS["cosmetic"])  # params of report/figure rules only

@@ -1,6 +1,11 @@
-"""Print, as JSON, the jobs of a config's report DAG whose params share a value's text (run by
-tests/test_workflow.py in a subprocess: the Snakemake API keeps global state). Snakemake records
-a job's params as the set of their values' texts, without names, so such params can change
+"""The params of every job of a config's report DAG, as Snakemake records them (the set of their
+values' texts), printed as JSON for tests/test_workflow.py, which runs this in a subprocess (the
+Snakemake API keeps global state). No job runs.
+
+    python tests/job_params.py collisions CONFIG...  jobs whose params share a value's text
+    python tests/job_params.py texts CONFIG...       each job's sorted params texts
+
+Snakemake records a job's params without their names, so params that share a value can change
 unnoticed; `named` (workflow/rules/common.smk) guards a rule against it."""
 import collections
 import json
@@ -12,7 +17,7 @@ from snakemake.settings.enums import Quietness
 from snakemake.settings.types import (ConfigSettings, DAGSettings, OutputSettings,
                                       ResourceSettings, StorageSettings)
 
-configs = [Path(c) for c in sys.argv[1:]]
+mode, configs = sys.argv[1], [Path(c) for c in sys.argv[2:]]
 with api.SnakemakeApi(OutputSettings(quiet={Quietness.ALL})) as sm:
     wf = sm.workflow(resource_settings=ResourceSettings(cores=1),
                      config_settings=ConfigSettings(configfiles=configs),
@@ -24,8 +29,12 @@ with api.SnakemakeApi(OutputSettings(quiet={Quietness.ALL})) as sm:
     found = {}
     for job in dag.jobs:
         names, texts = list(job.params.keys()), [repr(v) for v in job.params]
+        if mode == "texts":
+            if job.rule.name != "report":  # its params are the whole config, as written
+                found[f"{job.rule.name} {sorted(job.wildcards.items())}"] = sorted(texts)
+            continue
         shared = {t: [n for n, u in zip(names, texts) if u == t]
                   for t, k in collections.Counter(texts).items() if k > 1 and t != "None"}
         if shared:
             found[job.rule.name] = {"shared": shared, "named": "named" in names}
-print("COLLISIONS " + json.dumps(found))
+print("RESULT " + json.dumps(found))
