@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+from neumat.baselines.hyperbrdf import HyperConfig, HyperTrainConfig
+from neumat.conditions.image import ImageEncoderConfig
 from neumat.constrained import sample_category
 from neumat.diffusion.model import DenoiserConfig
 from neumat.diffusion.plausibility import plausibility
@@ -42,6 +44,11 @@ CASES = {
     "DenoiserConfig": (_dataclass_defaults(DenoiserConfig), ("diffusion", "model"),
                        {"n_classes": "set by the workflow from the catalogue's types"}),
     "ScheduleConfig": (_dataclass_defaults(ScheduleConfig), ("diffusion", "schedule"), {}),
+    # HyperTrainConfig had the reference code's 20000 steps, 1 material a step and 4000 query
+    # samples, ImageEncoderConfig 2000 steps (a review, 2026-11-29)
+    "HyperConfig": (_dataclass_defaults(HyperConfig), ("hyperbrdf", "model"), {}),
+    "HyperTrainConfig": (_dataclass_defaults(HyperTrainConfig), ("hyperbrdf", "train"), {}),
+    "ImageEncoderConfig": (_dataclass_defaults(ImageEncoderConfig), ("conditions", "image", "encoder"), {}),
     "TrainConfig": (_dataclass_defaults(TrainConfig), ("diffusion", "train"), {}),
     "Sampler.sample": (_signature_defaults(Sampler.sample), ("diffusion", "sample"),
                        {"types": "None = unconditional; the workflow lists them",

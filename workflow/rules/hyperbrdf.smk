@@ -56,9 +56,11 @@ rule train_hyperbrdf:
         # one shard at a time, then the kept bins' values and their mapped targets. Peak RSS
         # of this script's path (shard rows -> concatenate -> hb.train, 1 step, CPU;
         # `python benchmarks/job_memory.py --jobs hyperbrdf`, 200 and 400 materials x 32768
-        # bins, Intel Xeon AVX-512, 2026-11-29): 443 MB + 24.6 bytes per material-bin, i.e.
-        # 8.2 per stored value (material x channel x bin), the values' 4 bytes twice (rows +
-        # their concatenation, then values + targets); 26 per material-bin budgeted
+        # bins, the schema's training settings, Intel Xeon AVX-512, 2026-11-29): 634 MB + 19.0
+        # bytes per material-bin, i.e. 6.3 per stored value (material x channel x bin), the
+        # values' 4 bytes about twice (rows + their concatenation, then values + targets); 26
+        # per material-bin budgeted. (443 MB + 24.6 bytes at the library's defaults before they
+        # were made the schema's: 1 material a step, 4000 query samples)
         mem_mb=lambda wc, input: 2000 + 2 * input.size_mb // len(AUG_SHARDS)
         + 26 * augmerl_count() * HB["train_bins"] // 2**20,
         runtime=hyperbrdf_runtime(),

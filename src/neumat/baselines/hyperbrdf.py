@@ -68,17 +68,17 @@ class HyperConfig:
 
 
 @dataclass
-class HyperTrainConfig:
-    steps: int = 20000
+class HyperTrainConfig:  # defaults: config/schema.yaml hyperbrdf.train's (tests/test_defaults.py)
+    steps: int = 2000
     lr: float = 5e-5
-    materials_per_step: int = 1
+    materials_per_step: int = 8
     context: int = 4000  # samples per material into the encoder during training
-    query: int = 4000  # samples per material in the loss
+    query: int = 2000  # samples per material in the loss
     grad_clip: float = 1.0
     z_weight: float = 0.1
     theta_weight: float = 0.1
-    checkpoint_every: int = 500
-    log_every: int = 100
+    checkpoint_every: int = 250
+    log_every: int = 50
 
 
 # ----------------------------------------------------------------------------- data mapping

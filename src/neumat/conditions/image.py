@@ -54,7 +54,7 @@ class ImageEncoderConfig:
     n_lights: int = 6
     objective: str = "text"
     exposure_jitter: float = 0.5  # stops, uniform in [-x, x]
-    steps: int = 2000
+    steps: int = 3000
     batch_size: int = 64
     lr: float = 2e-3
     weight_decay: float = 1e-4
