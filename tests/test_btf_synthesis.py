@@ -353,6 +353,8 @@ def test_evaluation_and_section_take_any_number_of_lights(tmp_path, lights):
     assert set(df.method) == {"tiling", "linear"}
     tiling = df.set_index("method").loc["tiling"]
     assert tiling["w1"] < 1e-4 and tiling["acf"] > 0.99
+    # at random positions tiling's values are bilinear mixes too: its W1 is no longer ~0
+    assert tiling["w1_random"] > 10 * tiling["w1"] and np.isfinite(df["w1_random"]).all()
     stage.write_section([tmp_path / "m.tsv"], tmp_path / "s.md", tmp_path / "s.tsv",
                         {"scale": 2}, render, 15, 8)
     md = (tmp_path / "s.md").read_text()
