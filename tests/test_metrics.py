@@ -48,6 +48,14 @@ def test_hand_computed_example():
     assert sets.one_nna(d_rr, d_ss, d_rs) == pytest.approx(1 / 5)
 
 
+def test_cov_counts_the_references_that_are_some_samples_nearest():
+    """COV searches from the samples (PointFlow, the released M3ashy code): R = {0, 1, 2},
+    S = {0, 0.1, 0.2}: every sample's nearest reference is 0, so COV = 1/3; searching from the
+    references (each one's nearest sample, 0 / 0.2 / 0.2, counted over |R|) would give 2/3."""
+    r, s = torch.tensor([[0.0], [1.0], [2.0]]), torch.tensor([[0.0], [0.1], [0.2]])
+    assert sets.cov(torch.cdist(r, s)) == pytest.approx(1 / 3)
+
+
 def test_cov_counts_each_reference_once():
     d_rs = torch.tensor([[0.0, 0.1, 0.2], [5.0, 5.0, 5.0]])  # all samples nearest to R0
     assert sets.cov(d_rs) == 0.5
