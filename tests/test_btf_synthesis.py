@@ -363,6 +363,20 @@ def test_evaluation_and_section_take_any_number_of_lights(tmp_path, lights):
     assert len({line.count("|") for line in table}) == 1  # header, rule and rows line up
 
 
+def test_autocorrelation_leaves_out_a_direction_without_variance():
+    """A render that varies only in its first 4 columns: shifted 4 pixels along x, one slice is
+    constant (no correlation), so the ACF is the y direction's alone (NaN before: max() took
+    the NaN that came first); a black render has none (NaN)."""
+    from neumat.btf.synthesis import stage
+    img = np.zeros((16, 16, 3))
+    img[:, :4] = np.random.default_rng(0).random((16, 4, 1))
+    L = img[..., 0]
+    along_y = np.corrcoef(L[:-4].reshape(-1), L[4:].reshape(-1))[0, 1]
+    assert np.isfinite(along_y)
+    assert stage.autocorrelation_at(img, 4) == pytest.approx(along_y)
+    assert np.isnan(stage.autocorrelation_at(np.zeros((16, 16, 3)), 4))
+
+
 def test_hpb_torch_path_is_independent_of_the_batch():
     """The torch path (the reference and the fallback) is a pure function of (u, seed) to the
     bit: no BLAS call whose kernel, and rounding, changes with the number of rows (addmm did

@@ -127,11 +127,17 @@ def render_ortho(model, u, light, intensity) -> np.ndarray:
 
 
 def autocorrelation_at(img: np.ndarray, period: int) -> float:
-    """max over x, y of corr(L(p), L(p + period)), L = Rec. 709 luminance."""
+    """max over x, y of corr(L(p), L(p + period)), L = Rec. 709 luminance; a direction whose
+    shifted slices do not vary has none and is left out, and with neither the result is NaN
+    (a black render). Python's max had returned NaN or the other direction's value by the
+    order of the two (a review, 2026-11-29)."""
     L = img @ np.array([0.2126, 0.7152, 0.0722])
-    c = [np.corrcoef(a.reshape(-1), b.reshape(-1))[0, 1]
-         for a, b in ((L[:, :-period], L[:, period:]), (L[:-period], L[period:]))]
-    return float(max(c))
+    c = []
+    for a, b in ((L[:, :-period], L[:, period:]), (L[:-period], L[period:])):
+        a, b = a.reshape(-1), b.reshape(-1)
+        if a.std() > 0 and b.std() > 0:
+            c.append(np.corrcoef(a, b)[0, 1])
+    return float(max(c)) if c else math.nan
 
 
 def histogram_distance(feat: np.ndarray, exemplar: np.ndarray) -> float:
