@@ -25,7 +25,11 @@ with api.SnakemakeApi(OutputSettings(quiet={Quietness.ALL})) as sm:
                      workdir=Path("."))
     dag_api = wf.dag(DAGSettings(targets={"report"}, forceall=True))
     dag_api.execute_workflow(executor="dryrun")
-    dag = dag_api.workflow_api._workflow.dag
+    try:  # Snakemake's own DAG: no public API lists a job's params
+        dag = dag_api.workflow_api._workflow.dag
+    except AttributeError as e:
+        print(f"UNAVAILABLE this Snakemake keeps its DAG elsewhere: {e}")
+        sys.exit(3)
     found = {}
     for job in dag.jobs:
         names, texts = list(job.params.keys()), [repr(v) for v in job.params]
