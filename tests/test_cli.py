@@ -385,13 +385,15 @@ def test_errors_say_what_to_do(run, tmp_path, capsys, args, message):
     (["sample", "--budget", "0"], "argument --budget: '0': give a whole number >= 1"),
     (["sample", "--budget", "-5"], "argument --budget: '-5': give a whole number >= 1"),
     (["sample", "--bins", "some"], "argument --bins: 'some': give a whole number >= 1, or all"),
-    (["sample", "--resolution", "1"], "argument --resolution: '1': give a whole number >= 2"),
+    (["sample", "--resolution", "1"], "argument --resolution: '1': give a whole number from 2 to 4096"),
+    (["sample", "--resolution", "100000"],  # numpy's MemoryError for 74.5 GiB before
+     "argument --resolution: '100000': give a whole number from 2 to 4096"),
     (["sample", "--steps", "0"], "argument --steps: '0': give a whole number >= 1"),
     (["sample", "--spp", "0"], "argument --spp: '0': give a whole number >= 1"),
     (["sample", "--activation", "foo"], "argument --activation: invalid choice: 'foo'"),
     (["render", "--max", "0"], "argument --max: '0': give a whole number >= 1"),
-    (["render", "--resolution", "0"], "argument --resolution: '0': give a whole number >= 2"),
-    (["render", "--resolution", "-5"], "argument --resolution: '-5': give a whole number >= 2"),
+    (["render", "--resolution", "0"], "argument --resolution: '0': give a whole number from 2 to 4096"),
+    (["render", "--resolution", "-5"], "argument --resolution: '-5': give a whole number from 2 to 4096"),
     (["render", "--index", "-1"], "argument --index: '-1': give a whole number >= 0"),
     (["render", "--activation", "tanh"], "argument --activation: invalid choice: 'tanh'"),
 ])
@@ -922,6 +924,51 @@ def test_a_reused_out_dir_holds_only_the_new_draw(run, tmp_path):
     assert main("sample", "--run", rec, "--category", "metallic", "-n", 1, "--steps", 2,
                 "--budget", 2, "--batch", 2, "--no-binary", "--out", out) == cli.EXIT_BUDGET
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "sample_001.png.bak", "sample_a.png"]
+
+
+def test_out_never_overwrites_what_no_draw_wrote(run, tmp_path, capsys, monkeypatch):
+    """--out inside the run's folder is refused (`--out <run>/neumerl` had replaced the run's
+    NeuMERL weights); a folder whose weights.npy / samples.tsv no `neumat sample` wrote is
+    refused, its files intact; a draw that fails while writing leaves the earlier draw whole
+    (it is written beside --out and moved in at the end). Review of 2026-11-29."""
+    assert main("sample", "--run", run, "-n", 1, "--steps", 2, "--no-binary",
+                "--out", run / "neumerl") == 2
+    assert "inside the run's folder" in capsys.readouterr().err and not (run / "neumerl").exists()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "weights.npy").write_bytes(b"mine")
+    (mine / "samples.tsv").write_text("id\tvalue\n1\t2\n")
+    assert main("sample", "--run", run, "-n", 1, "--steps", 2, "--no-binary", "--out", mine) == 2
+    err = capsys.readouterr().err
+    assert "which no `neumat sample` wrote" in err and "weights.npy" in err
+    assert (mine / "weights.npy").read_bytes() == b"mine"
+    out = tmp_path / "o"
+    assert main("sample", "--run", run, "-n", 3, "--steps", 2, "--no-binary", "--out", out) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    from neumat.cli import sample as cli_sample
+
+    def fail(*a, **k):
+        raise MemoryError("while writing")
+
+    monkeypatch.setattr(cli_sample, "_write_scene", fail)
+    with pytest.raises(MemoryError):
+        main("sample", "--run", run, "-n", 2, "--steps", 2, "--seed", 5, "--no-binary", "--out", out)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir() if "partial" in p.name] == []
+
+
+def test_a_damaged_manifest_names_the_file_and_its_rule(run, tmp_path, capsys):
+    """A run's neumerl/manifest.tsv without its columns: `sample --type` names the file and the
+    rule that remakes it, exit 2 (a bare ValueError traceback before; review, 2026-11-29)."""
+    import shutil
+    bad = tmp_path / "bad"
+    shutil.copytree(run, bad)
+    (bad / "neumerl").mkdir()
+    (bad / "neumerl/manifest.tsv").write_text("what\n1\n")
+    assert main("sample", "--run", bad, "--type", TYPES[0], "-n", 1, "--steps", 2, "--no-binary",
+                "--out", tmp_path / "o") == 2
+    err = capsys.readouterr().err
+    assert "neumerl/manifest.tsv" in err and "--forcerun neumerl" in err, err
 
 
 def test_the_schema_ships_with_the_package(run, tmp_path, capsys, monkeypatch):

@@ -31,16 +31,22 @@ __all__ = ["main", "parser", "EXIT_BUDGET", "EXIT_USAGE", "IMAGE_ENCODER", "CLIE
            "schema_default", "unsupported", "parse_guidance"]
 
 
-def whole(low: int):
-    """An argparse type: a whole number >= low (argparse exits with status 2 and names the
-    option, before any work)."""
+# the largest image side the CLI draws: a metric-view render holds several float arrays a pixel
+# and sample (--resolution 100000 asked for 74.5 GiB and ended in numpy's MemoryError)
+MAX_SIDE = 4096
+
+
+def whole(low: int, high: int | None = None):
+    """An argparse type: a whole number >= low (and <= high) (argparse exits with status 2 and
+    names the option, before any work)."""
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = low - 1
-        if value < low:
-            raise argparse.ArgumentTypeError(f"{text!r}: give a whole number >= {low}")
+        if value < low or (high is not None and value > high):
+            rng = f">= {low}" if high is None else f"from {low} to {high}"
+            raise argparse.ArgumentTypeError(f"{text!r}: give a whole number {rng}")
         return value
     return parse
 
@@ -143,10 +149,10 @@ def parser() -> argparse.ArgumentParser:
                         "constrained.bins, null = all)")
     s.add_argument("--activation", choices=ACTIVATIONS,
                    help="NBRDF activation (default: the run's fit.activation)")
-    s.add_argument("--resolution", type=whole(2), default=128, help="metric-view PNG size (default 128)")
+    s.add_argument("--resolution", type=whole(2, MAX_SIDE), default=128, help="metric-view PNG size (default 128)")
     s.add_argument("--no-binary", action="store_true", help="skip the MERL .binary files (35 MB each)")
     s.add_argument("--mitsuba", action="store_true", help="also render scene.xml to scene.png with Mitsuba")
-    s.add_argument("--mitsuba-resolution", type=whole(1),
+    s.add_argument("--mitsuba-resolution", type=whole(1, MAX_SIDE),
                    help="scene.png size (default 256; with --mitsuba)")
     s.add_argument("--spp", type=whole(1), help="Mitsuba samples per pixel (default 32; with --mitsuba)")
     s.add_argument("--variant", default="auto", choices=["auto", "llvm_ad_rgb", "scalar_rgb"], help="Mitsuba variant")
@@ -162,7 +168,7 @@ def parser() -> argparse.ArgumentParser:
     r.add_argument("--index", type=whole(0), help="weights.npy: only this row (default: up to --max rows as a grid)")
     r.add_argument("--max", type=whole(1), default=16, help="weights.npy: most rows in the grid (default 16)")
     r.add_argument("--mitsuba", action="store_true", help="render with Mitsuba instead of the metric view")
-    r.add_argument("--resolution", type=whole(2), help="image size (default 128; a .xml keeps its own)")
+    r.add_argument("--resolution", type=whole(2, MAX_SIDE), help="image size (default 128; a .xml keeps its own)")
     r.add_argument("--spp", type=whole(1), help="Mitsuba samples per pixel (default 32; a .xml keeps its own)")
     r.add_argument("--activation", choices=ACTIVATIONS,
                    help="NBRDF activation of weights files (default relu)")

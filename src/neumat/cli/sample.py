@@ -4,8 +4,11 @@ conditions, and write them with their renders and a Mitsuba scene."""
 from __future__ import annotations
 
 import math
+import os
 import re
+import shutil
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -170,12 +173,21 @@ def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
     return p
 
 
+def _read_manifest(run: Run, path, n_rows=None):
+    """dataset.read_manifest of the run's `path`, or the `unreadable` error naming it and rule
+    neumerl (a manifest without its columns, or of another row count than the weights, gave a
+    bare traceback; a review, 2026-11-29)."""
+    from neumat.diffusion import dataset
+    try:
+        return dataset.read_manifest(path, n_rows)
+    except (OSError, ValueError, UnicodeDecodeError) as e:
+        raise run.unreadable("neumerl/manifest.tsv", "neumerl", e) from None
+
+
 def _manifest(run: Run):
     """The run's NeuMERL manifest, or None where it has none (a shared model alone)."""
-    from neumat.diffusion import dataset
-
     path = run.path / "neumerl/manifest.tsv"
-    return dataset.read_manifest(path) if path.exists() else None
+    return _read_manifest(run, path) if path.exists() else None
 
 
 def _trained_types(run: Run) -> set[str] | None:
@@ -207,7 +219,7 @@ def _training_set(run: Run):
 
     _run_file(run, "neumerl/weights.npy", "neumerl")
     weights = run.array("neumerl/weights.npy", "neumerl")
-    man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
+    man = _read_manifest(run, _run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
     return weights, man, dataset.training_rows(man, "ours")
 
 
@@ -219,7 +231,8 @@ def _image_start(run: Run, emb: np.ndarray) -> tuple[np.ndarray, str]:
     from neumat.conditions import image
 
     weights, man, rows = _training_set(run)
-    library = np.load(_run_file(run, "conditions/image.npy", "image_embeddings"))[rows, 0]
+    _run_file(run, "conditions/image.npy", "image_embeddings")
+    library = run.array("conditions/image.npy", "image_embeddings")[rows, 0]
     got = image.retrieve(emb, library, rows)[0]
     print(f"--image --start: from the training material {man['name'].iloc[got]!r} (nearest image "
           f"embedding)", file=sys.stderr)
@@ -247,7 +260,8 @@ def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: fl
         cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
     else:
         from neumat.conditions import evaluate, text
-        library = np.load(_run_file(run, "conditions/text.npy", "text_embeddings"))[rows]
+        _run_file(run, "conditions/text.npy", "text_embeddings")
+        library = run.array("conditions/text.npy", "text_embeddings")[rows]
         got, voted, size, _ = text.training_starts(fixed["text"], library, weights, man, rows,
                                                    [evaluate.colour_of(args.text)], args.n,
                                                    args.activation)
@@ -346,8 +360,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if uncond_ours and run.setting("diffusion", "sample", "type_prior"):
         # types drawn as in training, unguided, as the run's sample_uncond
         from neumat.diffusion import dataset
-        man = dataset.read_manifest(_run_file(run, "neumerl/manifest.tsv", "neumerl",
-                                              "diffusion.sample.type_prior"))
+        man = _read_manifest(run, _run_file(run, "neumerl/manifest.tsv", "neumerl",
+                                            "diffusion.sample.type_prior"))
         types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
     # the run's keep look (diffusion.sample.keep_look), as its sample_uncond
     look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
@@ -545,12 +559,50 @@ def _settings(args, run: Run) -> None:
     args.activation = args.activation or run.activation()
 
 
-def _clear_previous(out: Path) -> None:
-    """Remove what an earlier `neumat sample` wrote into `out` (OUT_FILES, OUT_SAMPLE), so the
-    directory holds one draw; other files are left alone."""
-    for p in out.iterdir():
-        if (p.name in OUT_FILES or OUT_SAMPLE.fullmatch(p.name)) and p.is_file():
-            p.unlink()
+def _outputs(out: Path) -> list[Path]:
+    """The files in `out` with the names `neumat sample` writes (OUT_FILES, OUT_SAMPLE)."""
+    if not out.is_dir():
+        return []
+    return [p for p in out.iterdir()
+            if (p.name in OUT_FILES or OUT_SAMPLE.fullmatch(p.name)) and p.is_file()]
+
+
+def _check_out(out: Path, run: Run) -> None:
+    """Before any drawing: --out is not in the run's folder (its files are the workflow's:
+    `--out results/<run>/neumerl` had replaced the run's NeuMERL weights), and the files there
+    with this command's output names are an earlier `neumat sample` draw (its samples.tsv has
+    the columns sample, type and steps), which the new draw replaces; anything else is the
+    user's and is not overwritten (a review, 2026-11-29: `weights.npy` and `samples.tsv` of
+    another tool were deleted)."""
+    target, root = out.resolve(), run.path.resolve()
+    if target == root or root in target.parents:
+        raise CLIError(f"--out {out} is inside the run's folder {run.path}/, whose files the "
+                       f"workflow writes and reads: choose a folder outside it")
+    found = _outputs(out)
+    if not found:
+        return
+    header = ""
+    try:
+        with open(out / "samples.tsv", encoding="utf-8") as f:
+            header = f.readline()
+    except (OSError, UnicodeDecodeError):
+        pass
+    if not {"sample", "type", "steps"} <= set(header.rstrip("\n").split("\t")):
+        names = ", ".join(sorted(p.name for p in found)[:5])
+        raise CLIError(f"--out {out} holds {names}{' ...' if len(found) > 5 else ''}, which no "
+                       f"`neumat sample` wrote (its samples.tsv names the columns sample, type "
+                       f"and steps): move them or choose another folder")
+
+
+def _replace_draw(out: Path, staged: Path | None) -> None:
+    """Remove the earlier draw's files from `out` (other files are left alone), then move the
+    new draw's in from `staged` (None: nothing was drawn)."""
+    for p in _outputs(out):
+        p.unlink()
+    if staged is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        for p in staged.iterdir():
+            os.replace(p, out / p.name)
 
 
 def _write(args, out: Path, w: np.ndarray, table) -> None:
@@ -585,15 +637,23 @@ def cmd_sample(args) -> int:
     run = Run(args.run)
     bundle, model_path = _load(args, run, chosen)
     _settings(args, run)
-    w, table = _draw(args, run, bundle, model_path, chosen)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    _clear_previous(out)  # also when nothing was drawn: no older draw passes for this one
+    _check_out(out, run)
+    w, table = _draw(args, run, bundle, model_path, chosen)
     if len(w) == 0:
+        _replace_draw(out, None)  # no older draw passes for this one
         raise CLIError(f"no sample of category {args.category!r} within --budget {args.budget} "
                        f"draws; raise --budget or ask for another category (acceptance per "
                        f"category of this run: {run.path / 'constrained/acceptance.tsv'})", EXIT_BUDGET)
-    _write(args, out, w, table)
+    # written beside --out first and moved in whole: a failure or an interrupt while writing
+    # leaves the earlier draw as it was, not half of a new one
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staged = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
+    try:
+        _write(args, staged, w, table)
+        _replace_draw(out, staged)
+    finally:
+        shutil.rmtree(staged, ignore_errors=True)
     print(f"wrote {len(w)} samples to {out}/: weights.npy, samples.tsv, "
           f"{'' if args.no_binary else 'sample_NNN.binary, '}sample_NNN.png, scene.xml"
           f"{', scene.png' if args.mitsuba else ''}")
