@@ -955,6 +955,14 @@ def test_out_never_overwrites_what_no_draw_wrote(run, tmp_path, capsys, monkeypa
         main("sample", "--run", run, "-n", 2, "--steps", 2, "--seed", 5, "--no-binary", "--out", out)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert [p.name for p in tmp_path.iterdir() if "partial" in p.name] == []
+    monkeypatch.undo()
+    # a --category draw's table has no type column: still a draw, replaced
+    cat = tmp_path / "cat"
+    cat.mkdir()
+    (cat / "samples.tsv").write_text("sample\tpeak\tcategory\tguide\tmodel\tsteps\n0\t1\tdiffuse\t\tours\t2\n")
+    (cat / "weights.npy").write_bytes(b"")
+    assert main("sample", "--run", run, "-n", 1, "--steps", 2, "--no-binary", "--out", cat) == 0
+    assert len(np.load(cat / "weights.npy")) == 1
 
 
 def test_a_damaged_manifest_names_the_file_and_its_rule(run, tmp_path, capsys):

@@ -571,7 +571,7 @@ def _check_out(out: Path, run: Run) -> None:
     """Before any drawing: --out is not in the run's folder (its files are the workflow's:
     `--out results/<run>/neumerl` had replaced the run's NeuMERL weights), and the files there
     with this command's output names are an earlier `neumat sample` draw (its samples.tsv has
-    the columns sample, type and steps), which the new draw replaces; anything else is the
+    the columns sample and steps, as every draw's), which the new draw replaces; anything else is the
     user's and is not overwritten (a review, 2026-11-29: `weights.npy` and `samples.tsv` of
     another tool were deleted)."""
     target, root = out.resolve(), run.path.resolve()
@@ -587,11 +587,11 @@ def _check_out(out: Path, run: Run) -> None:
             header = f.readline()
     except (OSError, UnicodeDecodeError):
         pass
-    if not {"sample", "type", "steps"} <= set(header.rstrip("\n").split("\t")):
+    if not {"sample", "steps"} <= set(header.rstrip("\n").split("\t")):
         names = ", ".join(sorted(p.name for p in found)[:5])
         raise CLIError(f"--out {out} holds {names}{' ...' if len(found) > 5 else ''}, which no "
-                       f"`neumat sample` wrote (its samples.tsv names the columns sample, type "
-                       f"and steps): move them or choose another folder")
+                       f"`neumat sample` wrote (its samples.tsv names the columns sample and "
+                       f"steps): move them or choose another folder")
 
 
 def _replace_draw(out: Path, staged: Path | None) -> None:
