@@ -58,6 +58,7 @@ from pathlib import Path
 import numpy as np
 
 MB = 2 ** 20
+JOBS = ("fit", "hyperbrdf", "btf_load", "diffusion", "pca_a")
 
 
 def status_mb(key: str) -> float:
@@ -368,8 +369,7 @@ def bench_btf_load(tmp: Path, side: int):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--child", help=argparse.SUPPRESS)
-    ap.add_argument("--jobs", nargs="+", default=["fit", "hyperbrdf", "btf_load", "diffusion", "pca_a"],
-                    choices=["fit", "hyperbrdf", "btf_load", "diffusion", "pca_a"])
+    ap.add_argument("--jobs", nargs="+", default=list(JOBS), choices=JOBS)
     ap.add_argument("--materials", type=int, default=100, help="fit: materials in the shard")
     ap.add_argument("--kernel", default="auto", choices=["auto", "c", "torch"],
                     help="fit: the step on the CPU (fit.kernel; auto: the C kernel on x86)")
@@ -394,8 +394,8 @@ def main():
     a = ap.parse_args()
     if a.child:
         kind, *rest = json.loads(a.child)
-        out = {"fit": child_fit, "hyperbrdf": child_hyperbrdf,
-               "btf_load": child_btf_load, "diffusion": child_diffusion, "pca_a": child_pca_a}[kind](*rest)
+        out = {"fit": child_fit, "hyperbrdf": child_hyperbrdf, "btf_load": child_btf_load,
+               "diffusion": child_diffusion, "pca_a": child_pca_a}[kind](*rest)
         print(json.dumps(out))
         return
     if a.hb_bins > a.hb_shard_bins:

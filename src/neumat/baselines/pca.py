@@ -154,7 +154,8 @@ class NielsenPCA:
             self.median[sl] = np.median(obs, 0)  # the same in both passes
             return log_map(obs, self.median[sl], self.cosmap[sl])
 
-        self.pca = GaussianPCA(self.k).fit_blocks(columns, 3 * n, len(self.bins), self._block(3 * n))
+        rows = 3 * n
+        self.pca = GaussianPCA(self.k).fit_blocks(columns, rows, len(self.bins), self._block(rows))
         self.gauss = CoefficientGaussian(self.pca.scores.reshape(n, -1))
         return self
 

@@ -571,9 +571,9 @@ def _check_out(out: Path, run: Run) -> None:
     """Before any drawing: --out is not in the run's folder (its files are the workflow's:
     `--out results/<run>/neumerl` had replaced the run's NeuMERL weights), and the files there
     with this command's output names are an earlier `neumat sample` draw (its samples.tsv has
-    the columns sample and steps, as every draw's), which the new draw replaces; anything else is the
-    user's and is not overwritten (a review, 2026-11-29: `weights.npy` and `samples.tsv` of
-    another tool were deleted)."""
+    the columns sample and steps, as every draw's), which the new draw replaces; anything else
+    is the user's and is not overwritten (a review, 2026-11-29: `weights.npy` and `samples.tsv`
+    of another tool were deleted)."""
     target, root = out.resolve(), run.path.resolve()
     if target == root or root in target.parents:
         raise CLIError(f"--out {out} is inside the run's folder {run.path}/, whose files the "

@@ -116,6 +116,11 @@ def random_positions(scale: int, n: int, seed: int) -> torch.Tensor:
     return torch.rand(n, 2, generator=g, dtype=torch.float64) * scale
 
 
+def _features(synth, u: torch.Tensor) -> torch.Tensor:
+    """synth(u) in chunks of 2^16 positions."""
+    return torch.cat([synth(u[s:s + (1 << 16)]) for s in range(0, len(u), 1 << 16)])
+
+
 def render_ortho(model, u, light, intensity) -> np.ndarray:
     """Directional light from `light` towards the plane centre, view from the evaluation
     camera's direction: the image depends on u only (no falloff, no perspective)."""
@@ -177,8 +182,7 @@ def evaluate(material, model_paths: dict, synth_paths: dict, render: dict, measu
         u_rand = random_positions(measure["scale"], len(u_hist), seed)
         base_ortho = None
         for method, w in ws.items():
-            feat, feat_rand = (torch.cat([w.synth(u[s:s + (1 << 16)]) for s in range(0, len(u), 1 << 16)])
-                               for u in (u_hist, u_rand))
+            feat, feat_rand = _features(w.synth, u_hist), _features(w.synth, u_rand)
             ortho = [render_ortho(w, u_meas, li, intensity) for li in lights]
             if method == "tiling":
                 base_ortho = ortho
