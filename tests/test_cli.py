@@ -9,11 +9,12 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from PIL import Image
 
 from neumat import cli, constrained, nbrdf
 from neumat.diffusion import DenoiserConfig, ScheduleConfig, TrainConfig, train
 from neumat.conditions import image
-from neumat.io import merl
+from neumat.io import images, merl
 from neumat.render import sphere
 
 TYPES = ["fabric", "steel"]
@@ -463,7 +464,8 @@ def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
     """A prompt the run embedded (rule prompt_embeddings' conditions/prompts.npy, or a training
     description in rule text_embeddings' text.npy) is read from the run, not encoded: here its row holds the
     embedding of "green metal", so "red plastic" draws green metal's samples. A table and array
-    of different lengths (a half-rebuilt run) fall back to the encoder."""
+    of different lengths (a half-rebuilt run), or a damaged array, fall back to the encoder and
+    say so."""
     import shutil
 
     from neumat.conditions import text
@@ -496,10 +498,19 @@ def test_text_the_run_embedded_is_read_from_the_run(mm_run, tmp_path, capsys):
     assert "conditions/text.npy" in capsys.readouterr().err
     _sample(r, tmp_path / "n", "--text", "blue fabric", "--seed", 5)  # renamed: encoded
     assert "the run's embedding" not in capsys.readouterr().err
-    np.save(r / "conditions/prompts.npy", green)  # 1 row for 2 prompts: encoded
+    np.save(r / "conditions/prompts.npy", green)  # 1 row for 2 prompts: encoded, and said
     got, _ = _sample(r, tmp_path / "c", "--text", "red plastic", "--seed", 5)
     np.testing.assert_array_equal(got, red)
-    assert "the run's embedding" not in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "the run's embedding" not in err
+    assert ("prompts.npy does not hold prompts.tsv's embeddings (shape (1, 384) (float32) for 2 "
+            "texts); encoding the prompt instead" in err), err
+    assert "--forcerun prompt_embeddings" in err
+    (r / "conditions/prompts.npy").write_bytes(b"\x93NUMPY damaged")  # unreadable: the same
+    got, _ = _sample(r, tmp_path / "d", "--text", "red plastic", "--seed", 5)
+    np.testing.assert_array_equal(got, red)
+    err = capsys.readouterr().err
+    assert "prompts.npy does not hold prompts.tsv's embeddings (" in err and "encoding" in err, err
 
 
 def test_unconditional_draws_follow_the_runs_rgb_permute(run, tmp_path):
@@ -672,6 +683,10 @@ def test_info_lists_conditions_and_encoders(mm_run, run, capsys):
     (["--run", "{mm}", "--image", "{tmp}/nope.png"], ["nope.png: no such file", "PNG", "OpenEXR"]),
     (["--run", "{mm}", "--image", "{tmp}/bad.png"], ["bad.png: cannot read it as an image", "OpenEXR"]),
     (["--run", "{mm}", "--image", "{tmp}"], ["no such file"]),
+    (["--run", "{mm}", "--image", "{tmp}/blank.png"], ["blank.png has one value in all 16 pixels",
+                                                        "shows no material"]),
+    (["--run", "{mm}", "--image", "{tmp}/neg.exr"], ["neg.exr has 1 of 12 pixels with negative",
+                                                      "clamp them at 0"]),
     (["--run", "{mm}", "--model", "ours", "--text", "x"], ["trained without text", "leave out --model"]),
     (["--run", "{mm}", "--text", " "], ["--text is empty"]),
     (["--run", "{mm}", "--text", "x", "--guidance", "image=2"], ["no image condition asked"]),
@@ -685,6 +700,10 @@ def test_condition_errors_say_what_to_do(run, mm_run, tmp_path, sphere_png, caps
     bare = tmp_path / "bare"  # the multimodal model without its image encoder
     shutil.copytree(mm_run / "diffusion", bare / "diffusion")
     (tmp_path / "bad.png").write_bytes(b"not a png")
+    Image.fromarray(np.full((4, 4, 3), 200, np.uint8)).save(tmp_path / "blank.png")
+    neg = np.random.default_rng(0).random((3, 4, 3)).astype(np.float32)
+    neg[2, 1, 0] = -0.01  # a denoiser's undershoot
+    images.write_exr(tmp_path / "neg.exr", neg)
     args = [a.format(run=run, mm=mm_run, bare=bare, tmp=tmp_path, img=sphere_png) for a in args]
     assert main("sample", *args, "--out", tmp_path / "o") == cli.EXIT_USAGE
     err = capsys.readouterr().err

@@ -61,8 +61,9 @@ def test_16_bit_grey_alpha_and_float_images(tmp_path):
 
 def test_check_images_names_the_key_the_file_and_the_fault(tmp_path):
     good = tmp_path / "good.png"
-    Image.fromarray(np.full((4, 4, 3), 90, np.uint8)).save(good)
-    images.check_images([good, _exr(tmp_path / "g.exr", {"RGB": np.ones((3, 3, 3), np.float32)})], KEY)
+    rng = np.random.default_rng(1)
+    Image.fromarray(rng.integers(0, 256, (4, 4, 3), np.uint8)).save(good)
+    images.check_images([good, _exr(tmp_path / "g.exr", {"RGB": rng.random((3, 3, 3), np.float32)})], KEY)
     with pytest.raises(FileNotFoundError, match=rf"config {KEY}: .*nope\.png is not a file.*OpenEXR"):
         images.check_images([good, tmp_path / "nope.png"], KEY)
     with pytest.raises(FileNotFoundError, match="is not a file"):
@@ -79,3 +80,14 @@ def test_check_images_names_the_key_the_file_and_the_fault(tmp_path):
     nan[1, 2, 0], nan[3, 3] = np.nan, np.inf
     with pytest.raises(ValueError, match=rf"config {KEY}: .*n\.exr has 2 of 16 pixels NaN or infinite"):
         images.check_images([_exr(tmp_path / "n.exr", {"RGB": nan})], KEY)
+    neg = rng.random((4, 4, 3), np.float32)
+    neg[0, 0, 2], neg[3, 1, 0] = -0.25, -1e-4  # a difference image; a denoiser's undershoot
+    with pytest.raises(ValueError, match=rf"config {KEY}: .*neg\.exr has 2 of 16 pixels with "
+                                         r"negative radiance \(down to -0\.25\); clamp them at 0"):
+        images.check_images([_exr(tmp_path / "neg.exr", {"RGB": neg})], KEY)
+    Image.fromarray(np.full((4, 4, 3), 90, np.uint8)).save(tmp_path / "flat.png")
+    Image.fromarray(np.full((1, 1, 3), 90, np.uint8)).save(tmp_path / "dot.png")
+    for name, n in (("flat", 16), ("dot", 1)):  # a blank file; one pixel
+        with pytest.raises(ValueError, match=rf"config {KEY}: .*{name}\.png has one value in all "
+                                             rf"{n} pixels, so it shows no material"):
+            images.check_images([tmp_path / f"{name}.png"], KEY)

@@ -145,19 +145,32 @@ class Run:
         import pandas as pd
         cond = self.path / "conditions"
         descriptions = cond / "descriptions.tsv"  # colour_words: measured, as embedded
-        for table, column, rows in (
-                (cond / "prompts.tsv", "prompt", cond / "prompts.npy"),
-                (descriptions, "embedded", cond / "text.npy") if descriptions.exists() else
-                (self.path / "neumerl/manifest.tsv", "description", cond / "text.npy")):
+        for table, column, rows, rule in (
+                (cond / "prompts.tsv", "prompt", cond / "prompts.npy", "prompt_embeddings"),
+                (descriptions, "embedded", cond / "text.npy", "text_embeddings")
+                if descriptions.exists() else
+                (self.path / "neumerl/manifest.tsv", "description", cond / "text.npy",
+                 "text_embeddings")):
             try:
                 texts = pd.read_csv(table, sep="\t", keep_default_na=False)[column].tolist()
-                if prompt not in texts:
-                    continue
-                emb = np.load(rows, mmap_mode="r")
             except (OSError, KeyError, ValueError):  # not built, or not this run's layout
                 continue
-            if emb.ndim == 2 and len(emb) == len(texts):  # else a half-rebuilt run: encode
+            if prompt not in texts:
+                continue
+            try:
+                emb = np.load(rows, mmap_mode="r")
+                fits = emb.ndim == 2 and len(emb) == len(texts) and emb.dtype.kind == "f"
+                why = "" if fits else f"shape {emb.shape} ({emb.dtype}) for {len(texts)} texts"
+            except (OSError, ValueError) as e:
+                why = _cause(e)
+            if not why:
                 return np.array(emb[texts.index(prompt)][None], np.float32), rows
+            # the table lists the prompt but its embeddings are damaged or half rebuilt: say
+            # so (the run's files are the user's to mend), then encode the prompt afresh
+            print(f"neumat: {rows} does not hold {table.name}'s embeddings ({why}); encoding "
+                  f"the prompt instead. Rebuild it: "
+                  f"`{self.target(str(rows.relative_to(self.path)), f'--forcerun {rule}')}`",
+                  file=sys.stderr)
         return None, None
 
     def image_encoder(self) -> Path | None:

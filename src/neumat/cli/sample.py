@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from neumat.cli.render import _render_scene, _write_scene
+from neumat.io import images
 from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIES, MULTIMODAL,
                             VECTOR_MODALITIES, CLIError, Run, _progress, check_out_dir,
                             model_conditions, model_rule, unsupported)
@@ -62,12 +63,13 @@ def _image_embedding(run: Run, path: str, dim: int | None) -> tuple[np.ndarray, 
     if not Path(path).is_file():
         raise CLIError(f"--image {path}: no such file; give a {IMAGE_FORMATS}")
     try:
+        why = images.fault(images.read_linear(path))  # the file as given, before the resize
         img = image.load_image(path, enc.cfg.resolution)
     except Exception as e:
         raise CLIError(f"--image {path}: cannot read it as an image ({type(e).__name__}: {e}); "
                        f"give a {IMAGE_FORMATS}")
-    if not np.isfinite(img).all():
-        raise CLIError(f"--image {path}: holds NaN or infinite pixels; give a {IMAGE_FORMATS}")
+    if why:
+        raise CLIError(f"--image {path} {why}")
     return image.embed(enc, img[None]), enc_path
 
 

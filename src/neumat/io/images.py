@@ -83,9 +83,28 @@ def read_linear(path: str | os.PathLike) -> np.ndarray:
     return lin.astype(np.float32)
 
 
+def fault(img: np.ndarray) -> str | None:
+    """What makes (H, W, 3) linear RGB unusable as a conditioning image, or None: NaN or infinite
+    pixels, negative radiance (an EXR from a denoiser or a difference; clamp it at 0), or one
+    value everywhere (a blank or 1-pixel file: no material to see). The messages start with
+    what the image has, for a caller to put the file's name before."""
+    n = img.shape[0] * img.shape[1]
+    bad = int((~np.isfinite(img)).any(-1).sum())
+    if bad:
+        return f"has {bad} of {n} pixels NaN or infinite; give an image of finite radiance"
+    neg = int((img < 0).any(-1).sum())
+    if neg:
+        return (f"has {neg} of {n} pixels with negative radiance (down to {float(img.min()):.3g}); "
+                f"clamp them at 0 and give that")
+    if n and bool((img == img.reshape(-1, 3)[0]).all()):
+        return (f"has one value in all {n} pixels, so it shows no material; give a render of one "
+                f"sphere filling the frame")
+    return None
+
+
 def check_images(paths, key: str) -> None:
-    """Before any job runs: each path of config `key` is a file, decodes as an image and holds
-    only finite pixels. Otherwise an error naming the key, the file and what to give instead."""
+    """Before any job runs: each path of config `key` is a file, decodes as an image and has no
+    `fault`. Otherwise an error naming the key, the file and what to give instead."""
     for path in paths:
         p = Path(path)
         if not p.is_file():
@@ -96,7 +115,6 @@ def check_images(paths, key: str) -> None:
         except Exception as e:  # Pillow and OpenEXR raise several kinds for a damaged file
             raise ValueError(f"config {key}: {p} cannot be read as an image "
                              f"({type(e).__name__}: {e}); give a {FORMATS} image") from e
-        bad = int((~np.isfinite(img)).any(-1).sum())
-        if bad:
-            raise ValueError(f"config {key}: {p} has {bad} of {img.shape[0] * img.shape[1]} pixels "
-                             f"NaN or infinite; give an image of finite radiance")
+        why = fault(img)
+        if why:
+            raise ValueError(f"config {key}: {p} {why}")
