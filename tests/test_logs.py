@@ -1,4 +1,5 @@
 """Script logging: messages and crashes land in the rule's log; scripts keep to `threads:`."""
+import logging
 import types
 
 import pytest
@@ -46,3 +47,21 @@ def test_input_error_stops_with_its_message_and_logs_the_traceback(tmp_path, cap
     assert "Traceback" not in err
     text = (tmp_path / "job.log").read_text()
     assert "failed: Unreachable: x.binary" in text and "Traceback" in text
+
+
+def test_the_device_a_job_uses_is_logged(caplog, monkeypatch):
+    """resolve_device says what `device` became (under auto a node with broken CUDA falls back
+    to the CPU, and the job's log is where that shows); cuda without a GPU says what to do."""
+    import torch
+
+    from neumat.device import resolve_device
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with caplog.at_level(logging.INFO, logger="neumat.device"):
+        assert resolve_device("auto") == torch.device("cpu")
+        assert resolve_device("cpu") == torch.device("cpu")
+    assert [r.getMessage().split(" (")[0] for r in caplog.records] == ["device auto -> cpu",
+                                                                     "device cpu -> cpu"]
+    assert "no GPU in use; torch " in caplog.records[0].getMessage()
+    with pytest.raises(RuntimeError, match=r"config device: cuda, but torch sees no CUDA device "
+                                           r"\(torch .*\); run on a GPU node, or set device: auto"):
+        resolve_device("cuda")
