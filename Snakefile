@@ -22,7 +22,7 @@ except WorkflowError as e:
     key = ".".join(map(str, err.absolute_path)) or "top level"
     raise WorkflowError(
         f"bad config ({key}): {err.message}. Every key, its type and default are in "
-        f"config/schema.yaml; fix it in the file given with --configfile."
+        f"config/schema.yaml; fix it in the file given with --configfile, or in --config."
     ) from None
 
 

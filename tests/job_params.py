@@ -4,6 +4,8 @@ Snakemake API keeps global state). No job runs.
 
     python tests/job_params.py collisions CONFIG...  jobs whose params share a value's text
     python tests/job_params.py texts CONFIG...       each job's sorted params texts
+    python tests/job_params.py resources CONFIG...   per rule, its jobs' runtime and gpu
+                                                     (the largest; '<TBD>' until inputs exist)
 
 Snakemake records a job's params without their names, so params that share a value can change
 unnoticed; `named` (workflow/rules/common.smk) guards a rule against it."""
@@ -32,6 +34,15 @@ with api.SnakemakeApi(OutputSettings(quiet={Quietness.ALL})) as sm:
         sys.exit(3)
     found = {}
     for job in dag.jobs:
+        if mode == "resources":  # what Slurm would be asked for (README "Running on Slurm")
+            got = found.setdefault(job.rule.name, {})
+            for key in ("runtime", "gpu"):
+                v = job.resources.get(key)
+                v = v if isinstance(v, int) else str(v)
+                old = got.get(key)
+                got[key] = v if old is None or (isinstance(v, int) and isinstance(old, int)
+                                                and v > old) else old
+            continue
         names, texts = list(job.params.keys()), [repr(v) for v in job.params]
         if mode == "texts":
             if job.rule.name != "report":  # its params are the whole config, as written

@@ -380,6 +380,30 @@ def _job_params(mode: str, *configs: str) -> dict:
     return json.loads(line[-1].split(" ", 1)[1])
 
 
+def test_readme_names_the_gpu_rules_and_the_long_trainings(tmp_path):
+    """README "Running on Slurm or a GPU": the rules that ask Slurm for a GPU with device: cuda
+    (a rule a user leaves out of the GPU partition is refused), and the time limits at
+    paper.yaml's size that exceed most partitions' (Slurm refuses the job: a review of
+    2026-11-29), as the paper DAG's jobs ask for them."""
+    import re
+    readme = (ROOT / "README.md").read_text()
+    cuda = tmp_path / "cuda.yaml"
+    cuda.write_text("device: cuda\n")
+    cpu, gpu = _job_params("resources", "config/paper.yaml"), \
+        _job_params("resources", "config/paper.yaml", str(cuda))
+    listed = re.search(r"These (\d+) rules ask for one \(.*?\): (.*?);\n", readme, re.S)
+    names = set(re.findall(r"`(\w+)`", listed.group(2)))
+    assert names == {r for r, v in gpu.items() if v["gpu"] == 1} and int(listed.group(1)) == len(names)
+    assert not any(v["gpu"] == 1 for v in cpu.values())  # device auto: none asks
+    trainings = ("train_diffusion", "train_multimodal", "train_refiner")
+    assert {cpu[r]["runtime"] for r in trainings} == {20010}
+    assert "ask\n  for 20,010 minutes (13.9 days) and `train_hyperbrdf` for 1,677" in readme
+    assert cpu["train_hyperbrdf"]["runtime"] == 1677
+    assert max(gpu[r]["runtime"] for r in (*trainings, "train_hyperbrdf")) == 410
+    over_a_day = {r for r, v in cpu.items() if isinstance(v["runtime"], int) and v["runtime"] > 1440}
+    assert over_a_day == {*trainings, "train_hyperbrdf"}
+
+
 def test_a_number_spelt_otherwise_changes_no_params(tmp_path):
     """`fit.steps: 300.0` for the tiny config's 300, `conditions.sweep.scales: [0, 2]` for its
     [0.0, 2.0] give every job the same params (a review found 42 jobs rerun for the first;
