@@ -54,7 +54,8 @@ else:
 
 
 # One rule per representation (same thin script); neural ones checkpoint beside the output.
-for _method, _mem, _time in (("triple_plane", 3000, 600), ("neumip", 3000, 600),
+for _method, _mem, _time in (("triple_plane", 3000, btf_fit_runtime("triple_plane")),
+                             ("neumip", 3000, btf_fit_runtime("neumip")),
                              ("pca", 6000, 120), ("sh", 8000, 120), ("td", 8000, 120)):
 
     rule:

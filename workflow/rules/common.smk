@@ -579,6 +579,18 @@ def synthetic_btf_runtime():
     return int(5 + 2 * 9.65e-6 * UBO["synthetic"]["size"] ** 4 / 60)
 
 
+def btf_fit_runtime(method):
+    """Minutes for a neural BTF fit (btf_triple_plane, btf_neumip): 5 us per query-step (batch x
+    steps), plus 10. `OMP_NUM_THREADS=2 python benchmarks/btf_fit_step.py --steps 4 --warmup 2
+    --repeat 3` at paper.yaml's batch of 65,536 (Intel Xeon AVX-512, 2026-11-29, three runs):
+    Triple Plane 101-148 ms a step on 1 thread, 84-124 on 2 (a step's MLP is too small to
+    share well), NeuMIP 105-117 / 62-72, i.e. 1.6-2.3 us a query-step; the margin is for slower
+    cluster cores, and no speed-up from more threads is assumed. paper.yaml's 200,000 steps:
+    1,103 minutes (the rules had 600 whatever the steps; a review of 2026-11-29)."""
+    s = BTF[method]
+    return 10 + math.ceil(s["steps"] * s["batch"] * 5e-6 / 60)
+
+
 def btf_eval_mem_mb():
     """btf_eval's memory: every model of a material loaded at once (the SH one 16 KB a texel)
     beside bounded query chunks: max_rss 853 / 911 MB at 64^2 / 96^2 synthetic texels (Intel
