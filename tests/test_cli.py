@@ -553,7 +553,7 @@ def test_unconditional_draws_follow_the_runs_type_prior(run, tmp_path, capsys):
     table = pd.read_csv(tmp_path / "tp/samples.tsv", sep="\t", keep_default_na=False)
     assert table["prior_type"].tolist() == prior and set(prior) == {TYPES[0], TYPES[1], ""}
     want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
-        6, seed_for(0, "cli_sample", 0), prior, 3, 0.0, 1.0, negative_step=30.0)
+        6, seed_for(0, "cli_sample"), prior, 3, 0.0, 1.0, negative_step=30.0)
     np.testing.assert_array_equal(np.load(tmp_path / "tp/weights.npy"), want)
 
 
@@ -566,7 +566,7 @@ def test_unconditional_draws_follow_the_runs_keep_look(run, tmp_path):
     from neumat.seeds import seed_for
     from neumat.render import sphere
     s = Sampler(str(run / "diffusion/ours/model.pt"))
-    at = [s.sample(6, seed_for(0, "cli_sample", 0), None, 3, 0.0, 1.0, negative_step=step)
+    at = [s.sample(6, seed_for(0, "cli_sample"), None, 3, 0.0, 1.0, negative_step=step)
           for step in (30.0, 0.0)]
     a, b = (sphere.to_srgb(sphere.render_fields(x, 128)) for x in at)  # render.resolution
     db = float(np.median((-10 * torch.log10(((a - b) ** 2).flatten(1).mean(1))).numpy()))
@@ -580,15 +580,22 @@ def test_unconditional_draws_follow_the_runs_keep_look(run, tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "kl/weights.npy"), want)
 
 
-def test_seeds_do_not_shift_into_each_other(run, tmp_path):
-    """Each batch has its own named stream: --seed 2 does not redraw the second batch of
-    --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2)."""
-    def draw(out, seed):
-        assert main("sample", "--run", run, "-n", 4, "--batch", 2, "--steps", 3, "--seed", seed,
-                    "--no-binary", "--out", tmp_path / out) == 0
+def test_seeds_do_not_shift_into_each_other_and_batches_do_not_matter(run, mm_run, sphere_png,
+                                                                     tmp_path):
+    """Each --seed is its own named stream: --seed 2 does not redraw the second batch of
+    --seed 0 (with seed + offset it did, batch 2 of --seed 0 being batch 1 of --seed 2). And
+    --batch is speed only: row i of a draw is the same in batches of 2 and of 4 (each batch drew
+    from its own stream before, so rows 2-3 changed with --batch), with and without conditions."""
+    def draw(out, seed, batch=2, r=run, *extra):
+        assert main("sample", "--run", r, "-n", 4, "--batch", batch, "--steps", 3, "--seed", seed,
+                    "--no-binary", "--out", tmp_path / out, *extra) == 0
         return np.load(tmp_path / out / "weights.npy")
     a, b = draw("a", 0), draw("b", 2)
     assert not np.isclose(a[2:, None], b[None]).all(-1).any()
+    np.testing.assert_allclose(draw("a4", 0, 4), a, rtol=0, atol=1e-5)  # float rounding
+    for extra in (("--type", "fabric"), ("--image", sphere_png)):
+        np.testing.assert_allclose(draw("m2", 0, 2, mm_run, *extra), draw("m4", 0, 4, mm_run, *extra),
+                                   rtol=0, atol=1e-5)
 
 
 def test_image_sampling_png_and_exr(mm_run, sphere_png, tmp_path):
@@ -873,7 +880,7 @@ def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
         assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
         assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
     want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
-        6, seed_for(0, "cli_sample", 0), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
+        6, seed_for(0, "cli_sample"), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
         particle_step=0.5)
     got = np.load(tmp_path / "pg/weights.npy")
     np.testing.assert_array_equal(got, want)

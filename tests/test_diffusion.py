@@ -630,6 +630,10 @@ def test_model_rows_labels_and_training_subset():
     assert (dataset.training_subset(man, seed=0) == sub).all()
     three = dataset.training_subset(man, seed=0, draws=3)  # 6 train rows: draws of 2, disjoint
     assert len(three) == 6 and len(set(three)) == 6 and set(three) <= {0, 1, 3, 4, 5, 6}
+    # a draw does not depend on the draws after it (metrics.draws changed draw 0 before)
+    two = dataset.training_subset(man, seed=0, draws=2)
+    assert (three[:2] == two[:2]).all() and (three[2:4] == two[2:4]).all()
+    assert (sub == two[:2]).all()
 
 
 def test_keep_look_keeps_the_free_draw_where_the_step_moved_the_render():

@@ -44,7 +44,9 @@ rule constrained_classify:
     params:
         thresholds=canon(CONS["thresholds"]),
         bins=CONS["bins"],
-        seed=seed_for("constrained_classify"),
+        # the bins the statistics read: the same for the fields here and the samples in
+        # sample_constrained, so the section compares the two on one set of bins
+        seed=seed_for("constrained_bins"),
         activation=config["fit"]["activation"],
     log:
         log("constrained_classify"),
@@ -85,6 +87,7 @@ rule sample_constrained:
         sample=settings("diffusion.sample",
                         drop=OURS_UNCOND_ONLY + ([] if CON_GUIDE else ["guidance"])),
         seed=seed_for("sample_constrained"),
+        bins_seed=seed_for("constrained_bins"),  # constrained_classify's bins
         activation=config["fit"]["activation"],
     log:
         log("sample_constrained"),

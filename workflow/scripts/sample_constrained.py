@@ -28,14 +28,15 @@ with script_logging(snakemake) as log:
     # guide only with types some training material has: the others are classes whose
     # embeddings never trained (types only held-out sources have)
     trained = dataset.training_types(dataset.read_manifest(inp.manifest))
-    bins = constrained.grid_bins(cfg["bins"], p.seed)
+    bins = constrained.grid_bins(cfg["bins"], p.bins_seed)  # constrained_classify's bins
     # a param only where it acts (guide auto, a guided category listed); none: the paper's setting
     step = cfg.get("guidance_step", 0.0)
     # a category's draws depend on the model, the manifest (trained types), the derived rules,
     # the source classes and the settings
     cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
         [inp.model, inp.manifest, inp.rules, inp.classes],
-        {"cfg": cfg, "sample": p.sample, "seed": p.seed, "activation": p.activation,
+        {"cfg": cfg, "sample": p.sample, "seed": p.seed, "bins_seed": p.bins_seed,
+         "activation": p.activation,
          "device": str(sampler.device)}))  # resolved: auto differs between nodes
     rows, weights, tables = [], [], []
     for cat in cfg["categories"]:

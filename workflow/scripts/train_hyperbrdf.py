@@ -10,6 +10,7 @@ from neumat import augment
 from neumat.baselines import hyperbrdf as hb
 from neumat.device import resolve_device
 from neumat.logs import script_logging
+from neumat.seeds import seed_for
 
 with script_logging(snakemake) as log:
     # config device first: `cuda` without a GPU fails here, not after reading every shard
@@ -29,7 +30,7 @@ with script_logging(snakemake) as log:
             n = min(p.cfg["train_bins"], len(sh["bins"]))
             if len(sh["bins"]) < p.cfg["train_bins"]:
                 bins_key = "augmerl.bins"  # the shards store fewer bins than train_bins
-            rng = np.random.default_rng(p.seed)
+            rng = np.random.default_rng(seed_for(p.seed, "bins"))  # p.seed seeds the model
             keep = np.sort(rng.choice(len(sh["bins"]), n, replace=False))
             bins = sh["bins"][keep]
         elif not np.array_equal(sh["bins"][keep], bins):

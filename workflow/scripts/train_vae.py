@@ -12,6 +12,7 @@ from neumat.baselines import vae
 from neumat.diffusion import dataset
 from neumat.io import merl
 from neumat.logs import script_logging
+from neumat.seeds import seed_for
 
 with script_logging(snakemake) as log:
     p, inp, out, model = snakemake.params, snakemake.input, snakemake.output, snakemake.wildcards.model
@@ -27,7 +28,7 @@ with script_logging(snakemake) as log:
     else:
         # a fixed random subset of the stored bins of every training material, shard by shard
         ids = set(man["id"].iloc[train])
-        rng = np.random.default_rng(p.seed)
+        rng = np.random.default_rng(seed_for(p.seed, "bins"))  # p.seed seeds the model
         values, pick = [], None
         for f in inp.shards:
             s = augment.load_shard(f)

@@ -130,7 +130,7 @@ class Composed:
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
                category_step: float = 0.0, refit_steps: int = 0,
-               particle_step: float = 0.0) -> np.ndarray:
+               particle_step: float = 0.0, offset: int = 0) -> np.ndarray:
         from neumat.diffusion.sample import sample
         if particle_step:  # Sampler.sample's signature; the run's key is for unconditional draws
             raise ValueError("particle guidance (diffusion.sample.particle_step) applies to "
@@ -148,7 +148,7 @@ class Composed:
         return sample(self.sampler, n, seed, cond, scales, steps, eta, batch_size, clip,
                       negative_step=negative_step, activation=activation, category=category,
                       category_step=category_step, render_targets=targets, render_step=step,
-                      refit_steps=refit_steps, start=start, strength=strength)
+                      refit_steps=refit_steps, start=start, strength=strength, offset=offset)
 
 
 def _check_start(args, chosen: list[str]) -> None:
@@ -374,12 +374,12 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         for s in range(0, args.n, args.batch):
             b = min(args.batch, args.n - s)
 
-            def at(step):  # a named stream per batch: --seed 8 does not redraw --seed 0's second
-                return sampler.sample(b, seed_for(args.seed, "cli_sample", s),  # batch of 8
+            def at(step):  # rows s ... s + b - 1 of the draw: the same samples at any --batch
+                return sampler.sample(b, seed_for(args.seed, "cli_sample"),
                                       types[s:s + b] if types else None, args.steps,
                                       args.eta, 1.0 if prior else scales.get("type", 1.0), args.batch,
                                       args.clip, step, args.activation, refit_steps=refit,
-                                      particle_step=particles)
+                                      particle_step=particles, offset=s)
             ws.append(at(neg))
             if look:
                 from neumat.diffusion.sample import keep_look
@@ -415,10 +415,10 @@ def _best_of(args, run: Run, sampler, scales: dict, neg: float, refit: int):
         out = []
         for s in range(0, len(idx), args.batch):
             b = min(args.batch, len(idx) - s)
-            out.append(sampler.sample(b, seed_for(seed, "cli_sample", s),
+            out.append(sampler.sample(b, seed_for(seed, "cli_sample"),
                                       [args.type] * b if args.type else None, args.steps, args.eta,
                                       scales.get("type", 1.0), args.batch, args.clip, negative_step,
-                                      args.activation, refit_steps=refit))
+                                      args.activation, refit_steps=refit, offset=s))
             bar.update(b)
         return np.concatenate(out)
 

@@ -90,10 +90,12 @@ def prior_types(man: pd.DataFrame, n: int, seed: int) -> list[str]:
 def training_subset(man: pd.DataFrame, seed: int, draws: int = 1) -> np.ndarray:
     """Rows of `draws` disjoint random train-split subsets, each as large as the test split
     (Table 2 'Training set'), draw-major, each draw sorted. Too few training rows: the draws
-    shrink to len(train) // draws each."""
+    shrink to len(train) // draws each. Draw d is rows d n ... (d + 1) n - 1 of one permutation
+    of the train split, so a draw does not depend on how many follow it (numpy's choice
+    without replacement drew other rows for every draw count: `metrics.draws` changed draw 0)."""
     train, n = training_rows(man, "ours"), len(reference_rows(man))
     n = min(n, len(train) // draws)
-    pick = np.random.default_rng(seed).choice(train, size=n * draws, replace=False)
+    pick = np.random.default_rng(seed).permutation(train)[:n * draws]
     return np.concatenate([np.sort(d) for d in pick.reshape(draws, n)])
 
 

@@ -137,7 +137,7 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
            negative_step: float = 30.0, activation: str = "relu", start: np.ndarray | None = None,
            strength: float = 1.0, category: str | None = None,
            category_step: float = 0.0, render_targets: torch.Tensor | None = None,
-           render_step: float = 0.0, refit_steps: int = 0) -> np.ndarray:
+           render_step: float = 0.0, refit_steps: int = 0, offset: int = 0) -> np.ndarray:
     """n weight vectors (n, 675) float32 under `conditions` (see `encode_conditions`; none =
     unconditional) with per-modality guidance scales (`guidance`: name -> scale, or one scale
     for all; default 1 = conditional model without guidance). `negative_step` > 0 applies
@@ -147,7 +147,8 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
     noised to strength (T - 1) (`Diffusion.ddim_sample`'s x0_start), e.g. the retrieved
     training material of an image condition. `render_targets` (n, H, H, 3) metric-view images
     and `render_step` > 0: render guidance toward each sample's image (`RenderConstraint`).
-    `refit_steps` > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`)."""
+    `refit_steps` > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`).
+    `offset`: rows offset ... offset + n - 1 of the draw of `seed` (`Sampler.sample`)."""
     if not isinstance(sampler, Sampler):
         sampler = Sampler(sampler)
     cond = encode_conditions(sampler, n, conditions or {}, image_encoder)
@@ -175,7 +176,7 @@ def sample(sampler: Sampler | str, n: int, seed: int, conditions: dict | None = 
                                           (b, nbrdf.N_PARAMS), steps, eta, None, sampler.device,
                                           clip=clip, x0_start=x0, constrain=chain(
                                               constrain, render_hook(s, b)),
-                                          strength=strength, noise=rows.batch(s, b))
+                                          strength=strength, noise=rows.batch(offset + s, b))
         out.append(sampler.norm.decode(z).float().cpu().numpy())
     w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
     return clamp_refit(w, refit_steps, seed, activation=activation, device=sampler.device)

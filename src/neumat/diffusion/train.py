@@ -308,14 +308,17 @@ class Sampler:
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
                category_step: float = 0.0, refit_steps: int = 0,
-               particle_step: float = 0.0) -> np.ndarray:
+               particle_step: float = 0.0, offset: int = 0) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
         (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`); `category` and
         `category_step` > 0: category guidance after it (`CategoryConstraint`); `particle_step`
         > 0: particle guidance over each batch after those (`ParticleGuidance`); `refit_steps`
-        > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`)."""
+        > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`). `offset`: these
+        are rows offset ... offset + n - 1 of the draw of `seed`, so a draw made in several calls
+        (the `neumat sample` progress batches) equals one call (but for particle guidance,
+        which acts within a batch)."""
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
@@ -328,7 +331,8 @@ class Sampler:
             cond = {"type": labels[s:s + b].to(self.device)} if labels is not None else None
             z = self.diffusion.ddim_sample(guided(self.model, cond, guidance),
                                            (b, nbrdf.N_PARAMS), steps, eta, None, self.device,
-                                           clip=clip, constrain=constrain, noise=rows.batch(s, b))
+                                           clip=clip, constrain=constrain,
+                                           noise=rows.batch(offset + s, b))
             out.append(self.norm.decode(z).float().cpu().numpy())
         w = np.concatenate(out) if out else np.zeros((0, nbrdf.N_PARAMS), np.float32)
         return clamp_refit(w, refit_steps, seed, activation=activation, device=self.device)
