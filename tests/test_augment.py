@@ -366,3 +366,22 @@ def test_pca_cut_keeps_a_tied_pair_of_components_whole():
     coefs, stats = augment.mixing_weights(G, k, [(0, 7, 0.4)])
     assert stats[0] == k + 1
     np.testing.assert_allclose(coefs[0] @ X, _explicit_pca_interp(X, 0, 7, 0.4, k + 1), atol=1e-9)
+
+
+def test_interpolation_coefs_report_the_components_kept():
+    """RGB permutations pair the Gram's eigenvalues: a cut inside a pair keeps it whole, so the
+    interpolation figure's k (the components used) can exceed the k asked for."""
+    rng = np.random.default_rng(4)
+    logs = rng.random((3, 3, 50))
+    row_src = np.repeat(np.arange(3), 6)
+    row_perm = np.tile(np.arange(6), 3)
+    G = augment.row_gram(logs, row_src, row_perm)
+    widened = 0
+    for k in range(1, 17):
+        coefs, kept = augment.interpolation_coefs(logs, row_src, row_perm, 0, 7, [0.3, 0.6], k,
+                                                  return_k=True)
+        assert kept == augment.mixing_weights(G, k, [(0, 7, 0.3)])[1][0] >= k
+        np.testing.assert_array_equal(
+            coefs, augment.interpolation_coefs(logs, row_src, row_perm, 0, 7, [0.3, 0.6], k))
+        widened += kept > k
+    assert widened

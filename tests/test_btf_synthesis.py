@@ -552,3 +552,17 @@ def test_load_refuses_a_state_of_another_model(tmp_path, method):
     u = torch.rand(50, 2, dtype=torch.float64) * 3
     assert torch.equal(syn.load(path, {"triple_plane": m})["triple_plane"].synth(u),
                        syn.build(m, method, 4, st)(u))
+
+
+def test_the_section_flags_scales_whose_tiles_are_narrower_than_a_pixel():
+    """At the tiny config's 72 x 54 render a tile at x45 spans less than a pixel (FLIP there
+    measures aliasing); at the default 320 x 240 none does, and the section says nothing."""
+    from neumat.btf.synthesis import stage
+    spans = {s: stage.tile_span_px(72, 54, s) for s in (1, 15, 45)}
+    assert spans[1] == pytest.approx(15 * spans[15]) == pytest.approx(45 * spans[45])
+    assert spans[15] > 1 > spans[45]
+    note = stage.subpixel_note({"width": 72, "height": 54, "spp": 1, "scales": [1, 15, 45]})
+    assert note.endswith("less than a pixel at x45, so FLIP and PSNR there mostly measure "
+                         "aliasing (which exemplar texels the samples happen to hit), not the "
+                         "synthesis.")
+    assert stage.subpixel_note({"width": 320, "height": 240, "spp": 2, "scales": [1, 15, 45]}) == ""

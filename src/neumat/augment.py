@@ -354,11 +354,14 @@ def mix_values(logs, row_src, row_perm, coef, cols, chunk: int = 1 << 15) -> np.
     return out
 
 
-def interpolation_coefs(logs, row_src, row_perm, a: int, b: int, weights, k: int):
-    """Coefficient vectors over all rows for PCA-space interpolation of rows a -> b."""
+def interpolation_coefs(logs, row_src, row_perm, a: int, b: int, weights, k: int,
+                        return_k: bool = False):
+    """Coefficient vectors over all rows for PCA-space interpolation of rows a -> b; with
+    `return_k`, also the number of components kept (mixing_weights keeps a tie across the cut
+    whole, so it can exceed k)."""
     G = row_gram(logs, row_src, row_perm)
-    coefs, _ = mixing_weights(G, k, [(a, b, float(w)) for w in weights])
-    return coefs
+    coefs, info = mixing_weights(G, k, [(a, b, float(w)) for w in weights])
+    return (coefs, int(info[0])) if return_k else coefs
 
 
 class AugMERL:

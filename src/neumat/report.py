@@ -14,6 +14,12 @@ padding:2px 8px;text-align:right}th{background:#f3f3f3}img{max-width:100%}
 h2{border-bottom:2px solid #ddd;margin-top:2em}code{background:#f6f6f6}"""
 
 
+def duration(seconds: float) -> str:
+    """Seconds, with minutes in brackets from a minute up (a tiny run's costs read "0.0 min")."""
+    s = float(seconds)
+    return f"{s:.1f} s" if s < 60 else f"{s:.0f} s ({s / 60:.1f} min)"
+
+
 def md_table(df: pd.DataFrame, floatfmt: str = ".4g") -> str:
     """A DataFrame as a GitHub-style Markdown table."""
     return df.to_markdown(index=False, floatfmt=floatfmt)

@@ -36,9 +36,12 @@ with script_logging(snakemake) as log:
     weights = np.linspace(1, 0, 5)
     a, b = row(p.pair[0]), row(p.pair[1])
     k = min(p.pca_dims, P - 1)
-    coefs = augment.interpolation_coefs(aug.logs, aug.row_src, aug.row_perm, a, b, weights, k)
+    coefs, kept = augment.interpolation_coefs(aug.logs, aug.row_src, aug.row_perm, a, b, weights,
+                                              k, return_k=True)
+    # the components used: a tie of eigenvalues across the cut at k is kept whole
+    k_text = f"k = {kept}" + (f", {k} asked, widened over tied eigenvalues" if kept != k else "")
     imgs = sphere.tonemap(sphere.render_tables(aug.tables_from_coefs(coefs),
                                                resolution=p.resolution))
     gallery(imgs, [f"{w:.2f} / {1 - w:.2f}" for w in weights], snakemake.output.interpolation,
-            ncols=len(imgs), min_cell=96, title=f"PCA interpolation {p.pair[0]} -> {p.pair[1]} (k = {k})")
+            ncols=len(imgs), min_cell=96, title=f"PCA interpolation {p.pair[0]} -> {p.pair[1]} ({k_text})")
     log.info("figures written")

@@ -33,6 +33,21 @@ def guidance_text(scales, refined) -> str:
                      if k in refined else f"{k} {scales[k]}" for k in ("type", "text", "image"))
 
 
+# the TSVs' share columns as the section names them: "type hits 1 | samples with a training
+# type 4" read as 1 of 4 where it means 100 % of 4
+SHARE_COLUMNS = {"type hits": "type-hit share", "colour match": "colour-match share"}
+NO_DATA_NOTE = ("The type-hit and colour-match shares are fractions of the count column next "
+                "to them (1 = all of them); – : nothing to score (a share of zero samples, or a "
+                "measure that does not apply to that row).")
+
+
+def shares_table(df: pd.DataFrame) -> str:
+    """md_table with the share columns named as shares and empty cells (NaN) as '–'."""
+    df = df.rename(columns=SHARE_COLUMNS)
+    return df.astype(object).where(df.notna(), None).to_markdown(
+        index=False, floatfmt=".4g", missingval="–")
+
+
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
 
@@ -104,10 +119,12 @@ with script_logging(snakemake) as log:
         *descriptions_note(getattr(inp, "descriptions", None)),
         "### Type hits, colour, distance, negative clamping",
         "Type hit: the nearest typed training material (BRDF-L1) has the prompt's (or "
-        "conditioning material's) type, counted over samples whose asked type some training "
-        "material has (a test-split source may have a type found nowhere in training). Colour match: the render's mean chromaticity matches "
-        "the prompt's colour word (hue within 40 degrees, saturation >= 0.15; achromatic words: "
-        "saturation below). " + mm_type_text("type" in p.refined) + " `mm_type` "
+        "conditioning material's) type; the type-hit share is over the samples whose asked "
+        "type some training material has (`samples with a training type`; a test-split source "
+        "may have a type found nowhere in training). Colour match: the render's mean "
+        "chromaticity matches the prompt's colour word (hue within 40 degrees, saturation >= "
+        "0.15; achromatic words: saturation below); the colour-match share is over the samples "
+        "whose prompt names a colour (`coloured samples`). " + mm_type_text("type" in p.refined) + " `mm_type` "
         "draws only the types some training material has (the model never saw the others). "
         "Goal: type "
         "hits >= 90 % with the median distance within 1.5x the real test split's and negative "
@@ -116,7 +133,8 @@ with script_logging(snakemake) as log:
         "own material, what a sampler that gave it back exactly would score (the most image "
         "conditioning can reach by this measure), and `image: retrieval` the training "
         "material whose image embedding is nearest.",
-        report.md_table(summary),
+        shares_table(summary),
+        NO_DATA_NOTE,
         "### Image agreement (metric view)",
         "PSNR / SSIM (sRGB, data range 1) of each sample's metric-view render against its "
         "conditioning image, mean per image; unconditional = all `mm_uncond` samples; retrieval "
@@ -124,7 +142,7 @@ with script_logging(snakemake) as log:
         report.md_table(img_means),
         report.md_table(img),
         "### Guidance sweep",
-        report.md_table(sweep),
+        shares_table(sweep),
         f"![guidance sweep](figures/{Path(out.sweep).name})",
         "### Figures",
         *[f"![{Path(f).stem}](figures/{Path(f).name})" for f in inp.figures],

@@ -35,7 +35,7 @@ with script_logging(snakemake) as log:
                    [f"s{i}" for i in pick] + [f"n{i}" for i in pick], p.cfg, p.activation, p.seed)
     labels = [f"sample {i}" for i in pick] + \
              [f"nn: {r.nearest_name} (L1 {r.brdf_l1:.3g})" for r in rows.itertuples()]
-    gallery(imgs, labels, out.ours, ncols=k)
+    gallery(imgs, labels, out.ours, ncols=k, min_cell=96)
 
     typed, tnear = np.load(inp.types), pd.read_csv(inp.types_nearest, sep="\t", keep_default_na=False)
     shown = list(dict.fromkeys(tnear["type"]))[:p.n_types]
@@ -43,7 +43,7 @@ with script_logging(snakemake) as log:
     tp = np.concatenate([np.flatnonzero(tnear["type"] == t)[:per_row] for t in shown])
     imgs_t = spheres(typed[tp], [f"t{i}" for i in tp], p.cfg, p.activation, p.seed)
     gallery(imgs_t, [f"{r.type} (nn: {r.nearest_typed_type})" for r in tnear.iloc[tp].itertuples()],
-            out.types, ncols=per_row)
+            out.types, ncols=per_row, min_cell=96)
     info = {"variant": variant, "images": len(imgs) + len(imgs_t), "seconds": round(time.time() - t0, 1),
             "resolution": p.cfg["resolution"], "spp": p.cfg["spp"]}
     with open(out.info, "w") as f:

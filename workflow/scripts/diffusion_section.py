@@ -60,7 +60,7 @@ def gallery(samples, near, weights, n, p, path, title):
     top, bottom = render(samples[pick], p), render(weights[rows["nearest_id"].to_numpy()], p)
     labels = [f"sample {i}" for i in pick] + \
              [f"{r.nearest_name}\nL1 {r.brdf_l1:.3g}" for r in rows.itertuples()]
-    image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, title=title)
+    image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, min_cell=96, title=title)
 
 
 def split_note(token_values: int) -> str:
@@ -107,7 +107,7 @@ with script_logging(snakemake) as log:
     per_row = min(cfg["per_type"], 6)
     pick = np.concatenate([np.flatnonzero(nt["type"] == t)[:per_row] for t in shown])
     labels = [f"{r.type}\n(nn: {r.nearest_typed_type})" for r in nt.iloc[pick].itertuples()]
-    image_grid(render(samples["ours_type"][pick], p), labels, out.types, ncols=per_row,
+    image_grid(render(samples["ours_type"][pick], p), labels, out.types, ncols=per_row, min_cell=96,
                title="type-conditioned samples (label: requested type, and the type "
                      "of the nearest typed training material)")
 
@@ -115,6 +115,8 @@ with script_logging(snakemake) as log:
     match = (nt["type"] == nt["nearest_typed_type"])
     ref = nearest["reference"]
     ref_match = (ref["type"] == ref["nearest_typed_type"])[ref["type"] != ""]
+    train_types = set(man.loc[man["split"] == "train", "type"]) - {""}
+    ref_known = ref.loc[ref["type"] != "", "type"].isin(train_types)  # index as ref_match
     per_type = nt.assign(match=match).groupby("type")["match"].mean().mul(100).rename("match %")
     novelty = pd.DataFrame([{"set": k, "median BRDF-L1 to nearest training": v["brdf_l1"].median(),
                              "share closer than 10 % of the reference median":
@@ -172,8 +174,11 @@ with script_logging(snakemake) as log:
         f"interpolations carry no type) has the requested type: **{100 * match.mean():.1f} %** "
         f"({len(nt)} samples, {nt['type'].nunique()} types). For comparison, the same share for "
         f"the test-split materials and their own types: {100 * ref_match.mean():.1f} % "
-        f"(test materials come from MERL materials never seen in training, so their exact type "
-        f"may be absent there).",
+        f"({len(ref_match)} typed test materials, {int(ref_known.sum())} of them of a type "
+        f"some training material has, {int(ref_match[ref_known].sum())} of those a hit). Test "
+        f"materials come from MERL materials never seen in training: some have a type no "
+        f"training material has, and under the split by source a held-out material's nearest "
+        f"typed training material often has another type even where training has its type.",
         "![type-conditioned samples, Mitsuba](figures/diffusion_mitsuba_types.png)",
         "![type-conditioned samples](figures/diffusion_types.png)",
         report.md_table(per_type.reset_index()),

@@ -11,6 +11,7 @@ from neumat.logs import script_logging
 from neumat.metrics import reconstruction as rec
 from neumat.render.gallery import gallery
 
+
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
     scores = pd.read_csv(inp.scores, sep="\t", keep_default_na=False)
@@ -42,7 +43,7 @@ with script_logging(snakemake) as log:
             title="Table 3 test materials: ground truth, NeuMERL fit, HyperBRDF trained on MERL / AugMERL")
 
     t = p.train
-    cost = ", ".join(f"{m}: {b['n_train']} materials, {b['train_seconds'] / 60:.1f} min"
+    cost = ", ".join(f"{m}: {b['n_train']} materials, {report.duration(b['train_seconds'])}"
                      for m, b in zip(p.models, bundles))
     md = [
         "## Table 3: HyperBRDF trained on MERL vs AugMERL",

@@ -11,6 +11,7 @@ from neumat.logs import script_logging
 from neumat.render import sphere
 from neumat.render.gallery import gallery
 
+
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
     cfg, dev = p.cfg, str(resolve_device(snakemake.config["device"]))
@@ -36,7 +37,7 @@ with script_logging(snakemake) as log:
                                                      cfg["activation"], dev))
         labels = [f"{n}\nground truth" for n in rows["name"]] + \
                  [f"fit {q:.1f} dB" for q in rows["render_psnr"]]
-        gallery(np.concatenate([gt, fitted]), labels, path, ncols=k,
+        gallery(np.concatenate([gt, fitted]), labels, path, ncols=k, min_cell=96,
                 title=f"NeuMERL: the {k} {what} fits (top: AugMERL table, bottom: fitted field)")
 
     seconds = template["seconds"] + sum(float(s["seconds"]) for s in shards)
@@ -62,7 +63,7 @@ with script_logging(snakemake) as log:
         f"10th percentile {q.quantile(0.1):.2f} dB, min {q.min():.2f} dB. "
         f"Validation loss: median {fits['val_loss'].median():.4g}, 90th percentile "
         f"{fits['val_loss'].quantile(0.9):.4g}. Fitting time (sum over jobs): "
-        f"{seconds / 60:.1f} min.",
+        f"{report.duration(seconds)}.",
         "### Fit quality per operation", report.md_table(by_op),
         "![fit quality](figures/neumerl_quality.png)",
         "### Best and worst fits",

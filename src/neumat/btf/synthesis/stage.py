@@ -271,6 +271,35 @@ def quilting_storage_note(scale: int, side: int = 400, channels: int = 8) -> str
             "tables.")
 
 
+def tile_span_px(width: int, height: int, scale: float) -> float:
+    """Median width in pixels of one tile (one exemplar period) over the plane's pixels in the
+    perspective render (plane_queries' camera): at each pixel, one over the larger of the u
+    steps to its right and lower neighbours."""
+    u, _, _, mask, _ = ev.plane_queries(width, height, 1.0, (0.0, 0.0, 1.0), wrap=False)
+    U = np.full((height, width, 2), np.nan)
+    U[mask] = u.numpy()
+    dx = np.linalg.norm(np.diff(U, axis=1), axis=-1)[:-1]
+    dy = np.linalg.norm(np.diff(U, axis=0), axis=-1)[:, :-1]
+    step = np.fmax(dx, dy)
+    step = step[np.isfinite(step) & (step > 0)]
+    return float(np.median(1 / step)) / scale if len(step) else float("nan")
+
+
+def subpixel_note(render) -> str:
+    """A sentence where the render is so small that at some UV scale a tile is narrower than a
+    pixel (then FLIP and PSNR there measure mostly aliasing); '' where none is."""
+    spans = {s: tile_span_px(render["width"], render["height"], s) for s in render["scales"]}
+    small = [s for s, v in spans.items() if v < 1]
+    if not small:
+        return ""
+    return (f"At this render size ({render['width']} x {render['height']}, {render['spp']}^2 "
+            f"samples per pixel) a tile (one exemplar) spans a median "
+            + ", ".join(f"{v:.2g} pixels at x{s}" for s, v in spans.items())
+            + ": less than a pixel at " + ", ".join(f"x{s}" for s in small)
+            + ", so FLIP and PSNR there mostly measure aliasing (which exemplar texels the "
+              "samples happen to hit), not the synthesis.")
+
+
 def write_section(metric_files, md_out, table_out, measure, render, quilt_scale, channels):
     df = pd.concat([pd.read_csv(f, sep="\t") for f in metric_files], ignore_index=True)
     tmp = f"{table_out}.tmp"
@@ -287,14 +316,19 @@ def write_section(metric_files, md_out, table_out, measure, render, quilt_scale,
              f"the exemplar plane, in exemplar standard deviations (lower = histogram kept; "
              f"plain tiling's is 0 but for float32 rounding). W1 random: the same at as many "
              f"uniformly random positions, where every method's values are bilinear mixes "
-             f"(plain tiling's is then the floor that filtering sets; at texel centres tiling "
-             f"and quilting return exemplar texels, the dynamic methods mixes). ACF: "
+             f"(at texel centres tiling and quilting return exemplar texels, the dynamic "
+             f"methods mixes); plain tiling's is then what bilinear filtering of the exemplar "
+             f"costs, not a floor: HPB can go below it, as it blends in its Gaussianised space "
+             f"and its inverse LUT maps the blend back onto the exemplar's histogram. ACF: "
              f"normalised autocorrelation of a top-down x{S} render (sum of the lights) at the "
              f"exemplar period (1 = strict repetition). dmean: largest deviation of a mean RGB "
              f"channel from plain tiling's, over plain tiling's mean over RGB, per light. "
              f"FLIP / PSNR: perspective renders ({render['width']} x "
              f"{render['height']}, {render['spp']}^2 samples per pixel) against plain tiling, "
              f"mean of {lights}. State: stored floats beyond the model (MB).", ""]
+    note = subpixel_note(render)
+    if note:
+        lines[-2] += " " + note
     scales = render["scales"]
     head = ("| material | model | method | W1 | W1 random | ACF | "
             + "".join(f"dmean L{j + 1} | " for j in range(nl))
