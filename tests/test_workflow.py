@@ -342,6 +342,11 @@ def test_tiny_run_used_the_fast_mitsuba_variant(tiny_run):
     expect = "llvm_ad_rgb" if mb.find_libllvm() else "scalar_rgb"
     for f in infos:
         assert json.loads(f.read_text())["variant"] == expect, f
+    # the reference figures show distinct sources, not one source's RGB permutations (the
+    # two-material plane had mixed gray-acrylic with gray-acrylic@rbg)
+    plane = json.loads((tiny_run / "results/tiny/render/mitsuba/mixed_plane.json").read_text())
+    sources = [m.split("#")[0].split("@")[0] for m in plane["materials"]]
+    assert len(sources) >= 2 and len(set(sources)) == len(sources), plane["materials"]
 
 
 # ----------------------------------------------------------------------------- caching

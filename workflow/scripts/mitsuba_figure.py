@@ -16,9 +16,18 @@ with script_logging(snakemake) as log:
     variant = mb.select_variant(cfg["variant"])
     weights = np.load(snakemake.input.weights)
     names = pd.read_csv(snakemake.input.table, sep="\t", keep_default_na=False)["name"]
-    k = min(cfg["materials"], len(weights))
+    # one material per source: the reference set lists each source's RGB permutations
+    # (name@rbg, ...) after it, which look alike (a review found the two-material plane mixing
+    # gray-acrylic with gray-acrylic@rbg, its mask invisible)
+    seen, pick = set(), []
+    for i, name in enumerate(names):
+        if name.split("@")[0] not in seen:
+            seen.add(name.split("@")[0])
+            pick.append(i)
+    pick = pick[:cfg["materials"]]
     mats = [mb.Material(f"{names[i]}#{i}", weights=weights[i],
-                        activation=snakemake.params.activation) for i in range(k)]
+                        activation=snakemake.params.activation) for i in pick]
+    k = len(mats)
     env = scenes.sky_envmap(cfg["envmap_size"])
     res, spp = cfg["resolution"], cfg["spp"]
     if scene == "sphere":
