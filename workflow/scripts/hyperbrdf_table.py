@@ -72,8 +72,12 @@ with script_logging(snakemake) as log:
            f"With {n_mat} materials the smallest attainable p is 2 / 2^{n_mat} = "
            f"{rec.min_p(n_mat):.3g}, not below {rec.ALPHA:g}: **too few materials to judge** "
            f"any cell (`augmerl.test_fraction`; 6 or more test sources needed).")
-        + " The 95 % bootstrap interval (resampling materials) is descriptive only: with few "
-        "materials it is too narrow to decide on.",
+        + " `pairs won` counts material-and-view pairs (each view on its own, so twice the "
+        "materials), the test the per-material differences: the two can disagree. The 95 % "
+        "bootstrap interval (resampling materials) is descriptive only: with few "
+        "materials it is too narrow to decide on. The table has the methods as rows and the "
+        "training sets side by side, the paper's Table 3 turned round; PSNR and SSIM: higher "
+        "is better, ΔE: lower.",
         report.md_table(paired, floatfmt=".4g"),
         "![Table 3 reconstructions](figures/hyperbrdf_reconstructions.png)",
         "Files: `hyperbrdf/table3.{csv,md,html}`, `hyperbrdf/table3_paired.csv`, per material "
