@@ -75,9 +75,9 @@ with script_logging(snakemake) as log:
         + " `pairs won` counts material-and-view pairs (each view on its own, so twice the "
         "materials), the test the per-material differences: the two can disagree. The 95 % "
         "bootstrap interval (resampling materials) is descriptive only: with few "
-        "materials it is too narrow to decide on. The table has the methods as rows and the "
-        "training sets side by side, the paper's Table 3 turned round; PSNR and SSIM: higher "
-        "is better, ΔE: lower.",
+        "materials it is too narrow to decide on. The table has one row per method (the two "
+        "HyperBRDF trainings, MERL and AugMERL, as two rows) and task x metric as columns, "
+        "the paper's Table 3 turned round; PSNR and SSIM: higher is better, ΔE: lower.",
         report.md_table(paired, floatfmt=".4g"),
         "![Table 3 reconstructions](figures/hyperbrdf_reconstructions.png)",
         "Files: `hyperbrdf/table3.{csv,md,html}`, `hyperbrdf/table3_paired.csv`, per material "
