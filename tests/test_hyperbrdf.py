@@ -318,6 +318,9 @@ def test_paired_comparison_known_answers():
     assert (p["beyond noise"] == False).all() and (p["p (sign-flip)"] > 0.05).all()  # noqa: E712
     # deterministic given the seed
     assert rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS), seed=0).equals(p)
+    # a task's draws are its own: its rows do not depend on the tasks scored before it
+    last = rec.paired(_paired_scores(0.0, 1.0), "augmerl", "merl", list(hb.TASKS)[-1:], seed=0)
+    assert last.equals(p.iloc[-len(last):].reset_index(drop=True))
     with pytest.raises(ValueError, match="same materials"):
         s = _paired_scores(1.0, 0.0)
         rec.paired(s[~((s.method == "merl") & (s.material == "m0"))], "augmerl", "merl",

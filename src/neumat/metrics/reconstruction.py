@@ -157,15 +157,16 @@ def paired(scores: pd.DataFrame, better: str, worse: str, tasks: list[str], seed
     materials to judge" when even the most extreme outcome could not reach ALPHA (2 / 2^n >=
     0.05: n <= 5 materials). The percentile bootstrap is not the verdict: with few materials
     its interval is far too narrow (with no true difference it excluded 0 in 25 % of simulated
-    cells at 3 materials, 17 % at 5, 8 % at 20). Random draws: the bootstrap from `seed`, the
-    Monte Carlo sign patterns (more than EXACT_MAX materials) from the named stream
-    seed_for(seed, "sign_flip")."""
+    cells at 3 materials, 17 % at 5, 8 % at 20). Random draws, per task from its own named
+    streams: the bootstrap seed_for(seed, "bootstrap", task), the Monte Carlo sign patterns
+    (more than EXACT_MAX materials) seed_for(seed, "sign_flip", task), so a task's interval does
+    not depend on the tasks before it or on their material count."""
     from neumat.seeds import seed_for
 
-    rng = np.random.default_rng(seed)
-    flip_rng = np.random.default_rng(seed_for(seed, "sign_flip"))
     rows = []
     for t in tasks:
+        rng = np.random.default_rng(seed_for(seed, "bootstrap", t))
+        flip_rng = np.random.default_rng(seed_for(seed, "sign_flip", t))
         a = scores[(scores["method"] == better) & (scores["task"] == t)]
         b = scores[(scores["method"] == worse) & (scores["task"] == t)]
         d = (a.set_index(["material", "view"])[list(METRICS)]
