@@ -138,7 +138,8 @@ def cmd_evaluate(args):
         model = hb.load(OUT / f"{m}.pt")
         for task in hb.TASKS:
             hdr[f"HyperBRDF ({m})", task] = hb.reconstruct(model, values[test], bins, med, views,
-                                                           task, args.sparse, seed=100)
+                                                           task, args.sparse, seed=100,
+                                                           keys=tnames)
     srgb = {k: {v: rec.srgb(i) for v, i in d.items()} for k, d in hdr.items()}
     masks = {v: vw.mask.numpy() for v, vw in views.items()}
     scores = pd.concat([rec.score(srgb["truth"], imgs, masks, tnames, method=k[0], task=k[1])

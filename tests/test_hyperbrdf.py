@@ -236,10 +236,10 @@ def test_learns_lambertian_family_and_reconstructs(tmp_path):
 
 def test_task_bins():
     bins = np.arange(100)
-    a = hb.task_bins("sparse", bins, 10, seed=0, i=3)
+    a = hb.task_bins("sparse", bins, 10, seed=0, key="red-plastic")
     assert len(a) == 10 and len(set(a)) == 10
-    assert np.array_equal(a, hb.task_bins("sparse", bins, 10, seed=0, i=3))
-    assert not np.array_equal(a, hb.task_bins("sparse", bins, 10, seed=0, i=4))
+    assert np.array_equal(a, hb.task_bins("sparse", bins, 10, seed=0, key="red-plastic"))
+    assert not np.array_equal(a, hb.task_bins("sparse", bins, 10, seed=0, key="blue-fabric"))
     assert np.array_equal(hb.task_bins("compression", bins, 10, 0, 0), bins)
     with pytest.raises(ValueError, match="augmerl.bins"):
         hb.task_bins("sparse", bins, 101, 0, 0)

@@ -57,7 +57,7 @@ with script_logging(snakemake) as log:
         model = hb.load(path, dev)
         for task in hb.TASKS:
             hdr[f"HyperBRDF ({m})", task] = hb.reconstruct(model, values, bins, median, views,
-                                                           task, p.sparse_samples, p.seed)
+                                                           task, p.sparse_samples, p.seed, names)
     srgb = {k: {v: rec.srgb(img) for v, img in d.items()} for k, d in hdr.items()}
     masks = {v: vw.mask.cpu().numpy() for v, vw in views.items()}
     scores = pd.concat([rec.score(srgb["truth", "-"], imgs, masks, names, method=k[0], task=k[1])

@@ -380,9 +380,10 @@ def predict(model: HyperBRDF, z: torch.Tensor, x6, median) -> torch.Tensor:
 TASKS = ("sparse", "compression")
 
 
-def task_bins(task: str, bins: np.ndarray, sparse_samples: int, seed: int, i: int) -> np.ndarray:
+def task_bins(task: str, bins: np.ndarray, sparse_samples: int, seed: int, key) -> np.ndarray:
     """Positions into a material's stored `bins` that the encoder sees: a fixed random
-    `sparse_samples` of them (sparse; seeded per material i) or all of them (compression)."""
+    `sparse_samples` of them (sparse; from the named stream of the material's `key`, its name
+    in the workflow) or all of them (compression)."""
     if task == "compression":
         return np.arange(len(bins))
     if task != "sparse":
@@ -390,20 +391,25 @@ def task_bins(task: str, bins: np.ndarray, sparse_samples: int, seed: int, i: in
     if sparse_samples > len(bins):
         raise ValueError(f"sparse reconstruction needs {sparse_samples} samples, the material "
                          f"has {len(bins)} stored bins (augmerl.bins)")
-    rng = np.random.default_rng([seed, i])
+    # keyed by the material, not its place in the list: adding a test material moved the
+    # bins of every one after it (a review of 2026-11-29)
+    rng = np.random.default_rng(seed_for(seed, "sparse", key))
     return np.sort(rng.choice(len(bins), sparse_samples, replace=False))
 
 
 @torch.no_grad()
 def reconstruct(model: HyperBRDF, values: np.ndarray, bins: np.ndarray, median_full: np.ndarray,
-                views: dict, task: str, sparse_samples: int, seed: int) -> dict[str, torch.Tensor]:
+                views: dict, task: str, sparse_samples: int, seed: int,
+                keys=None) -> dict[str, torch.Tensor]:
     """Encode each material's samples for `task`, decode, render in every view.
 
     values (n, 3, B) physical BRDF at flat MERL `bins` (B,); median_full (N_BINS,) the mapping's
-    median; views: name -> `sphere.SphereView`. Returns view -> linear HDR (n, H, W, 3)."""
+    median; views: name -> `sphere.SphereView`; keys (n,): the materials' names, which key
+    their sparse bins (default: their positions). Returns view -> linear HDR (n, H, W, 3)."""
     zs = []
-    for i in range(len(values)):
-        k = task_bins(task, bins, sparse_samples, seed, i)
+    keys = range(len(values)) if keys is None else list(keys)
+    for i, key in enumerate(keys):
+        k = task_bins(task, bins, sparse_samples, seed, key)
         zs.append(encode_values(model, values[i:i + 1, :, k], bins[k], median_full[bins[k]]))
     z = torch.cat(zs)
     out = {}
