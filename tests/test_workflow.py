@@ -127,6 +127,9 @@ def test_tiny_config_runs_to_report(tiny_run):
     html = (rep / "index.html").read_text()
     md = (rep / "index.md").read_text()
     assert "<table>" in html and "AugMERL" in md
+    # every figure is followed by its report() caption (as in `snakemake --report`)
+    figures = re.findall(r"^!\[[^\]]*\]\(figures/[^)]+\)\n\n(.*)$", md, re.M)
+    assert len(figures) >= 20 and all(c.startswith("> ") and len(c) > 80 for c in figures), figures
     for img in ("augmerl_permutations.png", "augmerl_interpolation.png"):
         assert (rep / "figures" / img).stat().st_size > 1000
     man = pd.read_csv(tiny_run / "results/tiny/augmerl/manifest.tsv", sep="\t",

@@ -3,6 +3,7 @@ index.html (figures linked relative to the report directory)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import markdown
@@ -25,10 +26,41 @@ def md_table(df: pd.DataFrame, floatfmt: str = ".4g") -> str:
     return df.to_markdown(index=False, floatfmt=floatfmt)
 
 
-def stitch(sections: list[str | Path], title: str, footer: str = "") -> tuple[str, str]:
-    """Concatenate section fragments (in file-name order) -> (markdown, html)."""
+def caption_text(path: str | Path, config: dict) -> str:
+    """A figure's `report()` caption (workflow/report/*.rst: a Jinja template over
+    snakemake.config, as Snakemake renders it for `snakemake --report`) as one Markdown
+    paragraph: RST inline literals ``x`` become `x`, line breaks spaces."""
+    import types
+
+    import jinja2
+
+    text = jinja2.Template(Path(path).read_text()).render(snakemake=types.SimpleNamespace(
+        config=config))
+    return re.sub(r"``([^`]+)``", r"`\1`", " ".join(text.split()))
+
+
+def with_captions(md: str, captions: dict[str, str]) -> str:
+    """Each figure line `![alt](figures/NAME)` of `md` followed by its caption: `captions` maps
+    a regular expression of figure file names (the rule's output pattern, wildcards as
+    [^/]+) to the caption's text. In index.md / index.html the figures had their alt text
+    only; the captions were in `snakemake --report` alone."""
+    lines, out = md.splitlines(), []
+    for i, line in enumerate(lines):
+        out.append(line)
+        m = re.fullmatch(r"!\[[^\]]*\]\(figures/([^)]+)\)", line.strip())
+        text = next((t for rx, t in captions.items() if m and re.fullmatch(rx, m.group(1))), None)
+        if text:  # a blank line after it unless one follows: text below would join the quote
+            out += ["", f"> {text}"] + ([""] if i + 1 < len(lines) and lines[i + 1].strip() else [])
+    return "\n".join(out)
+
+
+def stitch(sections: list[str | Path], title: str, footer: str = "",
+           captions: dict[str, str] | None = None) -> tuple[str, str]:
+    """Concatenate section fragments (in file-name order), each figure followed by its caption
+    (`with_captions`) -> (markdown, html)."""
     parts = [f"# {title}"]
-    parts += [Path(s).read_text().strip() for s in sorted(sections, key=lambda p: Path(p).name)]
+    parts += [with_captions(Path(s).read_text().strip(), captions or {})
+              for s in sorted(sections, key=lambda p: Path(p).name)]
     parts += [footer] if footer else []
     md = "\n\n".join(parts) + "\n"
     body = markdown.markdown(md, extensions=["tables", "fenced_code"])

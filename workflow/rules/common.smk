@@ -289,6 +289,26 @@ REPORT_SECTIONS = [
 ]
 
 
+def figure_captions():
+    """{regular expression of a figure's file name: its caption file} for every report()
+    output of the workflow's rules (read after they are all defined: rule report, last), so
+    that index.md / index.html show the captions `snakemake --report` shows. The caption's
+    path is Snakemake's (ReportObject.caption); a Snakemake that keeps it elsewhere gives no
+    captions rather than an error."""
+    import re
+
+    found = {}
+    for r in workflow.rules:
+        for f in r.output:
+            rep = getattr(f, "flags", {}).get("report")
+            caption = getattr(rep, "caption", None)
+            if caption is None:
+                continue
+            name = re.escape(Path(str(f)).name)
+            found[re.sub(r"\\\{[^}]*\\\}", "[^/]+", name)] = os.path.relpath(str(caption))
+    return dict(sorted(found.items()))
+
+
 def report_inputs():
     return [out("report/index.html"), out("report/index.md")]
 

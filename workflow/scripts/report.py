@@ -11,7 +11,9 @@ with script_logging(snakemake) as log:
     footer = ("## Configuration of this run\n\nDefaults filled in; left out (config/speed_keys.yaml): "
               "the speed-only keys, and the neutral keys at their neutral value (the schema's "
               "default).\n\n```yaml\n" + yaml.safe_dump(dict(p.config), sort_keys=False) + "```")
-    md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", footer)
+    captions = {rx: report.caption_text(path, snakemake.config) for rx, path in p.captions.items()}
+    md, html = report.stitch(snakemake.input.sections, f"neumat report: run `{p.run}`", footer,
+                             captions)
     Path(snakemake.output.md).write_text(md)
     Path(snakemake.output.html).write_text(html)
     log.info("report with %d sections", len(snakemake.input.sections))
