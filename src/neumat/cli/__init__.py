@@ -110,7 +110,10 @@ def parser() -> argparse.ArgumentParser:
                         "diffusion.sample.guidance for a type-only model such as ours")
     s.add_argument("--batch", type=whole(1),
                    help="samples per batch (default: the run's diffusion.sample.batch_size, or "
-                        "with --category its constrained.batch)")
+                        "with --category its constrained.batch). Speed and memory only: the "
+                        "samples are the same to float rounding at any --batch, except under "
+                        "the run's particle guidance, which acts within a batch, and with "
+                        "--category, whose draws come in rounds of --batch")
     s.add_argument("--budget", type=whole(1),
                    help="--category: most draws before giving up (default: the run's constrained.budget)")
     s.add_argument("--category-step", type=float, metavar="S",
