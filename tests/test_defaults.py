@@ -55,7 +55,9 @@ CASES = {
                         "activation": "fit.activation: how the NBRDF decodes",
                         "category": "None = no category: constrained.sample_category names one",
                         "category_step": "constrained.guidance_step, which sample_category "
-                                         "(checked below) passes with its category"}),
+                                         "(checked below) passes with its category",
+                        "offset": "rows of a draw made in several calls (neumat sample's "
+                                  "batches), not a setting"}),
     # its `bins` is the bin indices (grid_bins(constrained.bins)), not the key's count
     "sample_category": ({k: v for k, v in _signature_defaults(sample_category).items() if k != "bins"},
                         ("constrained",),
