@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from neumat.cli.render import _render_scene, _write_scene
-from neumat.io import images
 from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIES, MULTIMODAL,
                             VECTOR_MODALITIES, CLIError, Run, _progress, check_out_dir,
                             model_conditions, model_rule, unsupported)
+from neumat.io import images
 
 # the files `neumat sample` writes into --out; a new draw replaces an earlier one's (a draw of
 # fewer samples or without --mitsuba / with --no-binary would otherwise leave some beside it)
