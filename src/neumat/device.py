@@ -18,7 +18,7 @@ def resolve_device(name: str) -> torch.device:
                            f"{torch.__version__}, built for CUDA {torch.version.cuda}); run on a "
                            "GPU node, or set device: auto or cpu")
     dev = torch.device(("cuda" if torch.cuda.is_available() else "cpu") if name == "auto" else name)
-    where = f"{torch.cuda.get_device_name(dev)}" if dev.type == "cuda" else "no GPU in use"
+    where = torch.cuda.get_device_name(dev) if dev.type == "cuda" else "no GPU in use"
     log.info("device %s -> %s (%s; torch %s)", name, dev, where, torch.__version__)
     return dev
 

@@ -21,6 +21,20 @@ def duration(seconds: float) -> str:
     return f"{s:.1f} s" if s < 60 else f"{s:.0f} s ({s / 60:.1f} min)"
 
 
+# the three places that give the test split's median distance to its nearest training material
+NN_SECTIONS = ("the diffusion section", "the conditioning section", "Table 2's novelty table")
+
+
+def nn_bins_note(here: str) -> str:
+    """One sentence for `here` (one of NN_SECTIONS): its nearest-training BRDF-L1 is over its
+    own random draw of `diffusion.nn_bins` bins, so the test split's median differs a little
+    between the three places (the bin draw alone; a review found three values unexplained)."""
+    others = " and ".join(s for s in NN_SECTIONS if s != here)
+    return (f" The nearest-training BRDF-L1 here is over `diffusion.nn_bins` valid MERL bins drawn "
+            f"at random for {here}; {others} draw their own, so the test split's median differs "
+            f"a little between them (the bin draw alone): compare sets within one place.")
+
+
 def md_table(df: pd.DataFrame, floatfmt: str = ".4g") -> str:
     """A DataFrame as a GitHub-style Markdown table."""
     return df.to_markdown(index=False, floatfmt=floatfmt)

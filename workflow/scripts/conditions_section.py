@@ -42,12 +42,6 @@ NO_DATA_NOTE = ("The type-hit and colour-match shares are fractions of the count
                 "measure that does not apply to that row).")
 
 
-NN_BINS_NOTE = (" BRDF-L1 is over `diffusion.nn_bins` valid MERL bins drawn at random for this "
-                "section's distances; Table 2's novelty table and the diffusion section draw their "
-                "own, so the test split's median differs a little between them (the bin draw "
-                "alone): compare sets within one section.")
-
-
 def shares_table(df: pd.DataFrame) -> str:
     """md_table with the share columns named as shares and empty cells (NaN) as '–'."""
     df = df.rename(columns=SHARE_COLUMNS)
@@ -140,7 +134,8 @@ with script_logging(snakemake) as log:
         "draws only the types some training material has (the model never saw the others). "
         "Goal: type "
         "hits >= 90 % with the median distance within 1.5x the real test split's and negative "
-        "clamping no more common than in the training fits." + NN_BINS_NOTE + " Yardsticks for images, one per "
+        "clamping no more common than in the training fits."
+        + report.nn_bins_note("the conditioning section") + " Yardsticks for images, one per "
         "test-split image: `image: the conditioning materials themselves` scores each image's "
         "own material, what a sampler that gave it back exactly would score (the most image "
         "conditioning can reach by this measure), and `image: retrieval` the training "

@@ -63,12 +63,6 @@ def gallery(samples, near, weights, n, p, path, title):
     image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, min_cell=96, title=title)
 
 
-NN_BINS_NOTE = (" BRDF-L1 is over `diffusion.nn_bins` valid MERL bins drawn at random for this "
-                "section; Table 2's novelty table and the conditioning section draw their own, so "
-                "the test split's median differs a little between them (the bin draw alone): "
-                "compare sets within one section.")
-
-
 def split_note(token_values: int) -> str:
     """How the tensors are tokenised; diffusion.model.token_values is absent from params at 0
     (a neutral key: config/speed_keys.yaml)."""
@@ -164,7 +158,7 @@ with script_logging(snakemake) as log:
         "### Novelty",
         "BRDF-L1 from each material to its nearest NeuMERL training material; `reference` is the "
         "test split (real materials never seen in training): samples much closer than that are "
-        "near-copies." + NN_BINS_NOTE,
+        "near-copies." + report.nn_bins_note("the diffusion section"),
         report.md_table(novelty),
         "### Unconditional samples",
         f"Mitsuba 3 ({mitsuba['variant']}, {mitsuba['resolution']} px, {mitsuba['spp']} spp, "

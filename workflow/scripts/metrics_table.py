@@ -4,6 +4,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from neumat import report
 from neumat.logs import script_logging
 from neumat.metrics import evaluate
 
@@ -46,9 +47,7 @@ with script_logging(snakemake) as log:
         "nearest NeuMERL training material, mean over draws, against the same for the "
         "reference set (real materials the models never saw). Ratio near 1: new materials as "
         "far from the training set as real unseen ones; near 0: near-copies; far above 1: "
-        "off the training manifold. The diffusion and conditioning sections measure the same "
-        "distance on their own random bins (`diffusion.nn_bins` of them), so their test-split "
-        "median differs a little from this one (the bin draw alone).",
+        "off the training manifold." + report.nn_bins_note("Table 2's novelty table"),
         evaluate.novelty_table(results).to_markdown(index=False, floatfmt=".4g"),
         "### Sanity rows",
         "Reference halves: random halves of the reference set scored against each other "

@@ -288,7 +288,8 @@ def tile_span_px(width: int, height: int, scale: float) -> float:
 def subpixel_note(render) -> str:
     """A sentence where the render is so small that at some UV scale a tile is narrower than a
     pixel (then FLIP and PSNR there measure mostly aliasing); '' where none is."""
-    spans = {s: tile_span_px(render["width"], render["height"], s) for s in render["scales"]}
+    span = tile_span_px(render["width"], render["height"], 1.0)  # at x s: span / s
+    spans = {s: span / s for s in render["scales"]}
     small = [s for s, v in spans.items() if v < 1]
     if not small:
         return ""
