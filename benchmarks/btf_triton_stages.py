@@ -18,9 +18,13 @@ Variants (each the shipped kernel's arithmetic except where named):
   hpb 64x4       the shipped kernel at the launch shape of the kernel before
   hpb before     the kernel before (2026-11-28, b62f565): each tap's 16 padded columns fetched
                  into its own rows, then the blend and the LUT, at its 64 x 4
-  hex            the shipped hex-tiling query: the luminance taps first, then the blend weights,
-                 then the feature taps at 8 channels folded into one accumulator, widened
+  hex            the shipped hex-tiling query: the luminance taps first (each a 16-byte load of
+                 the texel's 2 x 2 neighbourhood), then the blend weights, then the feature
+                 taps at 8 channels folded into one accumulator, widened
   hex BxW        the same at other launch shapes
+  hex lum1       the shipped kernel on the (H, W) luminance plane: four 4-byte loads per tap
+                 (the layout before, 2026-11-28)
+  hex -gain      the shipped kernel without Gain3 (diagnostic: other weights), on that plane
   hex before     the hex-tiling kernel before that (2445d8a): per-tap feature rows of 16
                  padded columns, blended after, at its 128 x 8
 Candidates are checked against the shipped kernel (max |difference| of the RGB). Tried on an
@@ -42,7 +46,7 @@ import triton
 import triton.language as tl
 
 from neumat import machine
-from neumat.btf import models, query_triton
+from neumat.btf import models, query_triton, triton_kernels
 from neumat.btf import synthesis as syn
 from neumat.btf.triton_kernels import (bilinear, columns, decode, frame, hex_tap, hex_weights,
                                        hpb_frac32, hpb_tap, interp, mix, mlp, queries_grid,
@@ -172,7 +176,7 @@ def old_hex_tap(plane_ptr, lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, 
                 P: tl.constexpr, m):
     """The kernel before's hex_tap: one vertex's features (BLOCK, P) and luminance."""
     i00, i01, i10, i11, tx, ty, lum = hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H,
-                                              W, m)
+                                              W, m, False)
     return interp(plane_ptr, i00, i01, i10, i11, tx, ty, C, C, P, m), lum
 
 
@@ -243,6 +247,10 @@ def variants(m, h, x, u32, u64, wi, wo):
         w[:p["cu"]] = pk["w1u"][0:p["cu"] * (p["pu"] // pk["qu"]):p["pu"] // pk["qu"]]
         return w
     w1u_before, w1u_hex_before = in_order(ph), in_order(px)
+    lum1 = px["lum4"][..., 0].contiguous()  # the (H, W) luminance plane of the layout before
+    hex_args = lambda pk, w1u=None: (u64, wi, wo, px["plane"], lum1, fh, fd, *mlp_args(pk, w1u),
+                                     *hex_sizes)
+    hex_flags = dict(IE=px["ie"], QU=px["qu"], RAW=False, **shapes)
     hex_sizes = (px["plane"].shape[0], px["plane"].shape[1], fh.shape[0], px["hs"],
                  px["rotation"], px["contrast"], px["exponent"], px["gain_k"])
     made = {}
@@ -265,9 +273,13 @@ def variants(m, h, x, u32, u64, wi, wo):
             *[(f"hex {b}x{w}", "hex",
                lambda b=b, w=w: shipped("hextile", dict(BLOCK=b, num_warps=w)))
               for b, w in HEX_SHAPES],
-            ("hex before", "hex", lambda: run(hex_before, (u64, wi, wo, px["plane"], px["lum"],
-                                                           fh, fd, *mlp_args(px, w1u_hex_before),
-                                                           *hex_sizes),
+            ("hex lum1", "hex", lambda: run(triton_kernels.triple_plane_hex, hex_args(px),
+                                            query_triton.LAUNCH["hextile"], GAIN=px["gain"],
+                                            LUM4=False, **hex_flags)),
+            ("hex -gain", None, lambda: run(triton_kernels.triple_plane_hex, hex_args(px),
+                                            query_triton.LAUNCH["hextile"], GAIN=False,
+                                            LUM4=False, **hex_flags)),
+            ("hex before", "hex", lambda: run(hex_before, hex_args(px, w1u_hex_before),
                                               {"BLOCK": 128, "num_warps": 8}, IE=px["ie"],
                                               GAIN=px["gain"], RAW=False, **shapes))):
         f, i = make()

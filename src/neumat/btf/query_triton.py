@@ -19,7 +19,7 @@ names NEUMAT_TRITON=0, and the process keeps to the torch path, so a render does
 
 Tested on the CPU through Triton's interpreter (TRITON_INTERPRET=1; tests/test_btf_query_triton.py)
 against the torch path to float tolerance, and compiled where a GPU is visible (all three
-passed on an H200, the hex-tiling kernel first on 2026-11-28). The
+passed on an H200, the hex-tiling kernel first on 2026-11-28, all as shipped on 2026-11-29). The
 interpreter checks the arithmetic, not the GPU compile or its speed: the ms per frame comes
 from `benchmarks/btf_query.py` and `btf_synthesis.py --device cuda` on a GPU.
 """
@@ -212,13 +212,17 @@ def _pack_hpb(model, hpb, dtype) -> dict:
 
 def _pack_hex(model, hexs, dtype) -> dict:
     """pack(model) with the feature plane (H, W, C) as `dtype` (float16 holds it exactly:
-    hextile rounds the features so), the luminance plane (H, W) float32, and hex-tiling's
-    settings as the kernel takes them."""
+    hextile rounds the features so), the float32 luminance as each texel's wrapped 2 x 2
+    neighbourhood (H, W, 4) (texels (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1): a tap's
+    four values in one 16-byte load; triton_kernels.hex_tap), and hex-tiling's settings as the
+    kernel takes them."""
     dev = model.f_u.device
     p, s = pack(model), hexs.s
     _narrow(p)
     pl = hexs.plane_lum.detach().to(dev)
-    p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum=pl[..., -1].float().contiguous(),
+    lum = pl[..., -1].float()
+    lum4 = torch.stack([lum, lum.roll(-1, 1), lum.roll(-1, 0), lum.roll((-1, -1), (0, 1))], -1)
+    p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum4=lum4.contiguous(),
              hs=_seed_hash(hexs.seed),
              rotation=float(s["rotation"]),  # float32 in the kernel, as the C kernel's
              contrast=float(s["contrast"]), exponent=float(s["exponent"]),
@@ -261,10 +265,10 @@ def query(model, u, wi, wo, raw: bool = False, packed: dict | None = None,
                              *mlp, g.shape[0], g.shape[1], p["lut"].shape[1], fh.shape[0],
                              p["hs"], QU=p["qu"], **shapes)
     else:
-        pl = p["plane"]
-        _kernel("hextile")[grid](u.detach().double().contiguous(), wi, wo, pl, p["lum"], fh, fd,
-                                 *mlp, pl.shape[0], pl.shape[1], fh.shape[0], p["hs"],
-                                 p["rotation"], p["contrast"], p["exponent"], p["gain_k"],
+        pl, u64 = p["plane"], u.detach().double().contiguous()
+        _kernel("hextile")[grid](u64, wi, wo, pl, p["lum4"], fh, fd, *mlp, pl.shape[0],
+                                 pl.shape[1], fh.shape[0], p["hs"], p["rotation"],
+                                 p["contrast"], p["exponent"], p["gain_k"],
                                  IE=p["ie"], GAIN=p["gain"], QU=p["qu"], **shapes)
     return out
 

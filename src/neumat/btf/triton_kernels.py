@@ -325,7 +325,7 @@ def fixed32(z):
 
 
 @triton.jit
-def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m):
+def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m, LUM4: tl.constexpr):
     """One triangle vertex (bx, by) (int64) of hex-tiling, as the C kernel (query_kernel.c
     grid_prepare): its hashed offset and angle (grid.vertex_hash, k = 3); the patch rotated
     about the vertex centre c: with d = u - c, the fetch coordinate frac(offset + R d + frac(c))
@@ -333,7 +333,10 @@ def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m):
     fixed point and only R d - d is float32, d from the skewed fractions less the vertex's
     corner (e0, e1), unskewed (grid.vertex_uv). Returns the bilinear taps (texels and
     fractions, as `texels`) and the luminance there (BLOCK); the features are fetched once the
-    blend weights are known (`accumulate`)."""
+    blend weights are known (`accumulate`). LUM4: the luminance plane holds each texel's 2 x 2
+    wrapped neighbourhood (H, W, 4) (query_triton._pack_hex), so a tap's four values are one
+    16-byte load, not four scattered 4-byte ones; else the plain (H, W) plane (the layout
+    before, kept for benchmarks/btf_triton_stages.py's A/B). The same values either way."""
     h = mix(by.to(tl.uint32) ^ mix(bx.to(tl.uint32) ^ hs))
     hx = mix(h ^ tl.full(h.shape, 0x9E3779B1, tl.uint32))
     h0 = mix(hx ^ tl.full(h.shape, 0x9E3779B2, tl.uint32))
@@ -348,10 +351,18 @@ def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m):
     y = (h0 + fy + fixed32(zy)).to(tl.float32) * 2.3283064365386963e-10
     top = 1.0 - 5.9604644775390625e-08  # 1 - 2^-24
     i00, i01, i10, i11, tx, ty = texels(tl.minimum(x, top), tl.minimum(y, top), H, W, True)
-    a = tl.load(lum_ptr + i00, mask=m, other=0.0)
-    b = tl.load(lum_ptr + i01, mask=m, other=0.0)
-    d = tl.load(lum_ptr + i10, mask=m, other=0.0)
-    e = tl.load(lum_ptr + i11, mask=m, other=0.0)
+    if LUM4:
+        k = tl.arange(0, 4)
+        v = tl.load(lum_ptr + i00[:, None] * 4 + k[None, :], mask=m[:, None] & (k >= 0)[None, :],
+                    other=0.0)
+        ad, be = tl.split(tl.reshape(v, (v.shape[0], 2, 2)))  # (x0, x1) of rows y0 and y1
+        a, d = tl.split(ad)
+        b, e = tl.split(be)
+    else:
+        a = tl.load(lum_ptr + i00, mask=m, other=0.0)
+        b = tl.load(lum_ptr + i01, mask=m, other=0.0)
+        d = tl.load(lum_ptr + i10, mask=m, other=0.0)
+        e = tl.load(lum_ptr + i11, mask=m, other=0.0)
     lum = ((1 - tx) * (1 - ty)) * a + (tx * (1 - ty)) * b + ((1 - tx) * ty) * d + (tx * ty) * e
     return i00, i01, i10, i11, tx, ty, lum
 
@@ -410,25 +421,29 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
                      hs_bits, rotation, contrast, exponent, gain_k,
                      CU: tl.constexpr, CD: tl.constexpr, PU: tl.constexpr, PD: tl.constexpr,
                      QU: tl.constexpr, HP: tl.constexpr, NH: tl.constexpr, IE: tl.constexpr,
-                     GAIN: tl.constexpr, RAW: tl.constexpr, BLOCK: tl.constexpr):
+                     GAIN: tl.constexpr, RAW: tl.constexpr, BLOCK: tl.constexpr,
+                     LUM4: tl.constexpr = True):
     """The query with f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile, its torch
     path `HexTile.__call__`; the arithmetic of the C kernel's btf_triple_plane_hex): u float64,
     the triangle grid in float64, per vertex the integer hash, the rotation (float32, about the
-    vertex, in fixed point as HPB's fetch coordinate) and the bilinear fetch of the (H, W)
-    luminance plane, then the luminance-weighted, contrast-sharpened blend weights, and only
+    vertex, in fixed point as HPB's fetch coordinate) and the bilinear fetch of the luminance
+    plane (LUM4: (H, W, 4), each texel's 2 x 2 neighbourhood; `hex_tap`), then the luminance-weighted, contrast-sharpened blend weights, and only
     then the (H, W, CU) feature plane's taps at QU columns, each weight folded into its
     bilinear weights (one accumulator, as HPB's), widened to layer 1's PU rows. On an H200
     (README, "Running on Slurm or a GPU"): float32 in place of float64 for the rotation,
     +22.6 -> +14.4 to +14.8 % over the plain kernel; the one accumulator, +16.5 -> +13.6 %
-    (benchmarks/btf_triton_stages.py, one run, 2026-11-28)."""
+    (benchmarks/btf_triton_stages.py, one run, 2026-11-28); the luminance's 2 x 2
+    neighbourhood in one load (LUM4), +10.8 to +12.0 -> +7.9 to +10.2 % (the same, four runs,
+    2026-11-29)."""
     q, m, i0, i1, dn, w0, w1, w2, f0, f1, fx, fy, hs = queries_grid(u_ptr, hs_bits, N, BLOCK)
     dnf = dn.to(tl.float32)
     a00, a01, a10, a11, ax, ay, l0 = hex_tap(lum_ptr, fx, fy, f0 - dnf, f1 - dnf, i0 + dn,
-                                             i1 + dn, hs, rotation, HP_, WP_, m)
+                                             i1 + dn, hs, rotation, HP_, WP_, m, LUM4)
     b00, b01, b10, b11, bx, by, l1 = hex_tap(lum_ptr, fx, fy, f0 - dnf, f1 - (1 - dnf), i0 + dn,
-                                             i1 + 1 - dn, hs, rotation, HP_, WP_, m)
+                                             i1 + 1 - dn, hs, rotation, HP_, WP_, m, LUM4)
     c00, c01, c10, c11, cx, cy, l2 = hex_tap(lum_ptr, fx, fy, f0 - (1 - dnf), f1 - dnf,
-                                             i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, m)
+                                             i0 + 1 - dn, i1 + dn, hs, rotation, HP_, WP_, m,
+                                             LUM4)
     v0, v1, v2 = hex_weights(w0, w1, w2, l0, l1, l2, contrast, exponent, gain_k, IE, GAIN)
     fu = tl.full((BLOCK, QU), 0.0, tl.float32)
     fu = accumulate(fu, plane_ptr, a00, a01, a10, a11, ax, ay, v0, CU, QU, m)
