@@ -823,12 +823,15 @@ def test_image_start_is_the_workflows_retrieved_material(tiny_run, tmp_path):
     (["--type", "fabric", "--text", "red", "--start", "0.1"], "exactly one of --type, --text"),
     (["--type", "fabric", "--category", "diffuse", "--start", "0.1"], "not --category"),
     (["--type", "fabric", "--start", "0.1", "--refiner", "--model", "ours"], "leave out --model"),
-    (["--type", "fabric", "--start", "0.1"], "needs"),  # the miniature has no neumerl/ files
+    # the miniature has no neumerl/ files: the start needs them, named with their rule
+    (["--type", "fabric", "--start", "0.1"], "neumerl/weights.npy; build it with rule neumerl"),
     (["--type", "fabric", "--start", "0.1", "--refiner"], "Build it with rule train_refiner"),
 ])
 def test_start_errors_name_what_to_do(run, tmp_path, capsys, args, says):
     assert main("sample", "--run", run, *args, "-n", 2, "--out", tmp_path / "x") == 2
-    assert says in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert says in err, err
+    assert not (tmp_path / "x").exists()
 
 
 def test_a_type_only_held_out_materials_have_is_refused(run, tmp_path, capsys):

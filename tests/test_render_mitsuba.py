@@ -157,9 +157,18 @@ def test_exr_png_round_trip(tmp_path):
     img = np.random.default_rng(0).uniform(0, 5, (5, 7, 3)).astype(np.float32)
     images.write_exr(tmp_path / "a.exr", img)
     np.testing.assert_array_equal(images.read_exr(tmp_path / "a.exr"), img)
-    scenes.write_png(tmp_path / "a.png", img)
     from PIL import Image
-    assert np.asarray(Image.open(tmp_path / "a.png")).shape == (5, 7, 3)
+
+    def srgb8(x):  # IEC 61966-2-1, written out here: the PNG's known answer
+        x = np.clip(x.astype(np.float64), 0, 1)
+        return np.round(255 * np.where(x <= 0.0031308, 12.92 * x,
+                                       1.055 * x ** (1 / 2.4) - 0.055)).astype(np.uint8)
+    lin = img / 4  # mostly inside [0, 1], some above: clipped to 255
+    for exposure in (0.0, 1.0):
+        scenes.write_png(tmp_path / "a.png", lin, exposure=exposure)
+        png = np.asarray(Image.open(tmp_path / "a.png"))
+        assert png.dtype == np.uint8 and png.shape == (5, 7, 3)
+        np.testing.assert_array_equal(png, srgb8(lin * 2.0 ** exposure))
 
 
 def test_generated_textures():
