@@ -206,6 +206,9 @@ def sweep(m, u, wi, wo, sync, rounds=10):
             f"; {n} {best[block, warps, n]:.3f} ({100 * (best[block, warps, n] / pl - 1):+.1f} %)"
             for n in variants if n != "plain"))
     fastest = {n: min((v, k[:2]) for k, v in best.items() if k[2] == n) for n in variants}
+    bound = FRAME * flops_per_query(m) / machine.gpu_matmul_rate(u.device) * 1e3
+    print(f"FLOP bound {bound:.3f} ms/frame (fp32 torch.mm rate in this run): the fastest plain "
+          f"{bound / fastest['plain'][0]:.3f} of it")
     for n in variants:
         v, shape = fastest[n]
         line = f"fastest {n} {v:.3f} ms at {shape}"

@@ -25,6 +25,8 @@ layout before the float16 planes), the baseline of that change.
     OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3] [--coherent]
                                                           [--model results/<run>/btf/models/<m>/triple_plane.pt]
                                                           [--march x86-64-v3] [--size 200]
+    python benchmarks/btf_synthesis.py --device cuda --no-torch --methods hpb hextile
+                                       [--repeat 20] [--launch hextile=128x4]
 --march builds the fused query for another target (x86-64-v3: the AVX2 kernel on an AVX-512
 host); "synthesis alone" stays native.
 
@@ -109,10 +111,19 @@ def main():
     ap.add_argument("--no-torch", action="store_true", help="skip the (slow) torch-path rows")
     ap.add_argument("--device", default="cpu", help="cpu | cuda")
     ap.add_argument("--march", default="native", help="-march of the fused C query")
+    ap.add_argument("--launch", nargs="+", default=[], metavar="METHOD=BxW",
+                    help="GPU: a synthesis kernel's launch shape in place of query_triton.LAUNCH's, "
+                         "e.g. hextile=128x4 (queries and warps per program)")
     ap.add_argument("--coherent", action="store_true",
                     help="u of a x15 plane across the frame in pixel order (a rendered frame), "
                          "not uniform random u")
     a = ap.parse_args()
+    for item in a.launch:  # the kernels read query_triton.LAUNCH at each launch
+        method, _, shape = item.partition("=")
+        b, _, w = shape.partition("x")
+        if method not in query_triton.METHODS or not (b.isdigit() and w.isdigit()):
+            ap.error(f"--launch {item}: give METHOD=BxW, METHOD one of {query_triton.METHODS}")
+        query_triton.LAUNCH[method] = {"BLOCK": int(b), "num_warps": int(w)}
     m = (models.load(a.model) if a.model else models.TriplePlane(a.size, a.size)).eval()
     m.requires_grad_(False)
     u, u32, w = frame(a.coherent)
@@ -129,7 +140,7 @@ def main():
           f"torch threads {torch.get_num_threads()}, torch {torch.__version__}")
     print(f"model {m.method} {m.kwargs}, frame {FRAME} queries "
           f"({'coherent: a x15 plane in pixel order' if a.coherent else 'uniform random u'}), "
-          f"chunk {c}")
+          f"chunk {c}" + (f"; launch shapes {query_triton.LAUNCH}" if dev.type == "cuda" else ""))
     run = lambda f: lambda n=FRAME: chunked(f, n, c)
     K = "fused C" if dev.type == "cpu" else "GPU"  # the fused path of this device
     runs, refs = {}, {}   # name -> timed function; name -> the plain query it is measured against
@@ -206,6 +217,12 @@ def main():
         print(f"plain (fused C): {bound * 1e3:.1f} CPU-ms/frame at the FLOP bound (fp32 torch.mm "
               f"{peak_cpu / 1e9:.1f} GFLOP/CPU-s in this run): {bound / cpu['plain (fused C)']:.3f} "
               f"of it")
+    elif dev.type == "cuda" and "plain (GPU kernel)" in wall:
+        peak = machine.gpu_matmul_rate(dev)
+        bound = FRAME * flops_per_query(m) / peak
+        print(f"plain (GPU kernel): {bound * 1e3:.3f} ms/frame at the FLOP bound (fp32 torch.mm "
+              f"{peak / 1e12:.1f} TFLOP/s in this run): {bound / wall['plain (GPU kernel)']:.3f} "
+              f"of it  [{where}]")
     for method in [x for x in ("hpb", "hextile") if fused and x in a.methods]:
         r, k = f"plain ({K})", f"{method} ({K})"
         if dev.type == "cuda":  # the kernels' own times: query.query's dispatch is host time

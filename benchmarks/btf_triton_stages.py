@@ -45,6 +45,7 @@ import torch
 import triton
 import triton.language as tl
 
+from btf_query import flops_per_query
 from neumat import machine
 from neumat.btf import models, query_triton, triton_kernels
 from neumat.btf import synthesis as syn
@@ -345,6 +346,12 @@ def main():
           f"{100 * (best['hpb before'] / best['plain'] - 1):+.1f} %")
     print(f"hex-tiling overhead: {100 * (best['hex'] / best['plain'] - 1):+.1f} %; the kernel "
           f"before: {100 * (best['hex before'] / best['plain'] - 1):+.1f} %")
+    fq, peak = flops_per_query(m), machine.gpu_matmul_rate(dev)
+    bound = a.n * fq / peak * 1e3
+    print(f"FLOP bound of the plain query: {bound:.3f} ms per frame ({fq} FLOP/query at the fp32 "
+          f"torch.mm rate, {peak / 1e12:.1f} TFLOP/s in this run); the plain kernel "
+          f"{bound / best['plain']:.3f} of it, HPB {bound / best['hpb']:.3f}, hex-tiling "
+          f"{bound / best['hex']:.3f}")
 
 
 if __name__ == "__main__":

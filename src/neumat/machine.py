@@ -1,7 +1,7 @@
 """What machine a figure was measured on: CPU model, vector ISA, cores, sgemm peak.
 
-Benchmarks print `describe()` next to every figure, so that a speed-up is never quoted without
-the machine it came from (an AVX-512 figure says nothing about an AVX2 machine).
+Benchmarks print `describe()` before their figures (some on every figure line), so that a
+speed-up is never quoted without the machine it came from (an AVX-512 figure says nothing about an AVX2 machine).
 """
 
 from __future__ import annotations
