@@ -11,7 +11,11 @@ the one-time cost), builds the recipe from it, then times one augmerl_shard job'
 
 and checks that both give the same float32 values, bit for bit. Prints wall and CPU seconds
 (the machine may be shared: CPU seconds are the load-independent figure), their ratios, the bytes
-each way reads, the load average and the machine line.
+each way reads, the load average and the machine line. The bound: the old path's table bytes per
+wall second as a fraction of a plain sequential read of the same tables in this run (16 MiB
+reads, page cache as the old path found it: with --cold from the device, else likely from memory);
+the cache's mix touches only its bins' pages of the rows, a byte count /proc does not give, so it
+has no read bound here (its CPU seconds are the figure).
 
     OMP_NUM_THREADS=1 python benchmarks/augmerl_cache.py /work/data/merl_decoded [--cold]
 
@@ -158,6 +162,16 @@ def main():
     identical = np.array_equal(old, new)
 
     mapped = len({s for s, _ in pairs_used}) * 3 * v * 4  # at most the used sources' rows
+    # the read bound: the same tables read sequentially, in the page-cache state the old path had
+    if args.cold:
+        evict(paths)
+    buf = bytearray(1 << 24)
+    with Timer() as t_seq:
+        for p in paths:
+            with open(p, "rb", buffering=0) as f:
+                while f.readinto(buf):
+                    pass
+    seq = table_bytes / t_seq.wall
     load = os.getloadavg()[0]
     print(f"{'step':<28}{'wall s':>9}{'CPU s':>9}{'read() bytes':>16}{'disk bytes':>14}"
           f"{'major faults':>14}")
@@ -174,6 +188,10 @@ def main():
     print(f"bytes: old reads {len(paths)} tables = {table_bytes / 1e9:.3f} GB (float64); cache "
           f"file {npy.stat().st_size / 1e9:.3f} GB, of which this shard's rows are "
           f"{mapped / 1e9:.3f} GB (float32)")
+    print(f"of a sequential read of the same tables here ({seq / 1e9:.2f} GB/s, page cache "
+          f"{'evicted first' if args.cold else 'warm: likely a memory rate, not the disk'}): old "
+          f"read+convert {table_bytes / t_old_load.wall / seq:.1%} (its wall is "
+          f"{t_old_load.wall / t_seq.wall:.1f}x the read's)")
     print(f"values identical (bit for bit): {identical}; page cache: "
           f"{'evicted before each way (--cold)' if args.cold else 'as found (warm)'}; "
           f"load average at end: {load:.2f} (1 min); machine: {machine.describe()}")

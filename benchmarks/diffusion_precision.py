@@ -1,6 +1,8 @@
 """Training precision: the `ours` hyperdiffusion model trained on a finished run's NeuMERL rows
 with `diffusion.train.precision: fp32` (the baseline) and `bf16` (bfloat16 autocast of the
 denoiser's forward), same seed, same steps, in the same run. Prints ms per step and their ratio,
+each precision's FLOP per wall second (torch's FlopCounterMode on one forward + backward, as
+benchmarks/diffusion_step.py counts it) as a fraction of that dtype's matmul rate measured here,
 the logged loss curves side by side, the mean training loss over the last fifth of the steps,
 and a held-out loss: each final EMA model's x0 loss on the test-split rows at the same drawn
 timesteps and noise, evaluated in fp32. bf16 needs native bf16 (AVX512-BF16 or AMX, or a CUDA
@@ -14,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import sys
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
@@ -26,6 +30,9 @@ from neumat import machine
 from neumat.device import resolve_device
 from neumat.diffusion import DenoiserConfig, Diffusion, ScheduleConfig, TrainConfig, dataset
 from neumat.diffusion.model import Denoiser, Normalizer
+
+sys.path.insert(0, os.path.dirname(__file__))
+from diffusion_step import flop_per_step  # noqa: E402
 
 train_mod = importlib.import_module("neumat.diffusion.train")  # the package exports `train`
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,6 +98,13 @@ def main():
                                 Path(tmp) / f"{prec}.pt", Path(tmp) / f"{prec}_ck.pt", a.seed, dev)
             runs[prec] = (b, held_out_loss(b, weights[test_rows], lab(test_rows), scfg))
     ms = {p: 1e3 * b["train_seconds"] / a.steps for p, (b, _) in runs.items()}
+    # train_seconds is wall time, so the matmul rates are per wall second too (on the CPU at
+    # torch's threads; diffusion_step.matmul_rate's CPU figure is per CPU second)
+    flop = flop_per_step(mcfg, scfg, tcfg["batch_size"], dev)
+    peak = {p: machine.gpu_matmul_rate(dev, dt) if dev.type == "cuda" else
+            machine.sgemm_peak(dtype=dt)[0]
+            for p, dt in (("fp32", None), ("bf16", torch.bfloat16))}
+    print(f"# {flop / 1e9:.2f} GFLOP per step (forward + backward, FlopCounterMode)")
     print(f"{'step':>6s} {'fp32 loss':>10s} {'bf16 loss':>10s}")
     for (s, l32), (_, l16) in zip(runs["fp32"][0]["history"], runs["bf16"][0]["history"]):
         print(f"{s:6d} {l32:10.5f} {l16:10.5f}")
@@ -98,7 +112,9 @@ def main():
     for p, (b, held) in runs.items():
         h = [l for s, l in b["history"] if s > 0.8 * a.steps]
         tail[p] = float(np.mean(h))
-        print(f"{p}: {ms[p]:7.1f} ms/step, training loss over the last fifth {tail[p]:.5f}, "
+        print(f"{p}: {ms[p]:7.1f} ms/step, {flop * 1e3 / ms[p] / peak[p]:6.1%} of the {p} "
+              f"matmul rate ({peak[p] / 1e9:.0f} GFLOP/s wall), training loss over the last "
+              f"fifth {tail[p]:.5f}, "
               f"held-out x0 loss per material: mean {held[0]:.4f}, median {held[1]:.5f}  [{where}]")
     (m32, d32), (m16, d16) = runs["fp32"][1], runs["bf16"][1]
     print(f"bf16 / fp32: {ms['fp32'] / ms['bf16']:.2f}x faster per step; last-fifth training "

@@ -5,7 +5,9 @@ Times one column's metrics (`--model`, its first `--draws` draws) both ways: `ev
 rendering and featurising the references itself, and `prepare_reference` once plus
 `evaluate_draws(..., reference=)`. Checks that the two tables are equal, and prints the cost of
 the metrics stage for the run's columns both ways (every column but the halves sanity row uses
-the shared file), with the CPU model and ISA.
+the shared file), the timed part's wall time against its bound here, CPU-s / cores used (torch's
+threads, at most the CPUs; near it: CPU-bound, only less CPU work shortens it), with the CPU
+model and ISA.
 
     OMP_NUM_THREADS=2 python benchmarks/metrics_reference.py --results results/default [--model ours]
         [--config C]   # settings: the run's recorded config (report/index.md), else the schema
@@ -13,10 +15,12 @@ the shared file), with the CPU model and ISA.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
 import pandas as pd
+import torch
 import yaml
 
 from neumat import cli, machine, seeds
@@ -48,6 +52,7 @@ def main():
     sets = [materials.rows(smp, slice(i * n, (i + 1) * n)) for i in range(a.draws)]
     print(f"machine: {machine.describe()}; {len(ref)} references, {a.model}: {a.draws} of "
           f"{draws} draws of {n}, renders {kw['resolution']} px")
+    c_start, w_start = time.process_time(), time.perf_counter()  # the CPU bound of what is timed
     t0 = time.perf_counter()
     own = evaluate.evaluate_draws(ref, sets, **kw)
     t_own = time.perf_counter() - t0
@@ -57,6 +62,8 @@ def main():
     t0 = time.perf_counter()
     shared = evaluate.evaluate_draws(None, sets, **kw, reference=prepared)
     t_shared = time.perf_counter() - t0
+    cpu, wall = time.process_time() - c_start, time.perf_counter() - w_start
+    n_thr = min(torch.get_num_threads(), os.cpu_count() or 1)  # the cores it can use
     pd.testing.assert_frame_equal(own, shared, check_exact=True)
     models = setting("metrics", "models")
     per_draw = t_shared / a.draws
@@ -65,6 +72,9 @@ def main():
     print(f"one job, {a.draws} draw(s): preparing the references itself {t_own:.1f} s; "
           f"with the prepared file {t_shared:.1f} s; preparing it once {t_prep:.1f} s; "
           f"tables equal")
+    print(f"timed: {wall:.1f} s wall, {cpu:.1f} CPU-s; bound on {n_thr} cores {cpu / n_thr:.1f} s: "
+          f"wall is {wall / (cpu / n_thr):.2f}x the bound, the cores {cpu / (n_thr * wall):.0%} "
+          "busy")
     print(f"metrics stage, {len(models)} columns x {draws} draws (the halves row aside): "
           f"{before:.0f} s -> {after:.0f} s ({before / after:.2f}x)  [{machine.describe()}]")
 

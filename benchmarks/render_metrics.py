@@ -2,7 +2,9 @@
 MERL (Sztrajman et al. 2021; unzip ../shared/data/merl_nbrdf.zip, or set NBRDF_DIR) and their
 RGB permutations. Baselines run in the same process:
 
-  renders   : batched `render_fields` vs one material per call
+  renders   : batched `render_fields` vs one material per call; each one's NBRDF matmul FLOP
+              per wall second as a fraction of the fp32 sgemm rate measured here (as
+              plausibility.py counts them)
   distances : the vectorised pairwise matrices vs a naive per-pair loop (numpy for BRDF-L1,
               RMSE, NegPSNR; scikit-image `structural_similarity` for NegSSIM) on a subset of
               pairs, extrapolated to the 3 x n^2 pairs the evaluation needs; values compared
@@ -10,7 +12,7 @@ RGB permutations. Baselines run in the same process:
   mitsuba   : seconds per figure (sphere / mixed plane / normal-mapped) at --mi-res, --mi-spp
 
   OMP_NUM_THREADS=2 python benchmarks/render_metrics.py --n 120 --resolution 128
-Writes benchmarks/out/render_metrics/<resolution>.json and a gallery PNG.
+Writes benchmarks/out/render_metrics/<resolution>.json (with the machine line) and a gallery PNG.
 """
 
 import argparse
@@ -25,7 +27,7 @@ import numpy as np
 import torch
 from skimage.metrics import structural_similarity
 
-from neumat import machine
+from neumat import machine, nbrdf
 from neumat.metrics import distances as D
 from neumat.metrics import evaluate, sets
 from neumat.render import gallery, sphere
@@ -112,6 +114,7 @@ def main():
     args = ap.parse_args()
     print(f"machine: {machine.describe()}", flush=True)
     torch.set_num_threads(int(os.environ.get("OMP_NUM_THREADS", "2")))
+    peak = machine.sgemm_peak()[0]  # at these threads, per wall second as the renders are timed
     outdir = ROOT / "benchmarks/out/render_metrics"
     outdir.mkdir(parents=True, exist_ok=True)
 
@@ -120,7 +123,8 @@ def main():
     pool = np.concatenate([w] + [permuted(w, p) for p in perms])  # 600 realistic fields
     order = np.random.default_rng(0).permutation(len(pool))
     ref, smp = pool[order[:args.n]], pool[order[args.n:2 * args.n]]
-    res = {"n": args.n, "resolution": args.resolution, "threads": torch.get_num_threads()}
+    res = {"n": args.n, "resolution": args.resolution, "threads": torch.get_num_threads(),
+           "machine": machine.describe(), "sgemm_flop_per_s": peak}
 
     # renders: batched vs one at a time
     sphere.sphere_view(args.resolution)
@@ -129,6 +133,9 @@ def main():
     _, t_loop = timed(lambda: [sphere.render_fields(ref[i:i + 1], args.resolution) for i in range(k)])
     res["renders_per_s"] = 2 * args.n / t_batch
     res["renders_per_s_one_at_a_time"] = k / t_loop
+    flop = len(sphere.sphere_view(args.resolution)) * 2 * sum(i * o for i, o in nbrdf.LAYERS)
+    res["renders_of_sgemm"] = res["renders_per_s"] * flop / peak
+    res["renders_of_sgemm_one_at_a_time"] = res["renders_per_s_one_at_a_time"] * flop / peak
     gallery.gallery(list(imgs[:16].numpy()), [names[i % 100] if i < 100 else f"perm of {names[i % 100]}"
                                              for i in order[:16]], outdir / f"gallery_{args.resolution}.png")
 
@@ -182,6 +189,9 @@ def main():
     print(json.dumps({k: v for k, v in res.items() if k != "table"}, indent=1))
     print(f"renders/s batched {res['renders_per_s']:.1f} vs one at a time "
           f"{res['renders_per_s_one_at_a_time']:.1f} (x{res['renders_per_s'] / res['renders_per_s_one_at_a_time']:.1f})")
+    print(f"renders' NBRDF FLOP/s of the fp32 sgemm rate ({peak / 1e9:.0f} GFLOP/s, "
+          f"{res['threads']} threads): batched {res['renders_of_sgemm']:.1%}, one at a time "
+          f"{res['renders_of_sgemm_one_at_a_time']:.1%}  [{res['machine']}]")
     print(f"distance matrices {t_dist:.1f}s vs naive per-pair loop ~{res['naive_total_extrapolated_s']:.0f}s "
           f"(x{res['speedup_distances']:.1f}); full 12-metric evaluation {res['eval_total_s']:.1f}s")
 

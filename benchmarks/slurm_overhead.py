@@ -4,7 +4,10 @@ Sets up the single-node Slurm of tests/test_slurm.py (root, munge/slurmctld/slur
 installable with apt; no accounting), copies the workflow twice, runs the targets locally
 (`--cores N`) and via Slurm (`--profile profiles/slurm`), back to back, each with its own `run:`
 name, and prints both walls, their ratio, the job counts (local vs sbatch vs local rules on the
-submit host), the load average and the CPU. Then, per Slurm job, where the time went:
+submit host), the load average and the CPU, and the local run's wall against its CPU bound,
+CPU-s (Snakemake and its jobs, waited-for children) / cores (the Slurm run's jobs are slurmd's
+children, not this process's: their CPU is not measured here). Then, per Slurm job, where the
+time went:
 
     ready -> sbatch     the outer Snakemake decided to run the job -> slurmctld got it
     sbatch -> start     slurmctld queue: waiting for a free CPU/memory, then the scheduler
@@ -29,6 +32,7 @@ clock on a machine that may be shared: it prints `uptime`'s load next to each ru
 import argparse
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
@@ -275,7 +279,10 @@ def main():
             print(f"\n[{kind}] {' '.join(cmd[2:])}\n[{kind}] before: {before}", flush=True)
             if kind == "slurm" and args.slurm_mode == "allocation":
                 cmd = ["srun", "--cpus-per-task", str(args.cores), *cmd]
+            c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             wall, lines = run_snakemake(cmd, wd, env, work / f"{kind}.log")
+            c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu = c1.ru_utime - c0.ru_utime + c1.ru_stime - c0.ru_stime
             jobs, local = outer_events(lines)
             done = sum(1 for j in jobs.values() if "detected" in j)
             n_sbatch = sum(1 for j in jobs.values() if "slurm" in j)
@@ -286,6 +293,11 @@ def main():
                      f"{len(local) if kind == 'slurm' else done} on the submit host")
             print(f"[{kind}] wall {wall:.1f} s, {done} jobs ({where}); "
                   f"after: {results[kind]['load'][1]}", flush=True)
+            if kind == "local":  # only here is every job a waited-for child of this process
+                n = min(args.cores, os.cpu_count() or 1)
+                print(f"[local] {cpu:.1f} CPU-s; bound on {n} cores {cpu / n:.1f} s: wall is "
+                      f"{wall / (cpu / n):.2f}x the bound, the cores {cpu / (n * wall):.0%} busy",
+                      flush=True)
         ctld_log = work / "slurmctld.log"
         if "slurm" in results and args.slurm_mode == "jobs":
             rows = breakdown(results["slurm"]["jobs"], ctld_events(ctld_log, work / "slurmd.log"),
