@@ -44,6 +44,7 @@ rule baseline_pca:
         "../scripts/baseline_pca.py"
 
 
+# rule baseline_pca_n: PCA-N, baseline_pca's rule on the NeuMERL weights
 use rule baseline_pca as baseline_pca_n with:
     input:
         manifest=out("neumerl/manifest.tsv"),

@@ -54,6 +54,8 @@ else:
 
 
 # One rule per representation (same thin script); neural ones checkpoint beside the output.
+# Rules btf_triple_plane, btf_neumip, btf_pca, btf_sh, btf_td (named in the loop, so a search
+# for "rule btf_pca" finds only this comment).
 for _method, _mem, _time in (("triple_plane", 3000, btf_fit_runtime("triple_plane")),
                              ("neumip", 3000, btf_fit_runtime("neumip")),
                              ("pca", 6000, 120), ("sh", 8000, 120), ("td", 8000, 120)):
