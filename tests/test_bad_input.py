@@ -29,6 +29,30 @@ def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
     return res.returncode, res.stdout + res.stderr
 
 
+@pytest.mark.parametrize("extra, says", [
+    # Table 2's Training-set draws were cut to train // draws rows, below the reference set's
+    # size, with only a warning in one log: its COV was capped and its 1-NNA off 50 %
+    ({"augmerl": {"test_fraction": 0.5}},
+     "the train split holds 32 materials, fewer than metrics.draws 2 x the 32-material test "
+     "split: Table 2's Training-set draws would hold 16, not 32"),
+    # every material downloaded the same file, and the checksum error advised pinning it
+    ({"merl": {"source": "download", "url": "file:///tmp/one.binary"}},
+     "merl.url 'file:///tmp/one.binary' has no {name} placeholder: every material would "
+     "download the same file"),
+    ({"diffusion": {"train": {"warmup_steps": 200}}},
+     "diffusion.train.warmup_steps 200 is not below diffusion.train.steps 200"),
+    ({"diffusion": {"train": {"cond_drop": 0.0}}},
+     "diffusion.train.cond_drop 0 with diffusion.sample.guidance 2.0: guidance needs the null "
+     "class"),
+])
+def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
+    """check_cross_keys (common.smk): values the schema accepts one by one but that failed late
+    or silently gave another result than asked."""
+    rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
+    assert rc != 0 and "bad config: " in text and says in text, text[-3000:]
+    assert not (tmp_path / "results").exists()
+
+
 def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     rc, text = _dry_run(tmp_path, {"ubo2014": {"synthetic": {"kinds": []}}}, "config/tiny.yaml")
     assert rc != 0 and "bad config (ubo2014.synthetic.kinds): [] names no BTF material" in text
@@ -316,6 +340,14 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
     # its Gram matrices grow with the 4th power of the side: 160 was killed for memory
     ({"ubo2014": {"synthetic": {"size": 160}}}, "ubo2014.synthetic.size",
      "160 is greater than the maximum of 128"),
+    # no scale crashed btf_synthesis_eval (np.stack of nothing); a cond_drop of 0 trains no null
+    # condition for guidance, of 1 no condition
+    ({"btf_synthesis": {"render": {"scales": []}}}, "btf_synthesis.render.scales",
+     "[] should be non-empty"),
+    ({"conditions": {"cond_drop": 0}}, "conditions.cond_drop",
+     "0 is less than or equal to the minimum of 0"),
+    ({"conditions": {"cond_drop": 1}}, "conditions.cond_drop",
+     "1 is greater than or equal to the maximum of 1"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

@@ -36,6 +36,23 @@ def test_every_synthetic_kind_writes_a_readable_deterministic_btf(kind, tmp_path
     assert v.mean() > 0.01 and (v < -0.05 * v.max()).float().mean() < 0.01  # SVD ringing only
 
 
+def test_synthetic_components_past_the_rank_are_refused(tmp_path):
+    """Components past the texture's rank had sigma ~ 0 and wrote inf into the float16 factors:
+    every BTF job then called the file damaged. Now the generator names the key and the rank,
+    and writes nothing; the rank it gives still writes a finite file."""
+    p = tmp_path / "b.btf"
+    with pytest.raises(ValueError, match=r"ubo2014\.synthetic\.components 100: the 8 x 8 "
+                                         r"procedural 'wood' texture has rank (\d+) .*give at most"):
+        synthetic.synthesize("wood", 8, 0, 100, p)
+    assert not p.exists()
+    try:
+        synthetic.synthesize("wood", 8, 0, 100, p)
+    except ValueError as e:
+        rank = int(str(e).split("has rank ")[1].split()[0])
+    synthetic.synthesize("wood", 8, 0, rank, p)
+    assert torch.isfinite(BTFData(p).abrdf(torch.arange(64))).all()
+
+
 def test_synthetic_kinds_differ():
     maps = {k: synthetic.material_maps(k, 16, 0)[0] for k in synthetic.KINDS}
     for i, k in enumerate(synthetic.KINDS):

@@ -416,6 +416,18 @@ def test_readme_names_the_gpu_rules_and_the_long_trainings(tmp_path):
     assert over_a_day == {*trainings, "train_hyperbrdf"}
 
 
+def test_btf_section_records_the_crop_as_applied(tmp_path):
+    """btf.crop at least the BTF's side crops nothing (common.smk btf_roi): the report section
+    said "centre crop 64 x 64 texels" of a 24-texel BTF. Its params now hold the crop applied."""
+    texts = {}
+    for crop in (16, 64):
+        extra = tmp_path / f"crop{crop}.yaml"
+        extra.write_text(f"btf: {{crop: {crop}}}\n")  # tiny: ubo2014.synthetic.size 24
+        jobs = _job_params("texts", "config/tiny.yaml", str(extra))
+        texts[crop] = next(v for k, v in jobs.items() if k.startswith("btf_section "))
+    assert "16" in texts[16] and "64" not in texts[64] and "None" in texts[64], texts
+
+
 def test_a_number_spelt_otherwise_changes_no_params(tmp_path):
     """`fit.steps: 300.0` for the tiny config's 300, `conditions.sweep.scales: [0, 2]` for its
     [0.0, 2.0] give every job the same params (a review found 42 jobs rerun for the first;

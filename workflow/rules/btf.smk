@@ -122,7 +122,7 @@ rule btf_section:
         table=out("btf/quality.tsv"),
     params:
         source=UBO["source"],
-        crop=BTF["crop"],
+        crop=btf_crop(),  # as applied: a crop as large as the texture is none
     log:
         log("btf_section"),
     benchmark:

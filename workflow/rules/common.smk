@@ -1,6 +1,7 @@
 # Helpers shared by all rule files (paths, material lists, config look-ups).
 import math
 import os
+import string
 import sys
 from pathlib import Path
 
@@ -401,17 +402,39 @@ def check_cross_keys():
     if sizes["train"] < 2 * draws:
         errors.append(f"the train split holds {sizes['train']} materials, too few for "
                       f"metrics.draws {draws} Training-set subsets of at least 2")
+    elif sizes["train"] < draws * sizes["test"]:  # each draw as large as the reference set
+        errors.append(f"the train split holds {sizes['train']} materials, fewer than "
+                      f"metrics.draws {draws} x the {sizes['test']}-material test split: Table "
+                      f"2's Training-set draws would hold {sizes['train'] // draws}, not "
+                      f"{sizes['test']}, and its sanity rows would drift; lower metrics.draws "
+                      f"or augmerl.test_fraction (at most about 1 / (metrics.draws + 1))")
     if d["export_merl"] > sizes["test"] * draws:
         errors.append(f"diffusion.export_merl {d['export_merl']} exceeds the samples a set holds "
                       f"({sizes['test']} test materials x metrics.draws {draws})")
-    for key, pattern, names in (("merl.url", config["merl"]["url"], ("name",)),
-                                ("ubo2014.url", config["ubo2014"]["url"],
-                                 ("name", "category", "file"))):
+    for key, section, names, needs in (("merl.url", "merl", ("name",), ("name",)),
+                                       ("ubo2014.url", "ubo2014", ("name", "category", "file"),
+                                        ("name", "file"))):
+        pattern = config[section]["url"]
         try:
             pattern.format(**{n: "x" for n in names})
         except (KeyError, IndexError, ValueError) as e:
             errors.append(f"{key} {pattern!r}: {type(e).__name__} {e} in its placeholders; it "
                           f"may use {', '.join(f'{{{n}}}' for n in names)}")
+            continue
+        fields = {f for _, f, _, _ in string.Formatter().parse(pattern) if f}
+        if config[section]["source"] == "download" and not fields & set(needs):
+            errors.append(f"{key} {pattern!r} has no {' or '.join(f'{{{n}}}' for n in needs)} "
+                          f"placeholder: every material would download the same file")
+    t = d["train"]
+    if t["warmup_steps"] >= t["steps"]:
+        errors.append(f"diffusion.train.warmup_steps {t['warmup_steps']} is not below "
+                      f"diffusion.train.steps {t['steps']}: the learning rate would never reach "
+                      f"diffusion.train.lr nor decay")
+    if t["cond_drop"] == 0 and d["sample"]["guidance"] != 1:
+        errors.append(f"diffusion.train.cond_drop 0 with diffusion.sample.guidance "
+                      f"{d['sample']['guidance']}: guidance needs the null class, which a "
+                      f"cond_drop of 0 leaves untrained; give cond_drop > 0 (e.g. 0.1) or "
+                      f"guidance 1")
     # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
     # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
     hb, stored = config["hyperbrdf"], config["augmerl"]["bins"]
@@ -561,6 +584,12 @@ def btf_file(name):
 def btf_size():
     """Texels per side of this run's BTFs (UBO2014's are 400)."""
     return UBO["synthetic"]["size"] if UBO["source"] == "synthetic" else 400
+
+
+def btf_crop():
+    """btf.crop as applied: None where it is null or not smaller than the BTFs (btf_roi)."""
+    c = BTF["crop"]
+    return None if c is None or c >= btf_size() else c
 
 
 def btf_roi(name):

@@ -96,6 +96,9 @@ def shade(albedo, spec, rough, normal, wi, wo):
     return (f * ni[..., None]).astype(np.float32)
 
 
+RANK_TOL = 1e-10  # eigenvalues of the Gram matrix below this share of the largest count as 0
+
+
 def synthesize(kind: str, size: int, seed: int, components: int, path, scalar: int = 2,
                chunk: int = 1024, normal_strength: float = 2.0,
                max_bytes: int = 1 << 29) -> None:
@@ -132,6 +135,13 @@ def synthesize(kind: str, size: int, seed: int, components: int, path, scalar: i
     for c in range(3):
         w, v = np.linalg.eigh(gram[c])
         idx = np.argsort(w)[::-1][:k]
+        # a component past the texture's rank has sigma ~ 0: U = m V / sigma is then rounding
+        # noise blown up past float16 (inf in the file, which every BTF job reads as damaged)
+        rank = int((w > RANK_TOL * w.max()).sum())
+        if rank < k:
+            raise ValueError(f"ubo2014.synthetic.components {components}: the {size} x {size} "
+                             f"procedural {kind!r} texture has rank {rank} in colour channel {c}; "
+                             f"give at most {rank} (or a larger ubo2014.synthetic.size)")
         sig.append(np.sqrt(np.maximum(w[idx], 1e-20)))
         V.append(v[:, idx])
     U = [np.zeros((len(rows), k)) for _ in range(3)]
