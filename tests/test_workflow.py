@@ -756,7 +756,8 @@ def _download_config(wd: Path, names, url_dir: Path, verify: bool, pins: dict) -
     import yaml
     cfg = {"run": "dl", "merl": {"source": "download", "subset": list(names),
                                  "url": f"file://{url_dir}/{{name}}.binary", "retries": 0,
-                                 "verify_sha256": verify, "sha256_override": pins}}
+                                 "verify_sha256": verify, "sha256_override": pins},
+           "metrics": {"draws": 1}}  # two sources split 1:1 (check_cross_keys: draws x test)
     (wd / "config/dl.yaml").write_text(yaml.safe_dump(cfg))
     return "config/dl.yaml"
 
