@@ -594,19 +594,16 @@ def btf_crop():
 
 def btf_roi(name):
     """Centre crop (x0, y0, w, h) from config btf.crop, or None for the whole texture."""
-    size = btf_size()
-    c = BTF["crop"]
-    if c is None or c >= size:
+    c = btf_crop()
+    if c is None:
         return None
-    o = (size - c) // 2
+    o = (btf_size() - c) // 2
     return [o, o, c, c]
 
 
 def btf_texels():
     """Texels of each BTF this run fits and evaluates (btf.crop of the texture, or all)."""
-    size = btf_size()
-    c = BTF["crop"]
-    return min(size, c if c is not None else size) ** 2
+    return (btf_crop() or btf_size()) ** 2
 
 
 def synthetic_btf_mem_mb():

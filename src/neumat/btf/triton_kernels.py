@@ -427,8 +427,9 @@ def triple_plane_hex(u_ptr, wi_ptr, wo_ptr, plane_ptr, lum_ptr, fh_ptr, fd_ptr, 
     path `HexTile.__call__`; the arithmetic of the C kernel's btf_triple_plane_hex): u float64,
     the triangle grid in float64, per vertex the integer hash, the rotation (float32, about the
     vertex, in fixed point as HPB's fetch coordinate) and the bilinear fetch of the luminance
-    plane (LUM4: (H, W, 4), each texel's 2 x 2 neighbourhood; `hex_tap`), then the luminance-weighted, contrast-sharpened blend weights, and only
-    then the (H, W, CU) feature plane's taps at QU columns, each weight folded into its
+    plane (LUM4: (H, W, 4), each texel's 2 x 2 neighbourhood; `hex_tap`), then the
+    luminance-weighted, contrast-sharpened blend weights, and only then the (H, W, CU)
+    feature plane's taps at QU columns, each weight folded into its
     bilinear weights (one accumulator, as HPB's), widened to layer 1's PU rows. On an H200
     (README, "Running on Slurm or a GPU"): float32 in place of float64 for the rotation,
     +22.6 -> +14.4 to +14.8 % over the plain kernel; the one accumulator, +16.5 -> +13.6 %
