@@ -20,8 +20,11 @@ except WorkflowError as e:
     if not hasattr(err, "absolute_path"):
         raise
     key = ".".join(map(str, err.absolute_path)) or "top level"
+    what = err.message
+    if err.validator in ("anyOf", "oneOf") and "description" in err.schema:
+        what += f": {err.schema['description']}"  # jsonschema names none of the alternatives
     raise WorkflowError(
-        f"bad config ({key}): {err.message}. Every key, its type and default are in "
+        f"bad config ({key}): {what}. Every key, its type and default are in "
         f"config/schema.yaml; fix it in the file given with --configfile, or in --config."
     ) from None
 

@@ -44,10 +44,16 @@ def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
     ({"diffusion": {"train": {"cond_drop": 0.0}}},
      "diffusion.train.cond_drop 0 with diffusion.sample.guidance 2.0: guidance needs the null "
      "class"),
+    # MERL100 and HyperBRDF's merl model trained on the one train-split original, no message
+    # (two sources split 1:1, the other checks quiet with one draw)
+    ({"merl": {"synthetic": {"count": 2}}, "metrics": {"draws": 1}},
+     "the train split holds 1 source material of 2 (merl.subset, merl.synthetic.count, "
+     "augmerl.test_fraction): MERL100 and HyperBRDF's merl model"),
 ])
-def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
+def test_keys_that_silently_misled_fail_when_the_dag_is_built(tmp_path, extra, says):
     """check_cross_keys (common.smk): values the schema accepts one by one but that failed late
-    or silently gave another result than asked."""
+    or silently gave another result than asked. (Until 2026-11-30 this function had the name of
+    the one below, which replaced it in the module: its cases never ran.)"""
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
     assert rc != 0 and "bad config: " in text and says in text, text[-3000:]
     assert not (tmp_path / "results").exists()
@@ -348,6 +354,11 @@ def test_many_negative_bins_are_refused_naming_file_and_share(tmp_path):
      "0 is less than or equal to the minimum of 0"),
     ({"conditions": {"cond_drop": 1}}, "conditions.cond_drop",
      "1 is greater than or equal to the maximum of 1"),
+    # a block of 7.5 texels was cut to 7, of 3 raised to 6, both without a word; an anyOf
+    # error quotes the key's description (jsonschema names none of the alternatives)
+    ({"btf_synthesis": {"quilting": {"block": 7.5}}}, "btf_synthesis.quilting.block",
+     "7.5 is not valid under any of the given schemas: block side: <= 1 a fraction of the "
+     "exemplar side (at least 6 texels are used), else a whole number of texels >= 6"),
 ])
 def test_bad_config_key_is_one_short_message(tmp_path, extra, key, says):
     """A misspelt key or a wrong type: the key's path and jsonschema's reason in a few lines,

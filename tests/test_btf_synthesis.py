@@ -425,6 +425,9 @@ def test_no_queries_give_empty_answers(method):
     ("quilting", {"tolerance": 0.5}, r"'tolerance' must be a number >= 1"),
     ("quilting", {"scale": 0}, r"'scale' must be an integer >= 1"),
     ("quilting", {"block": 0}, r"'block' must be a number > 0"),
+    ("quilting", {"block": 7.5}, r"'block' above 1 is a side in texels: give a whole number "
+                                 r">= 6 \(or a fraction <= 1 of the exemplar side\), got 7.5"),
+    ("quilting", {"block": 3}, r"'block' above 1 is a side in texels.*got 3"),
     ("tiling", {"scale": 2}, r"unknown tiling setting.*it takes no settings"),
     ("linear", {"lut_size": 2}, r"unknown linear setting"),
 ])

@@ -172,10 +172,12 @@ def test_dag_local_dir_missing_files(tmp_path, good):
 
 
 def test_dag_local_subset_uses_local_rule(tmp_path, good):
-    shutil.copy(good[0], good[0].parent / "gold-paint.binary")  # a run needs 2 materials
-    # two sources split 1:1, so one Table 2 draw (check_cross_keys: draws x test <= train)
+    for name in ("gold-paint", "alum-bronze"):  # a run needs 2 train-split sources
+        shutil.copy(good[0], good[0].parent / f"{name}.binary")
+    # three sources split 2:1, so one Table 2 draw (check_cross_keys: draws x test <= train)
     r = snakemake_dry_run(tmp_path, f"merl:\n  source: local\n  local_dir: {good[0].parent}\n"
-                                    "  subset: [chrome, gold-paint]\nmetrics:\n  draws: 1\n")
+                                    "  subset: [chrome, gold-paint, alum-bronze]\nmetrics:\n"
+                                    "  draws: 1\n")
     out = r.stdout + r.stderr
     assert "local_merl" in out and "download_merl" not in out, out[-2000:]
 
@@ -187,7 +189,7 @@ def test_offline_download_job_says_what_to_do_without_tracebacks(tmp_path):
     job's log."""
     (tmp_path / "extra.yaml").write_text(
         "merl:\n  url: http://127.0.0.1:9/{name}.binary\n  retries: 0\n"
-        "  subset: [chrome, gold-paint]\nmetrics:\n  draws: 1\n")  # as above
+        "  subset: [chrome, gold-paint, alum-bronze]\nmetrics:\n  draws: 1\n")  # as above
     for item in ("Snakefile", "workflow", "config"):
         (shutil.copytree if (ROOT / item).is_dir() else shutil.copy)(ROOT / item, tmp_path / item)
     targets = ["resources/merl/chrome.binary", "resources/merl/gold-paint.binary"]

@@ -754,10 +754,11 @@ def test_every_model_file_loads_with_weights_only(tiny_run):
 
 def _download_config(wd: Path, names, url_dir: Path, verify: bool, pins: dict) -> str:
     import yaml
-    cfg = {"run": "dl", "merl": {"source": "download", "subset": list(names),
+    # a third source, never downloaded: a run needs 2 train-split sources (check_cross_keys)
+    cfg = {"run": "dl", "merl": {"source": "download", "subset": [*names, "black-fabric"],
                                  "url": f"file://{url_dir}/{{name}}.binary", "retries": 0,
                                  "verify_sha256": verify, "sha256_override": pins},
-           "metrics": {"draws": 1}}  # two sources split 1:1 (check_cross_keys: draws x test)
+           "metrics": {"draws": 1}}  # three sources split 2:1 (check_cross_keys: draws x test)
     (wd / "config/dl.yaml").write_text(yaml.safe_dump(cfg))
     return "config/dl.yaml"
 

@@ -399,6 +399,14 @@ def check_cross_keys():
         errors.append(f"the test split holds {sizes['test']} materials (augmerl.test_fraction, the "
                       f"source materials, augmerl.permutations, augmerl.size); Table 2's sanity "
                       f"row splits it into two halves of at least 2: give it at least 4")
+    # MERL100 and HyperBRDF's `merl` model train on the train split's originals alone
+    originals = int(((_PLANNED_ROWS["split"] == "train") &
+                     (_PLANNED_ROWS["operation"] == "original")).sum())
+    if originals < 2:
+        errors.append(f"the train split holds {originals} source material of {len(MERL_NAMES)} "
+                      f"(merl.subset, merl.synthetic.count, augmerl.test_fraction): MERL100 and "
+                      f"HyperBRDF's merl model, which train on its originals alone, would learn "
+                      f"one material; give at least 2 (more materials or a lower test_fraction)")
     if sizes["train"] < 2 * draws:
         errors.append(f"the train split holds {sizes['train']} materials, too few for "
                       f"metrics.draws {draws} Training-set subsets of at least 2")

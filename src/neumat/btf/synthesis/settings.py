@@ -88,4 +88,10 @@ def check(method: str, settings: dict | None) -> dict:
     if unknown:
         known = f"its settings are {sorted(spec)}" if spec else "it takes no settings"
         raise ValueError(f"unknown {method} setting(s) {unknown}: {known}")
-    return {k: r.check(method, k, settings.get(k, r.default)) for k, r in spec.items()}
+    out = {k: r.check(method, k, settings.get(k, r.default)) for k, r in spec.items()}
+    block = out.get("block") if method == "quilting" else None
+    if block is not None and block > 1 and (not float(block).is_integer() or block < 6):
+        # the schema's anyOf: 7.5 texels had been cut to 7, and 3 raised to 6, without a word
+        raise ValueError(f"quilting setting 'block' above 1 is a side in texels: give a whole "
+                         f"number >= 6 (or a fraction <= 1 of the exemplar side), got {block!r}")
+    return out
