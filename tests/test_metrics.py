@@ -638,3 +638,17 @@ def test_novelty_rows_and_table():
     assert t.loc[0, "ratio to reference"] == pytest.approx(1.5 / 4.5)
     with pytest.raises(MetricsInputError, match="novelty of model 'ours': 1 non-finite values"):
         evaluate.novelty_table({"ours": two.assign(value=[1.0, 3.0, np.inf, 6.0])})
+
+
+def test_split_draws_takes_draw_major_blocks_and_refuses_other_counts():
+    """metrics_eval's draws: k blocks of exactly the reference set's size, in the order the
+    samplers write them; another count (a remainder had been dropped with a log warning) is
+    refused naming the file."""
+    smp = np.arange(12 * 675, dtype=np.float32).reshape(12, 675)
+    draws = evaluate.split_draws(smp, 3, 4, "s.npy")
+    assert [d[:, 0].tolist() for d in draws] == [[i * 675 for i in range(4 * k, 4 * k + 4)]
+                                                  for k in range(3)]
+    for n in (11, 13, 8):
+        with pytest.raises(MetricsInputError, match=rf"s.npy: {n} samples, not metrics.draws 3 "
+                                                    rf"x the 4 references"):
+            evaluate.split_draws(smp[:n] if n < 12 else np.concatenate([smp, smp[:1]]), 3, 4, "s.npy")

@@ -11,16 +11,6 @@ from neumat.logs import script_logging
 from neumat.metrics import distances, evaluate, inception, materials
 
 
-def draws_of(smp, k, n_ref, log):
-    """k consecutive equal blocks of the sample set (written draw-major by the samplers)."""
-    n = len(smp) // k
-    if n < 2:
-        raise ValueError(f"{len(smp)} samples cannot make {k} draws (metrics.draws)")
-    if n != n_ref:
-        log.warning("draws of %d samples vs %d references", n, n_ref)
-    return [materials.rows(smp, slice(i * n, (i + 1) * n)) for i in range(k)]
-
-
 with script_logging(snakemake) as log:
     p, model = snakemake.params, snakemake.wildcards.model
     device = str(resolve_device(snakemake.config["device"]))
@@ -39,7 +29,8 @@ with script_logging(snakemake) as log:
     else:
         smp = materials.load(snakemake.input.samples)
         log.info("%s: %d samples (%d draws) vs %d references", model, len(smp), p.draws, len(ref))
-        table = evaluate.evaluate_draws(ref, draws_of(smp, p.draws, len(ref), log), **kw,
+        draws = evaluate.split_draws(smp, p.draws, len(ref), snakemake.input.samples)
+        table = evaluate.evaluate_draws(ref, draws, **kw,
                                         reference=prepared, source=snakemake.input.samples)
     # novelty: nearest NeuMERL training material at a subset of the BRDF-L1 bins (inside every
     # table set), as diffusion_nearest does for the diffusion sets; the subset from its own stream
@@ -51,7 +42,7 @@ with script_logging(snakemake) as log:
                              "non-finite BRDF values")
     f_ref = materials.brdf_values(ref, nb, p.activation)
     sets = ([materials.rows(ref, o[h:2 * h]) for o in halves] if model == "reference_halves"
-            else draws_of(smp, p.draws, len(ref), log))
+            else draws)
     nov = pd.concat([evaluate.novelty_rows(materials.brdf_values(s, nb, p.activation), f_train,
                                            f_ref).assign(draw=i) for i, s in enumerate(sets)])
     table = pd.concat([table, nov[table.columns]], ignore_index=True)

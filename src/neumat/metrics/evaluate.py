@@ -179,6 +179,20 @@ def _check_reference(reference: dict, ref, resolution: int, bins, activation: st
                                 f"{REBUILD_REFERENCE}")
 
 
+def split_draws(smp, k: int, n_ref: int, source: str = "samples") -> list:
+    """The k draws of a sample set the samplers write draw-major: k consecutive blocks of n_ref
+    materials (a draw as large as the reference set, so COV and 1-NNA mean what Table 2 says).
+    MetricsInputError naming `source` for any other count: it had been cut into k blocks of
+    len // k with the remainder dropped and a warning in the job's log."""
+    if len(smp) != k * n_ref:
+        raise MetricsInputError(
+            f"{source}: {len(smp)} samples, not metrics.draws {k} x the {n_ref} references: a "
+            f"sample set from another config or an interrupted job; delete it and rerun its "
+            f"rule (Snakemake rebuilds it)")
+    from neumat.metrics import materials
+    return [materials.rows(smp, slice(i * n_ref, (i + 1) * n_ref)) for i in range(k)]
+
+
 def evaluate_draws(ref, draws, *, resolution: int, bins, activation="relu", fid_model=None,
                    fid_unavailable: str = "", device="cpu", refs=None,
                    reference: dict | None = None, source: str = "samples") -> pd.DataFrame:
