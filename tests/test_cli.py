@@ -974,12 +974,12 @@ def test_out_never_overwrites_what_no_draw_wrote(run, tmp_path, capsys, monkeypa
     out = tmp_path / "o"
     assert main("sample", "--run", run, "-n", 3, "--steps", 2, "--no-binary", "--out", out) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    from neumat.cli import sample as cli_sample
+    from neumat.cli import sample_output
 
     def fail(*a, **k):
         raise MemoryError("while writing")
 
-    monkeypatch.setattr(cli_sample, "_write_scene", fail)
+    monkeypatch.setattr(sample_output, "_write_scene", fail)
     with pytest.raises(MemoryError):
         main("sample", "--run", run, "-n", 2, "--steps", 2, "--seed", 5, "--no-binary", "--out", out)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before

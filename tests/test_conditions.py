@@ -404,3 +404,21 @@ def test_same_source_links_originals_permutations_and_mixtures():
     same = dataset.same_source(["a", "a", "b", "a@gbr|c@rgb", "c"])
     assert same.tolist() == [[1, 1, 0, 1, 0], [1, 1, 0, 1, 0], [0, 0, 1, 0, 0],
                              [1, 1, 0, 1, 1], [0, 0, 0, 1, 1]]
+
+
+def test_type_picks_draw_each_types_rows_and_minus_one_where_none():
+    """The starts of sample_conditions (mm_type) and `neumat sample --type --start`: k rows of
+    the asked type each, from one generator in the order asked (the same draws as one
+    rng.choice per type), -1 rows for '' and for a type no row has."""
+    from neumat.conditions import starts
+    rows = np.array([10, 11, 12, 13, 14])
+    types = np.array(["metal", "paint", "metal", "", "paint"])
+    got = starts.type_picks(["paint", "", "wood", "metal"], rows, types, 6,
+                            np.random.default_rng(5))
+    assert got.shape == (4, 6)
+    assert set(got[0]) <= {11, 14} and set(got[3]) <= {10, 12}
+    assert (got[1] == -1).all() and (got[2] == -1).all()
+    rng = np.random.default_rng(5)  # the draws before the function: one choice per type
+    assert np.array_equal(got[0], rng.choice(np.array([11, 14]), 6))
+    assert np.array_equal(got[3], rng.choice(np.array([10, 12]), 6))
+    assert starts.type_picks([], rows, types, 3, np.random.default_rng(0)).shape == (0, 3)

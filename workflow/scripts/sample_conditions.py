@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from neumat.conditions import image, text
+from neumat.conditions import image, starts, text
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
 from neumat.io.atomic import save_npy
@@ -87,11 +87,9 @@ def type_starts(inp, conds, k, seed, log):
     condition's k samples a training material of its type (training_set), drawn with `seed`;
     NaN rows (from noise) where training has no such type."""
     weights, man, rows = training_set(inp)
-    types = man["type"].iloc[rows].to_numpy()
-    rng = np.random.default_rng(seed)
-    picks = [rng.choice(rows[types == t], k) if t and (types == t).any() else np.full(k, -1)
-             for t in conds["type"]]
-    got = np.concatenate(picks) if picks else np.zeros(0, int)
+    picks = starts.type_picks(conds["type"], rows, man["type"].iloc[rows].to_numpy(), k,
+                              np.random.default_rng(seed))
+    got = picks.reshape(-1)
     start = np.where(got[:, None] >= 0, weights[np.maximum(got, 0)], np.nan)
     conds = conds.assign(start=[",".join(man["name"].iloc[r] for r in g) if (g >= 0).all() else ""
                                 for g in picks])

@@ -5,13 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from neumat.cli.run import IMAGE_ENCODER, MULTIMODAL, CLIError, Run, model_conditions
 
-def cmd_info(args) -> int:
-    import pandas as pd
 
+def cmd_info(args) -> int:
     run = Run(args.run)
     print(f"run {run.name!r} at {run.path}")
     cfg = run.config()

@@ -4,8 +4,6 @@ conditions, and write them with their renders and a Mitsuba scene."""
 from __future__ import annotations
 
 import math
-import os
-import re
 import shutil
 import sys
 import tempfile
@@ -13,16 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
-from neumat.cli.render import _render_scene, _write_scene
 from neumat.cli.run import (EXIT_BUDGET, IMAGE_ENCODER, IMAGE_FORMATS, MODALITIES, MULTIMODAL,
                             VECTOR_MODALITIES, CLIError, Run, _progress, check_out_dir,
                             model_conditions, model_rule, unsupported)
+from neumat.cli.sample_output import check_out, replace_draw, write_draw
+from neumat.cli.sample_starts import (check_trained_type, draw_from_start, image_start,
+                                      read_manifest, run_file, trained_types)
 from neumat.io import images
 
-# the files `neumat sample` writes into --out; a new draw replaces an earlier one's (a draw of
-# fewer samples or without --mitsuba / with --no-binary would otherwise leave some beside it)
-OUT_FILES = ("weights.npy", "samples.tsv", "scene.xml", "scene.png", "sky.exr")
-OUT_SAMPLE = re.compile(r"sample_\d{3,}\.(binary|png)")  # f"sample_{i:03d}.binary" and .png
 
 def _text_embedding(run: Run, prompt: str) -> np.ndarray:
     """(1, 384) all-MiniLM-L6-v2 embedding of the prompt: the run's own where it embedded the
@@ -168,122 +164,6 @@ def _check_start(args, chosen: list[str]) -> None:
         raise CLIError("--refiner uses the run's refiner model: leave out --model")
 
 
-def _run_file(run: Run, rel: str, rule: str, why: str = "--start") -> Path:
-    p = run.path / rel
-    if not p.exists():
-        raise CLIError(f"{why} needs {p}; build it with rule {rule}: `{run.target(rel)}`")
-    return p
-
-
-def _read_manifest(run: Run, path, n_rows=None):
-    """dataset.read_manifest of the run's `path`, or the `unreadable` error naming it and rule
-    neumerl (a manifest without its columns, or of another row count than the weights, gave a
-    bare traceback; a review, 2026-11-29)."""
-    from neumat.diffusion import dataset
-    try:
-        return dataset.read_manifest(path, n_rows)
-    except (OSError, ValueError, UnicodeDecodeError) as e:
-        raise run.unreadable("neumerl/manifest.tsv", "neumerl", e) from None
-
-
-def _manifest(run: Run):
-    """The run's NeuMERL manifest, or None where it has none (a shared model alone)."""
-    path = run.path / "neumerl/manifest.tsv"
-    return _read_manifest(run, path) if path.exists() else None
-
-
-def _trained_types(run: Run) -> set[str] | None:
-    """The types some training material (`ours`'s rows, on which the run's models train) has:
-    a type only held-out materials have is among the model's classes, but its class embedding
-    never trained, so samples asked for it follow no type (the workflow's mm_type and
-    constrained synthesis leave such types out). None without a manifest: nothing is checked."""
-    from neumat.diffusion import dataset
-
-    man = _manifest(run)
-    return None if man is None else dataset.training_types(man)
-
-
-def _check_trained_type(run: Run, typ: str) -> None:
-    """CLIError where the run's training materials do not have type `typ` (_trained_types)."""
-    from neumat.diffusion import dataset
-
-    man = _manifest(run)
-    if man is not None:
-        try:
-            dataset.require_trained([typ], man, "--type")
-        except ValueError as e:
-            raise CLIError(f"{e} (run {run.path})") from None
-
-
-def _training_set(run: Run):
-    """(NeuMERL weights, manifest, `ours`'s training rows) of the run: where --start draws from."""
-    from neumat.diffusion import dataset
-
-    _run_file(run, "neumerl/weights.npy", "neumerl")
-    weights = run.array("neumerl/weights.npy", "neumerl")
-    man = _read_manifest(run, _run_file(run, "neumerl/manifest.tsv", "neumerl"), len(weights))
-    return weights, man, dataset.training_rows(man, "ours")
-
-
-def _image_start(run: Run, emb: np.ndarray) -> tuple[np.ndarray, str]:
-    """--image --start: the training material (`ours`'s rows) whose metric-view embedding
-    (`conditions/image.npy`, under the first training light) is nearest the image's, as the
-    workflow's sample_image retrieves it with conditions.image.strength < 1: its weights and
-    name."""
-    from neumat.conditions import image
-
-    weights, man, rows = _training_set(run)
-    _run_file(run, "conditions/image.npy", "image_embeddings")
-    library = run.array("conditions/image.npy", "image_embeddings")[rows, 0]
-    got = image.retrieve(emb, library, rows)[0]
-    print(f"--image --start: from the training material {man['name'].iloc[got]!r} (nearest image "
-          f"embedding)", file=sys.stderr)
-    return weights[got], man["name"].iloc[got]
-
-
-def _draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: float,
-                     refit: int = 0):
-    """(weights, table): --start. Each sample starts from a training material (`ours`'s rows)
-    noised to args.start: for --type one of the type (drawn with the seed's stream
-    "cli_type_start"), for --text the matched starts of the workflow's
-    conditions.text.start_match (sample i from the i-th); denoised by the model under its
-    condition, or by the refiner (--refiner) without one."""
-    import pandas as pd
-
-    from neumat.diffusion.sample import sample
-    from neumat.seeds import seed_for
-
-    weights, man, rows = _training_set(run)
-    types = man["type"].iloc[rows].to_numpy()
-    extra = {}
-    if args.type:
-        pool = rows[types == args.type]  # not empty: _check_trained_type
-        got = np.random.default_rng(seed_for(args.seed, "cli_type_start")).choice(pool, args.n)
-        cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
-    else:
-        from neumat.conditions import evaluate, text
-        _run_file(run, "conditions/text.npy", "text_embeddings")
-        library = run.array("conditions/text.npy", "text_embeddings")[rows]
-        got, voted, size, _ = text.training_starts(fixed["text"], library, weights, man, rows,
-                                                   [evaluate.colour_of(args.text)], args.n,
-                                                   args.activation)
-        got, extra = got[0], {"voted_type": voted[0]}
-        print(f"--text {args.text!r}: starts of type {voted[0]!r} (vote over the {size} nearest "
-              f"typed training descriptions)", file=sys.stderr)
-        cond, guidance = {"text": np.repeat(fixed["text"], args.n, 0)}, {"text": scales["text"]}
-    if args.refiner:
-        cond, guidance = {}, {}
-    with _progress(args.n, "refining" if args.refiner else "sampling from starts") as bar:
-        w = sample(sampler, args.n, seed_for(args.seed, "cli_start"), cond, guidance, args.steps,
-                   args.eta, args.batch, args.clip, negative_step=neg, activation=args.activation,
-                   start=weights[got], strength=args.start, refit_steps=refit)
-        bar.update(args.n)
-    table = pd.DataFrame({"sample": range(args.n), "type": args.type or "",
-                          "start": man["name"].iloc[got].to_numpy(), "strength": args.start,
-                          "refiner": args.refiner, **extra})
-    return w, table
-
-
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     """(weights, per-sample table) for the requested conditions."""
     import pandas as pd
@@ -295,7 +175,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         raise CLIError(f"unknown material type {args.type!r} for {model_path}; known: "
                        f"{', '.join(bundle['class_names'])}")
     if args.type:
-        _check_trained_type(run, args.type)
+        check_trained_type(run, args.type)
     # type guidance also steers --category's guide types when no --type is given
     scales = _guidance(args, run, bundle, asked + (["type"] if args.category and not args.type
                                                    and "type" in model_conditions(bundle) else []))
@@ -320,7 +200,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
                       step)
     start = None
     if args.image and args.start is not None:
-        vector, name = _image_start(run, fixed["image"])
+        vector, name = image_start(run, fixed["image"])
         start = (vector, args.start)
     if fixed:  # the refiner takes no condition: the start and render guidance carry the image
         sampler = Composed(sampler, {} if args.refiner else fixed, scales, render, start)
@@ -344,7 +224,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         if args.refiner:  # unconditional: no guidance was applied
             info = {k: v for k, v in info.items() if not k.startswith("guidance_")}
         if not args.image:
-            w, table = _draw_from_start(args, run, base, fixed, scales, neg, refit)
+            w, table = draw_from_start(args, run, base, fixed, scales, neg, refit)
             return w, table.assign(**info)
         info.update(start=name, strength=args.start, refiner=args.refiner)
     cfg = {"steps": args.steps, "eta": args.eta, "guidance": scales.get("type", 1.0),
@@ -362,7 +242,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if uncond_ours and run.setting("diffusion", "sample", "type_prior"):
         # types drawn as in training, unguided, as the run's sample_uncond
         from neumat.diffusion import dataset
-        man = _read_manifest(run, _run_file(run, "neumerl/manifest.tsv", "neumerl",
+        man = read_manifest(run, run_file(run, "neumerl/manifest.tsv", "neumerl",
                                             "diffusion.sample.type_prior"))
         types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
     # the run's keep look (diffusion.sample.keep_look), as its sample_uncond
@@ -454,7 +334,7 @@ def _draw_category(args, run: Run, sampler, cfg):
         if classes.exists() and auto:
             c = pd.read_csv(classes, sep="\t", keep_default_na=False)
             c = c[c["set"] == "source"]
-            trained = _trained_types(run)
+            trained = trained_types(run)
             guide = [t for t in constrained.category_types(c["type"], c["category"])[args.category]
                      if t in sampler.class_names and (trained is None or t in trained)]
     bins = constrained.grid_bins(args.bins, args.seed)
@@ -561,78 +441,6 @@ def _settings(args, run: Run) -> None:
     args.activation = args.activation or run.activation()
 
 
-def _outputs(out: Path) -> list[Path]:
-    """The files in `out` with the names `neumat sample` writes (OUT_FILES, OUT_SAMPLE)."""
-    if not out.is_dir():
-        return []
-    return [p for p in out.iterdir()
-            if (p.name in OUT_FILES or OUT_SAMPLE.fullmatch(p.name)) and p.is_file()]
-
-
-def _check_out(out: Path, run: Run) -> None:
-    """Before any drawing: --out is not in the run's folder (its files are the workflow's:
-    `--out results/<run>/neumerl` had replaced the run's NeuMERL weights), and the files there
-    with this command's output names are an earlier `neumat sample` draw (its samples.tsv has
-    the columns sample and steps, as every draw's), which the new draw replaces; anything else
-    is the user's and is not overwritten (a review, 2026-11-29: `weights.npy` and `samples.tsv`
-    of another tool were deleted)."""
-    target, root = out.resolve(), run.path.resolve()
-    if target == root or root in target.parents:
-        raise CLIError(f"--out {out} is inside the run's folder {run.path}/, whose files the "
-                       f"workflow writes and reads: choose a folder outside it")
-    found = _outputs(out)
-    if not found:
-        return
-    header = ""
-    try:
-        with open(out / "samples.tsv", encoding="utf-8") as f:
-            header = f.readline()
-    except (OSError, UnicodeDecodeError):
-        pass
-    if not {"sample", "steps"} <= set(header.rstrip("\n").split("\t")):
-        names = ", ".join(sorted(p.name for p in found)[:5])
-        raise CLIError(f"--out {out} holds {names}{' ...' if len(found) > 5 else ''}, which no "
-                       f"`neumat sample` wrote (its samples.tsv names the columns sample and "
-                       f"steps): move them or choose another folder")
-
-
-def _replace_draw(out: Path, staged: Path | None) -> None:
-    """Remove the earlier draw's files from `out` (other files are left alone), then move the
-    new draw's in from `staged` (None: nothing was drawn)."""
-    for p in _outputs(out):
-        p.unlink()
-    if staged is not None:
-        out.mkdir(parents=True, exist_ok=True)
-        for p in staged.iterdir():
-            os.replace(p, out / p.name)
-
-
-def _write(args, out: Path, w: np.ndarray, table) -> None:
-    """weights.npy, samples.tsv, sample_NNN.binary/.png, scene.xml (and scene.png)."""
-    import torch
-
-    from neumat import nbrdf
-    from neumat.io import merl
-    from neumat.render import sphere
-
-    np.save(out / "weights.npy", w.astype(np.float32))
-    table.to_csv(out / "samples.tsv", sep="\t", index=False, float_format="%.6g")
-    imgs = sphere.tonemap(sphere.render_fields(w, args.resolution, args.activation))
-    from PIL import Image
-    with _progress(len(w), "writing .binary + .png") as bar:
-        for i in range(len(w)):
-            if not args.no_binary:
-                table_i = nbrdf.evaluate_grid(torch.as_tensor(w[i:i + 1]), args.activation)[0]
-                merl.write_merl(out / f"sample_{i:03d}.binary", table_i)
-            Image.fromarray(imgs[i]).save(out / f"sample_{i:03d}.png")
-            bar.update(1)
-    scene = _write_scene(out, len(w), args.activation)
-    if args.mitsuba:
-        _render_scene(scene, out / "scene.png", args.variant,
-                      256 if args.mitsuba_resolution is None else args.mitsuba_resolution,
-                      32 if args.spp is None else args.spp)
-
-
 def cmd_sample(args) -> int:
     chosen = [m for m in MODALITIES if getattr(args, m)]
     _check_options(args, chosen)
@@ -640,10 +448,10 @@ def cmd_sample(args) -> int:
     bundle, model_path = _load(args, run, chosen)
     _settings(args, run)
     out = Path(args.out)
-    _check_out(out, run)
+    check_out(out, run)
     w, table = _draw(args, run, bundle, model_path, chosen)
     if len(w) == 0:
-        _replace_draw(out, None)  # no older draw passes for this one
+        replace_draw(out, None)  # no older draw passes for this one
         raise CLIError(f"no sample of category {args.category!r} within --budget {args.budget} "
                        f"draws; raise --budget or ask for another category (acceptance per "
                        f"category of this run: {run.path / 'constrained/acceptance.tsv'})", EXIT_BUDGET)
@@ -652,8 +460,8 @@ def cmd_sample(args) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     staged = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-", dir=out.parent))
     try:
-        _write(args, staged, w, table)
-        _replace_draw(out, staged)
+        write_draw(args, staged, w, table)
+        replace_draw(out, staged)
     finally:
         shutil.rmtree(staged, ignore_errors=True)
     print(f"wrote {len(w)} samples to {out}/: weights.npy, samples.tsv, "
