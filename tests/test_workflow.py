@@ -441,6 +441,29 @@ def test_a_number_spelt_otherwise_changes_no_params(tmp_path):
         _job_params("texts", "config/tiny.yaml")
 
 
+def test_the_sampling_batch_size_is_a_param_only_of_particle_guided_draws(tmp_path):
+    """diffusion.sample.batch_size is a memory knob (samples equal at any batch size:
+    tests/test_diffusion.py), so a new value reran every sampler, the conditioned and constrained
+    ones included; now only the draws whose particle guidance repels the samples of one batch
+    (`ours`' unconditional draws and ours_plain; tiny: particle_step 0.1) change params, and
+    no draw without particle guidance."""
+    def changed(extra: str):
+        over = tmp_path / "over.yaml"
+        base = tmp_path / "base.yaml"
+        over.write_text(extra + "diffusion: {sample: {batch_size: 7}}\n" if not extra else
+                        "diffusion: {sample: {batch_size: 7, " + extra + "}}\n")
+        base.write_text("diffusion: {sample: {" + extra + "}}\n")
+        a = _job_params("texts", "config/tiny.yaml", str(base))
+        b = _job_params("texts", "config/tiny.yaml", str(over))
+        assert a.keys() == b.keys()
+        return sorted(k.split(" ")[0] + (" " + k.split("'model', '")[1].split("'")[0]
+                                         if "'model', '" in k else "")
+                      for k in a if a[k] != b[k])
+    # diffusion_section: the report's record of the sampling settings (seconds to rebuild)
+    assert changed("") == ["diffusion_section", "sample_plain", "sample_uncond ours"]
+    assert changed("particle_step: 0.0") == ["diffusion_section"]
+
+
 @pytest.mark.parametrize("configs", [["config/tiny.yaml"], [], ["config/paper.yaml"]],
                          ids=["tiny", "default", "paper"])
 def test_params_that_share_a_value_are_also_given_by_name(configs):

@@ -17,6 +17,12 @@ DIFF_ACTIVATION = config["fit"]["activation"]
 # rows are not closed under channel permutation and are all typed, and conditioned draws keep
 # their channel order, their condition, and draws independent of one another
 OURS_UNCOND_ONLY = ["rgb_permute", "type_prior", "keep_look", "particle_step"]
+# diffusion.sample.batch_size is a memory knob: each 64-row block of sampling noise has its own
+# stream, so samples are the same at any batch size to float rounding (with the clamp step,
+# refit, types and category guidance too; tests/test_diffusion.py), and scripts read it from
+# the config. Particle guidance repels the samples of one batch, so it is a param of the draws
+# that use it (`ours`' unconditional ones and ours_plain) while particle_step > 0.
+BATCH_UNLESS_PARTICLES = [] if DIFF["sample"]["particle_step"] else ["batch_size"]
 # Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
 # split ('reference', for the distance of unseen real materials to their nearest training one).
 # With the clamp constraint or the clamp refit on (diffusion.sample.negative_step,
@@ -70,7 +76,7 @@ rule sample_uncond:
         # keep_look compares metric-view renders: their size, only where it is on; it acts
         # only with the clamp step (negative_step), so without it keep_look is no param either
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            [] if wc.model == "ours" else OURS_UNCOND_ONLY) + (
+            BATCH_UNLESS_PARTICLES if wc.model == "ours" else OURS_UNCOND_ONLY + ["batch_size"]) + (
             [] if DIFF["sample"]["negative_step"] else ["keep_look"])),
             **({"look_resolution": config["render"]["resolution"]} if wc.model == "ours"
                and DIFF["sample"]["keep_look"] and DIFF["sample"]["negative_step"] else {})},
@@ -104,7 +110,7 @@ rule sample_plain:
         timing=out("samples/ours_plain/timing.tsv"),
     params:
         cfg={"sample": settings("diffusion.sample", drop=["guidance", "negative_step", "refit_steps",
-                                                          "keep_look"])},
+                                                          "keep_look", *BATCH_UNLESS_PARTICLES])},
         mode="uncond",
         seeds=draw_seeds("sample", "ours"),  # the seeds of `ours`: paired samples
         activation=DIFF_ACTIVATION,
@@ -134,7 +140,7 @@ rule sample_type:
     params:
         cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
                    "sample": settings("diffusion.sample",
-                                      drop=OURS_UNCOND_ONLY)}),
+                                      drop=OURS_UNCOND_ONLY + ["batch_size"])}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,

@@ -44,7 +44,7 @@ with script_logging(snakemake) as log:
                   np.repeat(man["type"].iloc[test].to_numpy(), k)),
     }
     sampler = Sampler(inp.model, snakemake.config["device"])
-    s = p.sample
+    s = {**p.sample, "batch_size": snakemake.config["diffusion"]["sample"]["batch_size"]}  # a memory knob: not a param
     rows = []
     for name, (cond, want) in modalities.items():
         for scale in p.scales:

@@ -126,7 +126,7 @@ def text_starts(inp, conds, emb, k, vote, activation, log):
 
 with script_logging(snakemake) as log:
     p, inp, out = snakemake.params, snakemake.input, snakemake.output
-    s, k = p.sample, p.per_prompt
+    s, k = {**p.sample, "batch_size": snakemake.config["diffusion"]["sample"]["batch_size"]}, p.per_prompt  # batch_size: not a param
     refine = getattr(p, "refiner", False)  # the starts refined by the floor-free model
     sampler = Sampler(inp.refiner[0] if refine else inp.model, snakemake.config["device"])
     start, strength = None, getattr(p, "strength", 1.0)

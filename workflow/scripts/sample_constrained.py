@@ -31,6 +31,8 @@ with script_logging(snakemake) as log:
     bins = constrained.grid_bins(cfg["bins"], p.bins_seed)  # constrained_classify's bins
     # a param only where it acts (guide auto, a guided category listed); none: the paper's setting
     step = cfg.get("guidance_step", 0.0)
+    # diffusion.sample.batch_size: a memory knob (the draws do not depend on it), not a param
+    sample_cfg = {**p.sample, "batch_size": snakemake.config["diffusion"]["sample"]["batch_size"]}
     # a category's draws depend on the model, the manifest (trained types), the derived rules,
     # the source classes and the settings
     cache = draws.DrawCache(Path(out.weights).with_name("draws.partial"), draws.fingerprint(
@@ -50,7 +52,7 @@ with script_logging(snakemake) as log:
         def draw(cat=cat, types=types):
             r = constrained.sample_category(sampler, cat, th, cfg["per_category"],
                                             cfg["budget"], cfg["batch"],
-                                            seed_for(p.seed, "category", cat), p.sample, types,
+                                            seed_for(p.seed, "category", cat), sample_cfg, types,
                                             bins, p.activation, guidance_step=step)
             # each sample's own mode (a pilot's hits are kept first, whatever mode won after it)
             t = r.stats.drop(columns="name").assign(category=cat)

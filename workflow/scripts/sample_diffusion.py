@@ -31,7 +31,9 @@ from neumat.seeds import seed_for
 with script_logging(snakemake) as log:
     p, out = snakemake.params, snakemake.output
     # sample_plain: constraint and refit off; refit_steps at its neutral 0 is not in params
-    s = {"negative_step": 0.0, "refit_steps": 0, **p.cfg["sample"]}
+    # batch_size: a param only with particle guidance (BATCH_UNLESS_PARTICLES), else read here
+    s = {"negative_step": 0.0, "refit_steps": 0,
+         "batch_size": snakemake.config["diffusion"]["sample"]["batch_size"], **p.cfg["sample"]}
     sampler = Sampler(snakemake.input.model, snakemake.config["device"])
     man = dataset.read_manifest(snakemake.input.manifest)
     draw, prior, kept = None, None, []
