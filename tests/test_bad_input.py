@@ -29,6 +29,72 @@ def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
     return res.returncode, res.stdout + res.stderr
 
 
+# check_cross_keys (common.smk): values the schema accepts one by one but that do not go
+# together. Each had failed late (in a job: after training, after the fits, or as a
+# MissingInputException naming a file, not the key) or silently given another result than asked.
+# The keys that leave the split and the catalogue alone are refused together in one dry run
+# (a DAG build each: 2.4 s; check_cross_keys names every clause); the rest one run each.
+TOGETHER = [
+    ({"diffusion": {"model": {"width": 60, "heads": 8}}},
+     "diffusion.model.width 60 is not a multiple of diffusion.model.heads 8"),
+    ({"diffusion": {"sample": {"steps": 500}, "schedule": {"timesteps": 100}}},
+     "diffusion.sample.steps 500 exceeds diffusion.schedule.timesteps 100"),
+    ({"conditions": {"image": {"encoder": {"crop": 40, "resolution": 32}}}},
+     "conditions.image.encoder.crop 40 exceeds"),
+    ({"metrics": {"models": ["training_set", "ourss"]}}, "metrics.models ['ourss']: not Table 2 models"),
+    ({"diffusion": {"types": ["nonexistent_type"]}}, "diffusion.types ['nonexistent_type']: no material"),
+    ({"fit": {"export": ["mix9999"]}}, "fit.export ['mix9999']: not AugMERL materials of this run"),
+    # Table 3: each failed in a job (hyperbrdf_eval after both trainings; train_hyperbrdf after
+    # reading every shard), naming one key (tiny: augmerl.bins 16384, train_bins 8192)
+    ({"hyperbrdf": {"sparse_samples": 20000}}, "hyperbrdf.sparse_samples 20000 exceeds augmerl.bins 16384"),
+    ({"hyperbrdf": {"train": {"query": 9000}}}, "hyperbrdf.train.query 9000 exceeds hyperbrdf.train_bins 8192"),
+    # each failed in a job: the AugMERL figure after the PCA, the fits in fit_template
+    ({"augmerl": {"figure_pair": ["nonexistent", "other"]}},
+     "augmerl.figure_material / figure_pair ['nonexistent', 'other']: not materials of this run"),
+    ({"fit": {"batch": 16000}}, "fit.batch 16000 exceeds the training bins of a fit: augmerl.bins 16384"),
+    # constrained synthesis: medium-specular unreachable, its budget spent with no hint
+    ({"constrained": {"derive": {"specular_quantiles": [0.9, 0.1]}}},
+     "constrained.derive.specular_quantiles [0.9, 0.1]"),
+    ({"constrained": {"thresholds": {"high_peak": 10, "medium_peak": 100}}},
+     "constrained.thresholds.medium_peak 100.0 exceeds high_peak 10.0"),
+    # export_samples failed after the trainings
+    ({"diffusion": {"export_merl": 40}}, "diffusion.export_merl 40 exceeds the samples a set holds (16 test materials x metrics.draws 2)"),
+    # the learning rate never reached diffusion.train.lr nor decayed; an untrained null class
+    ({"diffusion": {"train": {"warmup_steps": 200}}},
+     "diffusion.train.warmup_steps 200 is not below diffusion.train.steps 200"),
+    ({"diffusion": {"train": {"cond_drop": 0.0}}},
+     "diffusion.train.cond_drop 0 with diffusion.sample.guidance 2.0: guidance needs the null "
+     "class"),
+]
+
+
+def _leaves(d: dict, path=()) -> list:
+    return [x for k, v in d.items()
+            for x in (_leaves(v, path + (k,)) if isinstance(v, dict) else [path + (k,)])]
+
+
+def _merged(overlays: list) -> dict:
+    """One overlay of several; a key given by two of them is an error (one would be lost)."""
+    paths = [p for o in overlays for p in _leaves(o)]
+    assert len(paths) == len(set(paths)), sorted(paths)
+    out = {}
+    for path in paths:
+        node, src = out, next(o for o in overlays if path in _leaves(o))
+        for k in path[:-1]:
+            node, src = node.setdefault(k, {}), src[k]
+        node[path[-1]] = src[path[-1]]
+    return out
+
+
+def test_keys_that_do_not_go_together_are_refused_together_when_the_dag_is_built(tmp_path):
+    extra = _merged([e for e, _ in TOGETHER])
+    rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
+    assert rc != 0 and "bad config: " in text, text[-3000:]
+    missing = [says for _, says in TOGETHER if says not in text]
+    assert not missing, (missing, text[-4000:])
+    assert not (tmp_path / "results").exists()
+
+
 @pytest.mark.parametrize("extra, says", [
     # Table 2's Training-set draws were cut to train // draws rows, below the reference set's
     # size, with only a warning in one log: its COV was capped and its 1-NNA off 50 %
@@ -39,66 +105,30 @@ def _dry_run(tmp_path, extra: dict, base="config/config.yaml"):
     ({"merl": {"source": "download", "url": "file:///tmp/one.binary"}},
      "merl.url 'file:///tmp/one.binary' has no {name} placeholder: every material would "
      "download the same file"),
-    ({"diffusion": {"train": {"warmup_steps": 200}}},
-     "diffusion.train.warmup_steps 200 is not below diffusion.train.steps 200"),
-    ({"diffusion": {"train": {"cond_drop": 0.0}}},
-     "diffusion.train.cond_drop 0 with diffusion.sample.guidance 2.0: guidance needs the null "
-     "class"),
     # MERL100 and HyperBRDF's merl model trained on the one train-split original, no message
     # (two sources split 1:1, the other checks quiet with one draw)
     ({"merl": {"synthetic": {"count": 2}}, "metrics": {"draws": 1}},
      "the train split holds 1 source material of 2 (merl.subset, merl.synthetic.count, "
      "augmerl.test_fraction): MERL100 and HyperBRDF's merl model"),
+    # another augmerl.bins, fit.batch or diffusion.types than the run above gives
+    ({"augmerl": {"bins": 900}, "hyperbrdf": {"sparse_samples": 500}},
+     "hyperbrdf.train.context 1000 exceeds augmerl.bins 900"),
+    ({"fit": {"batch": 500, "kernel": "c"}}, "fit.batch 500 is not a multiple of 16"),
+    # each failed in a job, after the fits and the trainings: Table 2's sanity row (a test
+    # split of 2), sample_type (acrylic: only held-out sources in tiny)
+    ({"augmerl": {"permutations": False, "size": 8}, "fit": {"export": []}},
+     "the test split holds 2 materials"),
+    ({"diffusion": {"types": ["acrylic"]}}, "diffusion.types ['acrylic']: only test-split materials have that type"),
 ])
-def test_keys_that_silently_misled_fail_when_the_dag_is_built(tmp_path, extra, says):
-    """check_cross_keys (common.smk): values the schema accepts one by one but that failed late
-    or silently gave another result than asked. (Until 2026-11-30 this function had the name of
-    the one below, which replaced it in the module: its cases never ran.)"""
+def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
     rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
-    assert rc != 0 and "bad config: " in text and says in text, text[-3000:]
+    assert rc != 0 and "bad config: " in text and says in text, text[-2000:]
     assert not (tmp_path / "results").exists()
 
 
 def test_no_btf_material_fails_when_the_dag_is_built(tmp_path):
     rc, text = _dry_run(tmp_path, {"ubo2014": {"synthetic": {"kinds": []}}}, "config/tiny.yaml")
     assert rc != 0 and "bad config (ubo2014.synthetic.kinds): [] names no BTF material" in text
-    assert not (tmp_path / "results").exists()
-
-
-@pytest.mark.parametrize("extra, says", [
-    ({"diffusion": {"model": {"width": 60, "heads": 8}}}, "diffusion.model.width 60 is not a multiple of diffusion.model.heads 8"),
-    ({"diffusion": {"sample": {"steps": 500}, "schedule": {"timesteps": 100}}}, "diffusion.sample.steps 500 exceeds diffusion.schedule.timesteps 100"),
-    ({"conditions": {"image": {"encoder": {"crop": 40, "resolution": 32}}}}, "conditions.image.encoder.crop 40 exceeds"),
-    ({"metrics": {"models": ["training_set", "ourss"]}}, "metrics.models ['ourss']: not Table 2 models"),
-    ({"diffusion": {"types": ["nonexistent_type"]}}, "diffusion.types ['nonexistent_type']: no material"),
-    ({"fit": {"export": ["mix9999"]}}, "fit.export ['mix9999']: not AugMERL materials of this run"),
-    # Table 3: each failed in a job (hyperbrdf_eval after both trainings; train_hyperbrdf after
-    # reading every shard), naming one key (tiny: augmerl.bins 16384, train_bins 8192)
-    ({"hyperbrdf": {"sparse_samples": 20000}}, "hyperbrdf.sparse_samples 20000 exceeds augmerl.bins 16384"),
-    ({"hyperbrdf": {"train": {"query": 9000}}}, "hyperbrdf.train.query 9000 exceeds hyperbrdf.train_bins 8192"),
-    ({"augmerl": {"bins": 900}, "hyperbrdf": {"sparse_samples": 500}},
-     "hyperbrdf.train.context 1000 exceeds augmerl.bins 900"),
-    # each failed in a job: the AugMERL figure after the PCA, the fits in fit_template
-    ({"augmerl": {"figure_pair": ["nonexistent", "other"]}},
-     "augmerl.figure_material / figure_pair ['nonexistent', 'other']: not materials of this run"),
-    ({"fit": {"batch": 16000}}, "fit.batch 16000 exceeds the training bins of a fit: augmerl.bins 16384"),
-    ({"fit": {"batch": 500, "kernel": "c"}}, "fit.batch 500 is not a multiple of 16"),
-    # constrained synthesis: medium-specular unreachable, its budget spent with no hint
-    ({"constrained": {"derive": {"specular_quantiles": [0.9, 0.1]}}},
-     "constrained.derive.specular_quantiles [0.9, 0.1]"),
-    ({"constrained": {"thresholds": {"high_peak": 10, "medium_peak": 100}}},
-     "constrained.thresholds.medium_peak 100.0 exceeds high_peak 10.0"),
-    # each failed in a job, after the fits and the trainings: Table 2's sanity row (a test
-    # split of 2), export_samples, sample_type (acrylic: only held-out sources in tiny),
-    # train_vae, btf_pca, every download (a KeyError naming no key)
-    ({"augmerl": {"permutations": False, "size": 8}, "fit": {"export": []}},
-     "the test split holds 2 materials"),
-    ({"diffusion": {"export_merl": 40}}, "diffusion.export_merl 40 exceeds the samples a set holds (16 test materials x metrics.draws 2)"),
-    ({"diffusion": {"types": ["acrylic"]}}, "diffusion.types ['acrylic']: only test-split materials have that type"),
-])
-def test_keys_that_do_not_go_together_fail_when_the_dag_is_built(tmp_path, extra, says):
-    rc, text = _dry_run(tmp_path, extra, "config/tiny.yaml")
-    assert rc != 0 and "bad config: " in text and says in text, text[-2000:]
     assert not (tmp_path / "results").exists()
 
 
