@@ -354,12 +354,9 @@ MODEL_WEIGHTS = {
 REFERENCE_WEIGHTS = out("samples/reference/weights.npy")
 
 
-def check_cross_keys():
-    """Config values the schema accepts one by one that do not go together, refused before any
-    job runs (each failed in a job: after training, after the NeuMERL fits, or as Snakemake's
-    MissingInputException naming a file, not the key)."""
+def _cross_model(errors):
+    """The denoiser, its sampling and training, and the image encoder."""
     d, enc = config["diffusion"], config["conditions"]["image"]["encoder"]
-    errors = []
     if d["model"]["width"] % d["model"]["heads"]:
         errors.append(f"diffusion.model.width {d['model']['width']} is not a multiple of "
                       f"diffusion.model.heads {d['model']['heads']}")
@@ -369,6 +366,21 @@ def check_cross_keys():
     if enc["crop"] > enc["resolution"]:
         errors.append(f"conditions.image.encoder.crop {enc['crop']} exceeds its resolution "
                       f"{enc['resolution']}")
+    t = d["train"]
+    if t["warmup_steps"] >= t["steps"]:
+        errors.append(f"diffusion.train.warmup_steps {t['warmup_steps']} is not below "
+                      f"diffusion.train.steps {t['steps']}: the learning rate would never reach "
+                      f"diffusion.train.lr nor decay")
+    if t["cond_drop"] == 0 and d["sample"]["guidance"] != 1:
+        errors.append(f"diffusion.train.cond_drop 0 with diffusion.sample.guidance "
+                      f"{d['sample']['guidance']}: guidance needs the null class, which a "
+                      f"cond_drop of 0 leaves untrained; give cond_drop > 0 (e.g. 0.1) or "
+                      f"guidance 1")
+
+
+def _cross_table2(errors):
+    """Table 2's models, the split it scores on, and the sets drawn for it."""
+    d = config["diffusion"]
     models = set(config["metrics"]["models"])
     unknown = sorted((models - set(MODEL_WEIGHTS)) | (models & {"reference_halves"}))
     if unknown:
@@ -419,6 +431,10 @@ def check_cross_keys():
     if d["export_merl"] > sizes["test"] * draws:
         errors.append(f"diffusion.export_merl {d['export_merl']} exceeds the samples a set holds "
                       f"({sizes['test']} test materials x metrics.draws {draws})")
+
+
+def _cross_urls(errors):
+    """Download patterns."""
     for key, section, names, needs in (("merl.url", "merl", ("name",), ("name",)),
                                        ("ubo2014.url", "ubo2014", ("name", "category", "file"),
                                         ("name", "file"))):
@@ -433,20 +449,16 @@ def check_cross_keys():
         if config[section]["source"] == "download" and not fields & set(needs):
             errors.append(f"{key} {pattern!r} has no {' or '.join(f'{{{n}}}' for n in needs)} "
                           f"placeholder: every material would download the same file")
-    t = d["train"]
-    if t["warmup_steps"] >= t["steps"]:
-        errors.append(f"diffusion.train.warmup_steps {t['warmup_steps']} is not below "
-                      f"diffusion.train.steps {t['steps']}: the learning rate would never reach "
-                      f"diffusion.train.lr nor decay")
-    if t["cond_drop"] == 0 and d["sample"]["guidance"] != 1:
-        errors.append(f"diffusion.train.cond_drop 0 with diffusion.sample.guidance "
-                      f"{d['sample']['guidance']}: guidance needs the null class, which a "
-                      f"cond_drop of 0 leaves untrained; give cond_drop > 0 (e.g. 0.1) or "
-                      f"guidance 1")
+
+
+def _cross_bins(errors):
+    """Sample counts against the stored MERL bins: Table 3, the fits, VAE-A."""
+    # augmerl.bins: an integer or "all" valid bins (1,096,216, more than any N)
+    stored = config["augmerl"]["bins"]
+    stored = stored if isinstance(stored, int) else None
     # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
     # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
-    hb, stored = config["hyperbrdf"], config["augmerl"]["bins"]
-    stored = stored if isinstance(stored, int) else None  # "all": 1,096,216, more than any N
+    hb = config["hyperbrdf"]
     if stored is not None and hb["sparse_samples"] > stored:
         errors.append(f"hyperbrdf.sparse_samples {hb['sparse_samples']} exceeds augmerl.bins "
                       f"{stored} (the stored bins of a test material the encoder samples from)")
@@ -457,12 +469,6 @@ def check_cross_keys():
             errors.append(f"hyperbrdf.train.{key} {most} exceeds {limit_key} {limit} (training "
                           f"samples each step's context and query from min(hyperbrdf.train_bins, "
                           f"augmerl.bins) bins per material)")
-    a = config["augmerl"]
-    shown = [a["figure_material"]] if a["figure_material"] else []
-    absent = [n for n in shown + list(a["figure_pair"]) if n not in MERL_NAMES]
-    if absent:
-        errors.append(f"augmerl.figure_material / figure_pair {absent}: not materials of this "
-                      f"run (merl.materials, merl.subset)")
     # the fits' minibatches come from the stored bins less the validation share
     # (fit.split_bins); the C step takes minibatches of whole vectors
     f = config["fit"]
@@ -472,6 +478,22 @@ def check_cross_keys():
     if f["kernel"] == "c" and f["batch"] % 16:  # fit_kernel.VECTOR
         errors.append(f"fit.batch {f['batch']} is not a multiple of 16, which fit.kernel: c "
                       f"needs (auto falls back to torch)")
+    va = config["baselines"]["vae_a"]
+    limit = min(va["bins"], stored) if stored is not None else va["bins"]
+    if va["context"] + va["queries"] > limit:
+        errors.append(f"baselines.vae_a.context {va['context']} + queries {va['queries']} exceed "
+                      f"the {limit} bins VAE-A keeps per material (min of baselines.vae_a.bins "
+                      f"and augmerl.bins); the queries are other bins than the context's")
+
+
+def _cross_figures_constrained_btf(errors):
+    """The AugMERL figure, constrained synthesis and the BTF stage."""
+    a = config["augmerl"]
+    shown = [a["figure_material"]] if a["figure_material"] else []
+    absent = [n for n in shown + list(a["figure_pair"]) if n not in MERL_NAMES]
+    if absent:
+        errors.append(f"augmerl.figure_material / figure_pair {absent}: not materials of this "
+                      f"run (merl.materials, merl.subset)")
     # constrained synthesis: medium-specular is medium_peak <= peak < high_peak, so an
     # inverted pair makes that category unreachable and spends its whole budget
     c = config["constrained"]
@@ -483,12 +505,6 @@ def check_cross_keys():
     if t["medium_peak"] is not None and t["high_peak"] is not None and t["medium_peak"] > t["high_peak"]:
         errors.append(f"constrained.thresholds.medium_peak {t['medium_peak']} exceeds high_peak "
                       f"{t['high_peak']}: no material could be medium-specular")
-    va = config["baselines"]["vae_a"]
-    limit = min(va["bins"], stored) if stored is not None else va["bins"]
-    if va["context"] + va["queries"] > limit:
-        errors.append(f"baselines.vae_a.context {va['context']} + queries {va['queries']} exceed "
-                      f"the {limit} bins VAE-A keeps per material (min of baselines.vae_a.bins "
-                      f"and augmerl.bins); the queries are other bins than the context's")
     if c["per_category"] > c["budget"]:
         errors.append(f"constrained.per_category {c['per_category']} exceeds constrained.budget "
                       f"{c['budget']} (samples drawn per category): no category could complete")
@@ -499,6 +515,17 @@ def check_cross_keys():
     if bp["components"] > bp["fit_texels"]:
         errors.append(f"btf.pca.components {bp['components']} exceeds btf.pca.fit_texels "
                       f"{bp['fit_texels']} (the texels the basis is fitted on)")
+
+
+def check_cross_keys():
+    """Config values the schema accepts one by one that do not go together, refused before any
+    job runs (each failed in a job: after training, after the NeuMERL fits, or as Snakemake's
+    MissingInputException naming a file, not the key). Every clause is collected, then one error
+    names them all."""
+    errors = []
+    for check in (_cross_model, _cross_table2, _cross_urls, _cross_bins,
+                  _cross_figures_constrained_btf):
+        check(errors)
     if errors:
         raise ValueError("bad config: " + "; ".join(errors))
 
