@@ -335,3 +335,13 @@ def test_the_workflow_knows_the_guided_categories():
     smk = (Path(__file__).parents[1] / "workflow/rules/constrained.smk").read_text()
     literal = re.search(r"CON_STEP = .*?\{([^}]*)\}", smk).group(1)
     assert {w.strip(' "') for w in literal.split(",")} == set(GUIDED_CATEGORIES)
+
+
+def test_the_report_states_the_rules_classify_applies_in_its_order():
+    """constrained_section prints C.rules_markdown(): a row per category of RULES, in
+    the order classify checks them (its hand-written copy could drift from the code)."""
+    md = C.rules_markdown()
+    rows = [ln.split(" | ")[0].strip("| ") for ln in md.splitlines()[2:] if ln.startswith("| ")]
+    assert rows == C.ORDER and sorted(rows) == sorted(C.CATEGORIES)
+    assert "| mirror | peak >= mirror_peak and body >= mirror_body |" in md
+    assert md.endswith("physical units).")

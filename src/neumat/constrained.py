@@ -49,8 +49,33 @@ log = logging.getLogger(__name__)
 F_DIFFUSE = 1.0 / np.pi  # eq. 8: a constant BRDF reflecting all incident energy
 CATEGORIES = ["diffuse", "metallic", "low-specular", "medium-specular", "high-specular",
               "plastic", "mirror"]
-ORDER = ["metallic", "diffuse", "mirror", "plastic", "high-specular", "medium-specular",
-         "low-specular"]  # the order rules are checked in (first match wins)
+# The rules in the order they are checked (first that holds wins): each category, the rule as
+# the report states it (constrained_section) and its test on the per-row counts, the features
+# and the thresholds. One table for both, so the report cannot describe other rules than
+# `classify` applies.
+RULES = [
+    ("metallic", "n_above >= n_valid - metallic_exceptions (paper eq. 10)",
+     lambda n_above, n_valid, f, th: n_above >= n_valid - th.metallic_exceptions),
+    ("diffuse", "n_above < e (paper eq. 9)",
+     lambda n_above, n_valid, f, th: n_above < th.e),
+    ("mirror", "peak >= mirror_peak and body >= mirror_body",
+     lambda n_above, n_valid, f, th: (f["peak"] >= th.mirror_peak).to_numpy()
+     & (f["body"] >= th.mirror_body).to_numpy()),
+    ("plastic", "sharpness >= plastic_sharpness",
+     lambda n_above, n_valid, f, th: (f["sharpness"] >= th.plastic_sharpness).to_numpy()),
+    ("high-specular", "peak >= high_peak",
+     lambda n_above, n_valid, f, th: (f["peak"] >= th.high_peak).to_numpy()),
+    ("medium-specular", "peak >= medium_peak",
+     lambda n_above, n_valid, f, th: (f["peak"] >= th.medium_peak).to_numpy()),
+    ("low-specular", "otherwise",
+     lambda n_above, n_valid, f, th: np.ones(len(n_above), bool)),
+]
+ORDER = [cat for cat, _, _ in RULES]
+# what the rules' quantities are (the report prints it under the rules)
+RULE_TERMS = ("n_above = bins of the 90 x 90 x 180 grid with max-channel reflectance > "
+              "f_diffuse = 1/pi; peak = max over channels of the per-channel max; body = max over "
+              "channels of the per-channel mean; sharpness = peak / body (all over the valid "
+              "bins, physical units)")
 STAT_COLUMNS = ["mean_r", "mean_g", "mean_b", "max_r", "max_g", "max_b", "n_above", "n_valid"]
 
 
@@ -238,23 +263,21 @@ class Thresholds:
                              for k, v in asdict(self).items()])
 
 
+def rules_markdown() -> str:
+    """The rules as the report shows them: a table in check order, then what the terms are."""
+    rows = "\n".join(f"| {cat} | {text} |" for cat, text, _ in RULES)
+    return ("| category | rule (first that holds, in this order) |\n| --- | --- |\n" + rows
+            + "\n\n" + RULE_TERMS + ".")
+
+
 def classify(stats: pd.DataFrame, th: Thresholds) -> np.ndarray:
-    """Category of each row of a statistics frame (first rule in ORDER that holds; '' when the
+    """Category of each row of a statistics frame (first rule in RULES that holds; '' when the
     statistics are not finite, e.g. a sample with NaN weights)."""
     f = features(stats)
     n_above, n_valid = _num(stats["n_above"]), _num(stats["n_valid"])
-    tests = {
-        "metallic": n_above >= n_valid - th.metallic_exceptions,
-        "diffuse": n_above < th.e,
-        "mirror": (f["peak"] >= th.mirror_peak).to_numpy() & (f["body"] >= th.mirror_body).to_numpy(),
-        "plastic": (f["sharpness"] >= th.plastic_sharpness).to_numpy(),
-        "high-specular": (f["peak"] >= th.high_peak).to_numpy(),
-        "medium-specular": (f["peak"] >= th.medium_peak).to_numpy(),
-        "low-specular": np.ones(len(stats), bool),
-    }
     out = np.full(len(stats), "", dtype=object)
-    for cat in reversed(ORDER):  # earlier rules overwrite later ones
-        out[tests[cat]] = cat
+    for cat, _, holds in reversed(RULES):  # earlier rules overwrite later ones
+        out[holds(n_above, n_valid, f, th)] = cat
     finite = np.isfinite(stats[STAT_COLUMNS].astype(float).to_numpy()).all(1) & np.isfinite(f["sharpness"].to_numpy())
     out[~finite] = ""
     return out

@@ -11,19 +11,6 @@ from neumat.render import mitsuba_bsdf as mb
 from neumat.render import scenes
 from neumat.render.gallery import gallery
 
-RULES = """| category | rule (first that holds, in this order) |
-| --- | --- |
-| metallic | n_above >= n_valid - metallic_exceptions (paper eq. 10) |
-| diffuse | n_above < e (paper eq. 9) |
-| mirror | peak >= mirror_peak and body >= mirror_body |
-| plastic | sharpness >= plastic_sharpness |
-| high-specular | peak >= high_peak |
-| medium-specular | peak >= medium_peak |
-| low-specular | otherwise |
-
-n_above = bins of the 90 x 90 x 180 grid with max-channel reflectance > f_diffuse = 1/pi;
-peak = max over channels of the per-channel max; body = max over channels of the per-channel
-mean; sharpness = peak / body (all over the valid bins, physical units)."""
 
 with script_logging(snakemake) as log:
     inp, out, p = snakemake.input, snakemake.output, snakemake.params
@@ -71,7 +58,7 @@ with script_logging(snakemake) as log:
         gallery([np.full((32, 32, 3), 255, np.uint8)], ["no category produced"], out.gallery)
         fig = "No category was produced within the budget, so there is no gallery."
 
-    md = ["## Constrained synthesis (M³ashy §4.5, Fig. 6)", RULES,
+    md = ["## Constrained synthesis (M³ashy §4.5, Fig. 6)", constrained.rules_markdown(),
           "Thresholds in use (`constrained/rules.tsv`: derived from the source materials, or "
           "set by config `constrained.thresholds`, as `derived_from` says):",
           report.md_table(rules), "Materials per category:", report.md_table(counts),
