@@ -101,9 +101,11 @@ def draw_from_start(args, run: Run, sampler, fixed: dict, scales: dict, neg: flo
 
     weights, man, rows = training_set(run)
     extra = {}
-    if args.type:  # rows of the type exist: check_trained_type
+    if args.type:
         got = starts.type_picks([args.type], rows, man["type"].iloc[rows].to_numpy(), args.n,
                                 np.random.default_rng(seed_for(args.seed, "cli_type_start")))[0]
+        if (got < 0).any():  # check_trained_type refused it before: a backstop, not a message
+            raise CLIError(f"--type {args.type}: no training material of the run has it")
         cond, guidance = {"type": [args.type] * args.n}, {"type": scales.get("type", 1.0)}
     else:
         from neumat.conditions import evaluate, text
