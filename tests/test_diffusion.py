@@ -656,6 +656,26 @@ def test_keep_look_keeps_the_free_draw_where_the_step_moved_the_render():
         keep_look(stepped, free[:2], 25.0, 16)
 
 
+def test_draw_keeping_look_is_the_step_draw_or_keep_look_of_both_draws():
+    """sample_uncond's and `neumat sample`'s shared draw: without keep look (or without the
+    clamp step) the sampler's draw; with it, keep_look of the stepped and the free draw of the
+    same rows (a later block of rows via `offset` as the same rows of a larger draw)."""
+    from neumat.diffusion.sample import draw_keeping_look, keep_look
+    s = _tiny_sampler()
+    cfg = {"steps": 6, "eta": 0.0, "batch_size": 8, "clip": None, "negative_step": 30.0}
+    w, kept = draw_keeping_look(s, 6, 3, cfg)
+    assert kept is None and np.array_equal(w, s.sample(6, 3, None, 6, 0.0, 1.0, 8, None, 30.0))
+    stepped, free = (s.sample(6, 3, None, 6, 0.0, 1.0, 8, None, st) for st in (30.0, 0.0))
+    w, kept = draw_keeping_look(s, 6, 3, cfg, look=60.0, look_resolution=16)
+    want, want_kept = keep_look(stepped, free, 60.0, 16)
+    assert kept.tolist() == want_kept.tolist() and kept.any() and np.array_equal(w, want)
+    w0, k0 = draw_keeping_look(s, 6, 3, {**cfg, "negative_step": 0.0}, look=60.0,
+                               look_resolution=16)
+    assert k0 is None and np.array_equal(w0, free)
+    tail, _ = draw_keeping_look(s, 2, 3, cfg, offset=4)
+    np.testing.assert_allclose(tail, stepped[4:], rtol=0, atol=1e-5)
+
+
 def test_prior_types_follow_the_training_split_and_untyped_is_the_null_class():
     """diffusion.sample.type_prior: types drawn as `ours` saw them in training (train rows
     only, '' for untyped rows), deterministic per seed; '' samples through the null class."""

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from neumat.diffusion import Sampler, dataset, draws, symmetry
-from neumat.diffusion.sample import keep_look
+from neumat.diffusion.sample import draw_keeping_look
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
 from neumat.seeds import seed_for
@@ -62,15 +62,10 @@ with script_logging(snakemake) as log:
 
         def one_draw(seed):
             t = time.perf_counter()
-
-            def at(step):
-                return sampler.sample(n_ref, seed, prior[seed] if prior else None, s["steps"],
-                                      s["eta"], guidance, s["batch_size"], s["clip"], step,
-                                      p.activation, refit_steps=s["refit_steps"],
-                                      particle_step=s.get("particle_step", 0.0))
-            w, k = at(s["negative_step"]), None
-            if look:  # the same seed without the clamp step, kept where the step moved the look
-                w, k = keep_look(w, at(0.0), look, p.cfg["look_resolution"], p.activation)
+            # look: the same seed without the clamp step, kept where the step moved the look
+            w, k = draw_keeping_look(sampler, n_ref, seed, s, p.activation,
+                                     prior[seed] if prior else None, guidance, look,
+                                     p.cfg.get("look_resolution"))
             if s.get("rgb_permute"):  # neutral false: absent from params
                 w = symmetry.random_channels(w, seed_for(seed, "rgb_permute"))
             # its own sampling time, kept with it: timing.tsv then counts every draw the

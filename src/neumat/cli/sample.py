@@ -249,22 +249,20 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
     # and its particle guidance (diffusion.sample.particle_step), over each batch of --batch
     particles = float(run.setting("diffusion", "sample", "particle_step")) if uncond_ours else 0.0
+    from neumat.diffusion.sample import draw_keeping_look
+    sample_cfg = {"steps": args.steps, "eta": args.eta, "batch_size": args.batch, "clip": args.clip,
+              "negative_step": neg, "refit_steps": refit, "particle_step": particles}
+    look_res = int(run.setting("render", "resolution")) if look else None
     ws, kept = [], []
     with _progress(args.n, "sampling") as bar:
-        for s in range(0, args.n, args.batch):
+        for s in range(0, args.n, args.batch):  # rows s ... s + b - 1: the same at any --batch
             b = min(args.batch, args.n - s)
-
-            def at(step):  # rows s ... s + b - 1 of the draw: the same samples at any --batch
-                return sampler.sample(b, seed_for(args.seed, "cli_sample"),
-                                      types[s:s + b] if types else None, args.steps,
-                                      args.eta, 1.0 if prior else scales.get("type", 1.0), args.batch,
-                                      args.clip, step, args.activation, refit_steps=refit,
-                                      particle_step=particles, offset=s)
-            ws.append(at(neg))
-            if look:
-                from neumat.diffusion.sample import keep_look
-                ws[-1], k = keep_look(ws[-1], at(0.0), look,
-                                      int(run.setting("render", "resolution")), args.activation)
+            w_b, k = draw_keeping_look(sampler, b, seed_for(args.seed, "cli_sample"), sample_cfg,
+                                       args.activation, types[s:s + b] if types else None,
+                                       1.0 if prior else scales.get("type", 1.0), look,
+                                       look_res, offset=s)
+            ws.append(w_b)
+            if k is not None:
                 kept.append(k)
             bar.update(b)
     w = np.concatenate(ws)

@@ -72,6 +72,26 @@ def keep_look(stepped: np.ndarray, free: np.ndarray, db: float, resolution: int,
     return np.where(kept[:, None], free, stepped), kept
 
 
+def draw_keeping_look(sampler, n: int, seed: int, s: dict, activation: str = "relu",
+                      types: list[str] | None = None, guidance: float = 1.0, look: float = 0.0,
+                      look_resolution: int | None = None,
+                      offset: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
+    """(weights, kept or None): n draws of `sampler` (a Sampler, or anything with its `sample`)
+    from `seed`, rows offset ... offset + n - 1, under the diffusion.sample settings `s` (steps,
+    eta, batch_size, clip, negative_step; refit_steps and particle_step 0 where absent). With
+    `look` > 0 and the clamp step on, keep_look: the same rows drawn again without the step,
+    kept where the step moved the metric-view render by more than `look` dB. Shared by rule
+    sample_uncond and `neumat sample`, so the command draws as the workflow does."""
+    def at(step):
+        return sampler.sample(n, seed, types, s["steps"], s["eta"], guidance, s["batch_size"],
+                              s["clip"], step, activation, refit_steps=s.get("refit_steps", 0),
+                              particle_step=s.get("particle_step", 0.0), offset=offset)
+    w = at(s["negative_step"])
+    if not (look and s["negative_step"]):
+        return w, None
+    return keep_look(w, at(0.0), look, look_resolution, activation)
+
+
 def _per_sample(value, n: int, what: str) -> list:
     values = [value] * n if isinstance(value, (str, type(None))) else list(value)
     if len(values) != n:
