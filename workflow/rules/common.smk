@@ -456,8 +456,8 @@ def _cross_bins(errors):
     # augmerl.bins: an integer or "all" valid bins (1,096,216, more than any N)
     stored = config["augmerl"]["bins"]
     stored = stored if isinstance(stored, int) else None
-    # Table 3: samples drawn without replacement from a material's stored bins (augmerl.bins,
-    # an integer or "all" valid bins) and, for training, from the hyperbrdf.train_bins of them
+    # Table 3: samples drawn without replacement from a material's stored bins and, for
+    # training, from the hyperbrdf.train_bins of them
     hb = config["hyperbrdf"]
     if stored is not None and hb["sparse_samples"] > stored:
         errors.append(f"hyperbrdf.sparse_samples {hb['sparse_samples']} exceeds augmerl.bins "

@@ -243,7 +243,7 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
         # types drawn as in training, unguided, as the run's sample_uncond
         from neumat.diffusion import dataset
         man = read_manifest(run, run_file(run, "neumerl/manifest.tsv", "neumerl",
-                                            "diffusion.sample.type_prior"))
+                                          "diffusion.sample.type_prior"))
         types = prior = dataset.prior_types(man, args.n, seed_for(args.seed, "cli_type_prior"))
     # the run's keep look (diffusion.sample.keep_look), as its sample_uncond
     look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
