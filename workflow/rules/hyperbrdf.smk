@@ -6,7 +6,7 @@
 #   (+ neumerl) -> hyperbrdf_table (Table 3 CSV/MD/HTML, report section, figure)
 
 HB = config["hyperbrdf"]
-HB_MODELS = ["merl", "augmerl"]
+HB_TRAINSETS = ["merl", "augmerl"]  # wildcard {trainset}: what a HyperBRDF model trains on
 
 
 rule hyperbrdf_median:
@@ -37,18 +37,18 @@ rule train_hyperbrdf:
         manifest=out("augmerl/manifest.tsv"),
         median=out("hyperbrdf/median.npy"),
     output:
-        model=out("hyperbrdf/{model}/model.pt"),
-        history=out("hyperbrdf/{model}/history.tsv"),
+        model=out("hyperbrdf/{trainset}/model.pt"),
+        history=out("hyperbrdf/{trainset}/history.tsv"),
     params:
         cfg=settings("hyperbrdf", ["model", "train", "train_bins"]),
         seed=seed_for("train_hyperbrdf"),  # the same init for both training sets
-        checkpoint=out("hyperbrdf/{model}/checkpoint.pt"),
+        checkpoint=out("hyperbrdf/{trainset}/checkpoint.pt"),
     wildcard_constraints:
-        model="|".join(HB_MODELS),
+        trainset="|".join(HB_TRAINSETS),
     log:
-        log("train_hyperbrdf/{model}"),
+        log("train_hyperbrdf/{trainset}"),
     benchmark:
-        bench("train_hyperbrdf/{model}")
+        bench("train_hyperbrdf/{trainset}")
     conda:
         CONDA_ENV
     threads: HB["threads"]
@@ -71,7 +71,7 @@ rule train_hyperbrdf:
 
 rule hyperbrdf_eval:
     input:
-        models=expand(out("hyperbrdf/{model}/model.pt"), model=HB_MODELS),
+        models=expand(out("hyperbrdf/{trainset}/model.pt"), trainset=HB_TRAINSETS),
         median=out("hyperbrdf/median.npy"),
         shards=augmerl_shards(),
         manifest=out("augmerl/manifest.tsv"),
@@ -83,7 +83,7 @@ rule hyperbrdf_eval:
         scores=out("hyperbrdf/scores.tsv"),
         renders=out("hyperbrdf/renders.npz"),
     params:
-        models=HB_MODELS,
+        models=HB_TRAINSETS,
         sparse_samples=HB["sparse_samples"],
         resolution=HB["resolution"],
         activation=config["fit"]["activation"],
@@ -107,8 +107,8 @@ rule hyperbrdf_table:
     input:
         scores=out("hyperbrdf/scores.tsv"),
         renders=out("hyperbrdf/renders.npz"),
-        models=expand(out("hyperbrdf/{model}/model.pt"), model=HB_MODELS),
-        histories=expand(out("hyperbrdf/{model}/history.tsv"), model=HB_MODELS),
+        models=expand(out("hyperbrdf/{trainset}/model.pt"), trainset=HB_TRAINSETS),
+        histories=expand(out("hyperbrdf/{trainset}/history.tsv"), trainset=HB_TRAINSETS),
     output:
         csv=out("hyperbrdf/table3.csv"),
         md=out("hyperbrdf/table3.md"),
@@ -118,7 +118,7 @@ rule hyperbrdf_table:
         figure=report(out("report/figures/hyperbrdf_reconstructions.png"),
                       caption="../report/hyperbrdf_reconstructions.rst", category="Table 3"),
     params:
-        models=HB_MODELS,
+        models=HB_TRAINSETS,
         examples=HB["examples"],
         latent=HB["model"]["latent"],
         train={k: HB["train"][k] for k in ("steps", "materials_per_step", "lr")},

@@ -15,7 +15,7 @@ from neumat.seeds import seed_for
 with script_logging(snakemake) as log:
     # config device first: `cuda` without a GPU fails here, not after reading every shard
     dev = str(resolve_device(snakemake.config["device"]))
-    inp, p, model = snakemake.input, snakemake.params, snakemake.wildcards.model
+    inp, p, model = snakemake.input, snakemake.params, snakemake.wildcards.trainset
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     train = man["split"] == "train"
     if model == "merl":
