@@ -4,17 +4,13 @@ type-conditioned samples of the same model, image agreement against retrieval, t
 sweep, and the Mitsuba figures."""
 from pathlib import Path
 
-import matplotlib
+import pandas as pd
+import torch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-import torch  # noqa: E402
-
-from neumat import report  # noqa: E402
-from neumat.io import modelfile  # noqa: E402
-from neumat.logs import script_logging  # noqa: E402
+from neumat import report
+from neumat.conditions.summary import image_means, job_costs, plot_sweep, shares_table
+from neumat.io import modelfile
+from neumat.logs import script_logging
 
 
 def mm_type_text(refined: bool) -> str:
@@ -34,19 +30,9 @@ def guidance_text(scales, refined) -> str:
                      if k in refined else f"{k} {scales[k]}" for k in ("type", "text", "image"))
 
 
-# the TSVs' share columns as the section names them: "type hits 1 | samples with a training
-# type 4" read as 1 of 4 where it means 100 % of 4
-SHARE_COLUMNS = {"type hits": "type-hit share", "colour match": "colour-match share"}
 NO_DATA_NOTE = ("The type-hit and colour-match shares are fractions of the count column next "
                 "to them (1 = all of them); – : nothing to score (a share of zero samples, or a "
                 "measure that does not apply to that row).")
-
-
-def shares_table(df: pd.DataFrame) -> str:
-    """md_table with the share columns named as shares and empty cells (NaN) as '–'."""
-    df = df.rename(columns=SHARE_COLUMNS)
-    return df.astype(object).where(df.notna(), None).to_markdown(
-        index=False, floatfmt=".4g", missingval="–")
 
 
 with script_logging(snakemake) as log:
@@ -70,38 +56,11 @@ with script_logging(snakemake) as log:
     enc_eval = pd.read_csv(inp.encoder_eval, sep="\t")
     enc = torch.load(inp.encoder, map_location="cpu", weights_only=True)
     model = modelfile.load(inp.model)
-    cost = pd.DataFrame([{"job": Path(b).stem, "wall s": pd.read_csv(b, sep="\t")["s"].iloc[0],
-                          "CPU s": pd.read_csv(b, sep="\t")["cpu_time"].iloc[0]}
-                         for b in inp.benchmarks])
-
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
-    # a marker, a dash and a small sideways offset per modality: where two modalities score
-    # alike, one line hid the other (a review saw the type line missing under the text line)
-    styles, span = ("o-", "s--", "^:", "D-."), float(np.ptp(sweep["scale"])) or 1.0
-    for k, (mod, g) in enumerate(sweep.groupby("modality", sort=False)):
-        x = g["scale"] + 0.015 * span * (k - 1)
-        style = dict(fillstyle="none", ms=7 - k, label=mod)
-        axes[0].plot(x, 100 * g["type hits"], styles[k % 4], **style)
-        axes[1].plot(x, g["median BRDF-L1 to nearest training"], styles[k % 4], **style)
-        axes[2].plot(x, 100 * g["share clamping negatives"], styles[k % 4], **style)
-    ref = summary.set_index("set")
-    for ax, col, scale in ((axes[1], "median BRDF-L1 to nearest training", 1),
-                           (axes[2], "share clamping negatives", 100)):
-        row = "reference: real test-split materials" if scale == 1 else "reference: training fits"
-        ax.axhline(scale * ref.loc[row, col], color="k", ls="--", lw=1, label=row.split(": ")[1])
-    axes[0].axhline(90, color="k", ls=":", lw=1, label="goal 90 %")
-    axes[0].set(xlabel="guidance scale", ylabel="type hits (%)")
-    axes[1].set(xlabel="guidance scale", ylabel="median BRDF-L1 to nearest training", yscale="log")
-    axes[2].set(xlabel="guidance scale", ylabel="samples clamping negatives (%)")
-    for ax in axes:
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(out.sweep, dpi=100)
-    plt.close(fig)
+    cost = job_costs(inp.benchmarks)
+    plot_sweep(sweep, summary, out.sweep)
 
     ecfg = enc["cfg"]
-    img_means = img[["psnr_conditioned", "psnr_retrieval", "psnr_unconditional", "ssim_conditioned",
-                     "ssim_retrieval", "ssim_unconditional"]].mean().to_frame("mean").T
+    img_means = image_means(img)
     md = [
         "## Multi-modal conditioning",
         "One diffusion model (`multimodal`: the `diffusion.model/schedule/train` settings) is "

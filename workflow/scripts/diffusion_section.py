@@ -4,23 +4,18 @@ their nearest training materials, type-conditioned gallery and type-match share.
 import json
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+import pandas as pd
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-
-from neumat import report  # noqa: E402
-from neumat.device import resolve_device  # noqa: E402
-from neumat.diffusion import dataset  # noqa: E402
-from neumat.diffusion.constraints import CONSTRAINT_DIRECTIONS  # noqa: E402
-from neumat.diffusion.refit import FLOOR  # noqa: E402
-from neumat.diffusion.model import token_sizes  # noqa: E402
-from neumat.io import modelfile  # noqa: E402
-from neumat.logs import script_logging  # noqa: E402
-from neumat.render import sphere  # noqa: E402
-from neumat.render.gallery import gallery as image_grid  # noqa: E402
+from neumat import report
+from neumat.device import resolve_device
+from neumat.diffusion import dataset, summary
+from neumat.diffusion.constraints import CONSTRAINT_DIRECTIONS
+from neumat.diffusion.refit import FLOOR
+from neumat.diffusion.model import token_sizes
+from neumat.io import modelfile
+from neumat.logs import script_logging
+from neumat.render import sphere
 
 
 def sets_by_name(paths, kind):
@@ -28,7 +23,9 @@ def sets_by_name(paths, kind):
     return {Path(f).parent.name: f for f in paths if Path(f).name == kind}
 
 
-def render(w, p):
+def render(w):
+    """Tonemapped metric-view spheres of weight vectors (NaN weights render as 0)."""
+    p = snakemake.params
     return sphere.tonemap(sphere.render_fields(np.nan_to_num(w), p.resolution, p.activation,
                                                str(resolve_device(snakemake.config["device"]))))
 
@@ -52,17 +49,6 @@ def clamp_note(s: dict) -> str:
                               "(before/after below).")
 
 
-def gallery(samples, near, weights, n, p, path, title):
-    """Top row: samples; bottom row: their nearest training materials (BRDF-L1)."""
-    k = min(n, len(samples))
-    pick = np.linspace(0, len(samples) - 1, k).round().astype(int)
-    rows = near.iloc[pick]
-    top, bottom = render(samples[pick], p), render(weights[rows["nearest_id"].to_numpy()], p)
-    labels = [f"sample {i}" for i in pick] + \
-             [f"{r.nearest_name}\nL1 {r.brdf_l1:.3g}" for r in rows.itertuples()]
-    image_grid(np.concatenate([top, bottom]), labels, path, ncols=k, min_cell=96, title=title)
-
-
 def split_note(token_values: int) -> str:
     """How the tensors are tokenised; diffusion.model.token_values is absent from params at 0
     (a neutral key: config/speed_keys.yaml)."""
@@ -84,51 +70,23 @@ with script_logging(snakemake) as log:
     bundles = {Path(f).parent.name: modelfile.load(f)
                for f in inp.models}
 
-    # loss curves
-    fig, ax = plt.subplots(figsize=(5, 3))
-    for f in inp.histories:
-        h = pd.read_csv(f, sep="\t")
-        ax.plot(h["step"], h["loss"], label=Path(f).parent.name)
-    ax.set(xlabel="step", ylabel="training loss (MSE, normalised)", yscale="log")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out.loss, dpi=100)
-    plt.close(fig)
-
+    summary.plot_losses(inp.histories, out.loss)
     n = cfg["gallery_count"]
-    gallery(samples["ours"], nearest["ours"], weights, n, p, out.gallery,
-            "ours: samples (top) and their nearest training materials (bottom, BRDF-L1)")
-    gallery(samples["merl100"], nearest["merl100"], weights, n, p, out.gallery_merl100,
-            "MERL100: samples (top) and their nearest training materials (bottom, BRDF-L1)")
-
-    # type-conditioned gallery: one row per type, up to 6 samples each
+    summary.nearest_gallery(samples["ours"], nearest["ours"], weights, n, render, out.gallery,
+                            "ours: samples (top) and their nearest training materials (bottom, "
+                            "BRDF-L1)")
+    summary.nearest_gallery(samples["merl100"], nearest["merl100"], weights, n, render,
+                            out.gallery_merl100, "MERL100: samples (top) and their nearest "
+                            "training materials (bottom, BRDF-L1)")
     nt = nearest["ours_type"]
-    shown = list(dict.fromkeys(nt["type"]))[:cfg["gallery_types"]]
-    per_row = min(cfg["per_type"], 6)
-    pick = np.concatenate([np.flatnonzero(nt["type"] == t)[:per_row] for t in shown])
-    labels = [f"{r.type}\n(nn: {r.nearest_typed_type})" for r in nt.iloc[pick].itertuples()]
-    image_grid(render(samples["ours_type"][pick], p), labels, out.types, ncols=per_row, min_cell=96,
-               title="type-conditioned samples (label: requested type, and the type "
-                     "of the nearest typed training material)")
+    summary.type_gallery(samples["ours_type"], nt, cfg["gallery_types"], cfg["per_type"], render,
+                         out.types)
 
-    # numbers
-    match = (nt["type"] == nt["nearest_typed_type"])
-    ref = nearest["reference"]
-    ref_match = (ref["type"] == ref["nearest_typed_type"])[ref["type"] != ""]
-    train_types = set(man.loc[man["split"] == "train", "type"]) - {""}
-    ref_known = ref.loc[ref["type"] != "", "type"].isin(train_types)  # index as ref_match
-    per_type = nt.assign(match=match).groupby("type")["match"].mean().mul(100).rename("match %")
-    novelty = pd.DataFrame([{"set": k, "median BRDF-L1 to nearest training": v["brdf_l1"].median(),
-                             "share closer than 10 % of the reference median":
-                                 (v["brdf_l1"] < 0.1 * ref["brdf_l1"].median()).mean()}
-                            for k, v in nearest.items()])
-    train_rows = pd.DataFrame([{
-        "model": k, "training materials": b["n_train"], "steps": b["train_cfg"]["steps"],
-        "batch": b["train_cfg"]["batch_size"], "train wall time (s)": b["train_seconds"],
-        "final loss": b["history"][-1][1]} for k, b in bundles.items()])
-    speed = pd.DataFrame([{"set": k, "samples": int(t["samples"]), "seconds": t["seconds"],
-                           "samples / s": t["samples_per_second"], "guidance": t["guidance"]}
-                          for k, t in timing.items()])
+    tm = summary.type_match(nt, nearest["reference"], man)
+    match, ref_match, ref_known = tm.hits, tm.ref_hits, tm.ref_known
+    novelty = summary.novelty(nearest)
+    train_rows = summary.training_table(bundles)
+    speed = summary.speed_table(timing)
     plaus = pd.read_csv(inp.plausibility, sep="\t")
     mitsuba = json.loads(Path(inp.mitsuba).read_text())
     m, s = cfg["model"], cfg["schedule"]
@@ -181,7 +139,7 @@ with script_logging(snakemake) as log:
         f"typed training material often has another type even where training has its type.",
         "![type-conditioned samples, Mitsuba](figures/diffusion_mitsuba_types.png)",
         "![type-conditioned samples](figures/diffusion_types.png)",
-        report.md_table(per_type.reset_index()),
+        report.md_table(tm.per_type.reset_index()),
     ]
     Path(out.section).write_text("\n\n".join(md) + "\n")
     log.info("type match %.1f %% (reference %.1f %%)", 100 * match.mean(), 100 * ref_match.mean())
