@@ -3,7 +3,9 @@ files with known answers."""
 
 import math
 
+import numpy as np
 import pandas as pd
+import pytest
 from PIL import Image
 
 from neumat.conditions import summary
@@ -47,6 +49,11 @@ def test_plot_sweep_draws_every_modality(tmp_path):
     ref = pd.DataFrame({"set": [summary.REAL_TEST, summary.TRAINING_FITS],
                         "median BRDF-L1 to nearest training": [0.3, 0.0],
                         "share clamping negatives": [0.0, 0.2]})
-    path = tmp_path / "sweep.png"
+    path, one = tmp_path / "sweep.png", tmp_path / "one.png"
     summary.plot_sweep(sweep, ref, path)
     assert Image.open(path).size == (1100, 320)
+    # the text line is drawn: without it the figure differs
+    summary.plot_sweep(sweep[sweep["modality"] == "type"], ref, one)
+    assert np.asarray(Image.open(path)).tobytes() != np.asarray(Image.open(one)).tobytes()
+    with pytest.raises(KeyError):  # a summary without the yardstick rows
+        summary.plot_sweep(sweep, ref.iloc[:1], tmp_path / "none.png")

@@ -17,7 +17,8 @@ def _near(l1, types=None, nearest_types=None, ids=None):
 
 
 def test_novelty_is_the_median_distance_and_the_share_of_near_copies():
-    t = summary.novelty({"reference": _near([1.0, 2, 3, 4, 5]), "ours": _near([0.1, 0.2, 0.5, 2.0])})
+    t = summary.novelty({"reference": _near([1.0, 2, 3, 4, 5]),
+                         "ours": _near([0.1, 0.2, 0.5, 2.0])})
     got = t.set_index("set")
     assert got.loc["reference", summary.NOVELTY] == 3.0
     assert got.loc["ours", summary.NOVELTY] == 0.35
@@ -44,7 +45,8 @@ def test_training_and_speed_tables_take_what_the_files_hold():
     t = summary.training_table({"ours": b})
     assert t.to_dict("records") == [{"model": "ours", "training materials": 80, "steps": 500,
                                      "batch": 32, "train wall time (s)": 12.5, "final loss": 0.25}]
-    timing = pd.Series({"samples": 64.0, "seconds": 2.0, "samples_per_second": 32.0, "guidance": 1.0})
+    timing = pd.Series({"samples": 64.0, "seconds": 2.0, "samples_per_second": 32.0,
+                        "guidance": 1.0})
     s = summary.speed_table({"ours": timing})
     assert s.to_dict("records") == [{"set": "ours", "samples": 64, "seconds": 2.0,
                                      "samples / s": 32.0, "guidance": 1.0}]
@@ -72,6 +74,20 @@ def test_nearest_gallery_renders_the_picked_samples_over_their_nearest_materials
     summary.nearest_gallery(samples, near, weights, 3, _fake_render(calls), path, "t")
     assert [c[:, 0].tolist() for c in calls] == [[0, 2, 4], [109, 107, 105]]
     assert Image.open(path).size[0] > 0
+
+
+def test_nearest_gallery_labels_samples_and_their_neighbours(monkeypatch):
+    grids = []
+    monkeypatch.setattr(summary, "image_grid",
+                        lambda imgs, labels, path, **kw: grids.append((len(imgs), labels, kw)))
+    samples = np.zeros((4, 2), np.float32)
+    near = _near([0.5, 0.25, 0.125, 1.0], ids=[3, 2, 1, 0])
+    summary.nearest_gallery(samples, near, np.zeros((4, 2), np.float32), 9,
+                            _fake_render([]), "unused.png", "t")
+    n, labels, kw = grids[0]
+    assert n == 8 and kw["ncols"] == 4 and kw["title"] == "t"
+    assert labels == ["sample 0", "sample 1", "sample 2", "sample 3",
+                      "m3\nL1 0.5", "m2\nL1 0.25", "m1\nL1 0.125", "m0\nL1 1"]
 
 
 def test_type_gallery_shows_each_asked_type_in_order_at_most_six_a_row(tmp_path):

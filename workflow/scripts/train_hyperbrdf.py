@@ -15,14 +15,14 @@ from neumat.seeds import seed_for
 with script_logging(snakemake) as log:
     # config device first: `cuda` without a GPU fails here, not after reading every shard
     dev = str(resolve_device(snakemake.config["device"]))
-    inp, p, model = snakemake.input, snakemake.params, snakemake.wildcards.trainset
+    inp, p, trainset = snakemake.input, snakemake.params, snakemake.wildcards.trainset
     man = pd.read_csv(inp.manifest, sep="\t", keep_default_na=False)
     train = man["split"] == "train"
-    if model == "merl":
+    if trainset == "merl":
         train &= man["operation"] == "original"
     ids = set(man.loc[train, "id"].tolist())
     if not ids:
-        raise ValueError(f"{inp.manifest}: no training materials for model {model!r}")
+        raise ValueError(f"{inp.manifest}: no training materials for training set {trainset!r}")
     values, keep, bins, bins_key = [], None, None, "hyperbrdf.train_bins"
     for path in inp.shards:
         sh = augment.load_shard(path)
@@ -39,7 +39,7 @@ with script_logging(snakemake) as log:
         values.append(sh["values"][rows][:, :, keep])
     values = np.concatenate(values)
     median = np.load(inp.median)[bins]
-    log.info("model %s: %d training materials x %d bins", model, len(values), len(bins))
+    log.info("training set %s: %d training materials x %d bins", trainset, len(values), len(bins))
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     ckpt = snakemake.config["hyperbrdf"]["train"]["checkpoint_every"]  # speed-only: not a param
     bundle = hb.train(values, bins, median, hb.HyperConfig(**p.cfg["model"]),
@@ -48,5 +48,5 @@ with script_logging(snakemake) as log:
     pd.DataFrame(bundle["history"], columns=hb.HISTORY_COLUMNS).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)
-    log.info("trained %s in %.1f s (final loss %.4g)", model, bundle["train_seconds"],
+    log.info("trained %s in %.1f s (final loss %.4g)", trainset, bundle["train_seconds"],
              bundle["history"][-1][1])

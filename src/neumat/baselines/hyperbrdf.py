@@ -346,7 +346,7 @@ def load(bundle, device: str = "cpu") -> HyperBRDF:
     source = bundle if not isinstance(bundle, dict) else "the HyperBRDF bundle"
     if not isinstance(bundle, dict):
         bundle = modelfile.load(bundle, finite=True)
-    rule = "train_hyperbrdf (hyperbrdf/<variant>/model.pt)"
+    rule = "train_hyperbrdf (hyperbrdf/<trainset>/model.pt)"
     modelfile.require(bundle, ("model_cfg", "state"), source, f"a HyperBRDF model (rule {rule})")
     model = modelfile.build(lambda: HyperBRDF(HyperConfig(**bundle["model_cfg"])),
                             bundle["state"], source, rule)
