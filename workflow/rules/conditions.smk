@@ -31,7 +31,7 @@ COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 # the sampling params every conditioned sampler shares: diffusion.sample's settings without
 # its guidance (each sampler takes its own scale of conditions.guidance: cond_guidance)
 COND_SAMPLING = dict(
-    sample=settings("diffusion.sample", drop=["guidance", "batch_size", *OURS_UNCOND_ONLY]),  # conditioned
+    sample=settings("diffusion.sample", drop=["guidance", *NOT_OF_OTHER_DRAWS]),  # conditioned
     per_prompt=COND["per_condition"],
 )
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
@@ -413,7 +413,7 @@ rule guidance_sweep:
         out("conditions/guidance_sweep.tsv"),
     params:
         **named(dict(
-            sample=settings("diffusion.sample", drop=["guidance", "batch_size", *OURS_UNCOND_ONLY]),  # conditions.guidance instead
+            sample=settings("diffusion.sample", drop=["guidance", *NOT_OF_OTHER_DRAWS]),  # conditions.guidance instead
             scales=COND["sweep"]["scales"],
             per_prompt=COND["sweep"]["per_condition"],
             bins=DIFF["nn_bins"],

@@ -85,7 +85,7 @@ rule sample_constrained:
                                      "thresholds"]),
         # its draws keep their channel order
         sample=settings("diffusion.sample",
-                        drop=OURS_UNCOND_ONLY + ["batch_size"] + ([] if CON_GUIDE else ["guidance"])),
+                        drop=NOT_OF_OTHER_DRAWS + ([] if CON_GUIDE else ["guidance"])),
         seed=seed_for("sample_constrained"),
         bins_seed=seed_for("constrained_bins"),  # constrained_classify's bins
         activation=config["fit"]["activation"],

@@ -23,6 +23,9 @@ OURS_UNCOND_ONLY = ["rgb_permute", "type_prior", "keep_look", "particle_step"]
 # the config. Particle guidance repels the samples of one batch, so it is a param of the draws
 # that use it (`ours`' unconditional ones and ours_plain) while particle_step > 0.
 BATCH_UNLESS_PARTICLES = [] if DIFF["sample"]["particle_step"] else ["batch_size"]
+# diffusion.sample keys that no other draw depends on: merl100's, the type-conditioned, the
+# multimodal and the constrained ones
+NOT_OF_OTHER_DRAWS = [*OURS_UNCOND_ONLY, "batch_size"]
 # Sets under samples/: the models' samples, the Table 2 'Training set' subset, and the test
 # split ('reference', for the distance of unseen real materials to their nearest training one).
 # With the clamp constraint or the clamp refit on (diffusion.sample.negative_step,
@@ -76,7 +79,7 @@ rule sample_uncond:
         # keep_look compares metric-view renders: their size, only where it is on; it acts
         # only with the clamp step (negative_step), so without it keep_look is no param either
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (
-            BATCH_UNLESS_PARTICLES if wc.model == "ours" else OURS_UNCOND_ONLY + ["batch_size"]) + (
+            BATCH_UNLESS_PARTICLES if wc.model == "ours" else NOT_OF_OTHER_DRAWS) + (
             [] if DIFF["sample"]["negative_step"] else ["keep_look"])),
             **({"look_resolution": config["render"]["resolution"]} if wc.model == "ours"
                and DIFF["sample"]["keep_look"] and DIFF["sample"]["negative_step"] else {})},
@@ -140,7 +143,7 @@ rule sample_type:
     params:
         cfg=canon({**settings("diffusion", ["types", "per_type"]),  # conditioned: no rgb_permute
                    "sample": settings("diffusion.sample",
-                                      drop=OURS_UNCOND_ONLY + ["batch_size"])}),
+                                      drop=NOT_OF_OTHER_DRAWS)}),
         mode="type",
         seed=seed_for("sample_type"),
         activation=DIFF_ACTIVATION,
