@@ -62,7 +62,7 @@ TOGETHER = [
     # the learning rate never reached diffusion.train.lr nor decayed; an untrained null class
     ({"diffusion": {"train": {"warmup_steps": 200}}},
      "diffusion.train.warmup_steps 200 is not below diffusion.train.steps 200"),
-    ({"diffusion": {"train": {"cond_drop": 0.0}}},
+    ({"diffusion": {"train": {"cond_drop": 0.0}, "sample": {"guidance": 2.0}}},
      "diffusion.train.cond_drop 0 with diffusion.sample.guidance 2.0: guidance needs the null "
      "class"),
 ]

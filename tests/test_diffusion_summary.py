@@ -8,20 +8,24 @@ from PIL import Image
 from neumat.diffusion import summary
 
 
-def _near(l1, types=None, nearest_types=None, ids=None):
+def _near(l1, types=None, nearest_types=None, ids=None, relative=None):
     n = len(l1)
-    return pd.DataFrame({"brdf_l1": l1, "type": types or [""] * n,
+    return pd.DataFrame({"brdf_l1": l1, "relative_l1": relative or [0.0] * n,
+                         "type": types or [""] * n,
                          "nearest_typed_type": nearest_types or [""] * n,
                          "nearest_id": ids or list(range(n)),
                          "nearest_name": [f"m{i}" for i in (ids or range(n))]})
 
 
 def test_novelty_is_the_median_distance_and_the_share_of_near_copies():
-    t = summary.novelty({"reference": _near([1.0, 2, 3, 4, 5]),
-                         "ours": _near([0.1, 0.2, 0.5, 2.0])})
+    t = summary.novelty({"reference": _near([1.0, 2, 3, 4, 5], relative=[0.5, 0.1, 0.2, 0.3, 0.4]),
+                         "ours": _near([0.1, 0.2, 0.5, 2.0], relative=[0.4, 0.1, 0.2, 0.3])})
     got = t.set_index("set")
     assert got.loc["reference", summary.NOVELTY] == 3.0
     assert got.loc["ours", summary.NOVELTY] == 0.35
+    # the relative distance's own median, not the absolute one's row
+    assert got.loc["reference", summary.RELATIVE] == 0.3
+    assert got.loc["ours", summary.RELATIVE] == 0.25
     # near-copy: closer than a tenth of the reference median, 0.3
     assert got.loc["ours", "share closer than 10 % of the reference median"] == 0.5
     assert got.loc["reference", "share closer than 10 % of the reference median"] == 0.0

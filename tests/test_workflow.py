@@ -174,6 +174,13 @@ def test_tiny_config_runs_every_stage(tiny_run):
     plain = pd.read_csv(res / "samples/ours_plain/timing.tsv", sep="\t").iloc[0]
     assert plain["refit_steps"] == 0 and plain["negative_step"] == 0
     assert "Clamp-aware refit" in (res / "report/sections/40_diffusion.md").read_text()
+    # novelty relative to the nearest's mean value: one scale per nearest training material
+    near = pd.concat([pd.read_csv(res / f"samples/{s}/nearest.tsv", sep="\t")
+                      for s in ("reference", "ours", "ours_type")])
+    near = near[near["brdf_l1"] > 1e-3]
+    scale = (near["brdf_l1"] / near["relative_l1"]).groupby(near["nearest_id"])
+    assert near["nearest_id"].duplicated().any() and (scale.max() / scale.min() < 1 + 1e-4).all()
+    assert "relative to the nearest's mean value" in (res / "report/sections/40_diffusion.md").read_text()
     # finished: no draw kept for a resume, no training checkpoint left beside its model
     assert not list(res.rglob("draws.partial")), list(res.rglob("draws.partial"))
     assert not list((res / "baselines").rglob("checkpoint.pt"))

@@ -1,5 +1,7 @@
 """Nearest training material (BRDF-L1 over a fixed sample of MERL bins) of every material of
-each sample set: novelty (distance to the nearest of all training materials) and type match
+each sample set: novelty (distance to the nearest of all training materials; `relative_l1`: that
+distance over the nearest's mean value on the same bins, as a specular material's values run
+tens of times a diffuse one's) and type match
 (the nearest *typed* training material - interpolations carry no type - against the requested
 type; for the reference set, the material's own type)."""
 import numpy as np
@@ -19,6 +21,7 @@ with script_logging(snakemake) as log:
     fv = lambda w: distances.field_values(np.nan_to_num(w), bins, p.activation)  # noqa: E731
     f_train = fv(weights[train])
     f_typed = f_train[np.searchsorted(train, typed)]
+    train_mean = f_train.abs().mean(1).numpy()  # each training material's mean value
     for samples_path, table_path, out_path in zip(inp.samples, inp.tables, snakemake.output):
         samples = np.load(samples_path)
         info = pd.read_csv(table_path, sep="\t", keep_default_na=False, dtype=str)
@@ -31,6 +34,7 @@ with script_logging(snakemake) as log:
             "type": info["type"] if "type" in info else "",
             "nearest_id": near["id"].to_numpy(), "nearest_name": near["name"].to_numpy(),
             "brdf_l1": dist,
+            "relative_l1": dist / np.maximum(train_mean[idx], 1e-12),
             "nearest_typed_name": tnear["name"].to_numpy() if tnear is not None else "",
             "nearest_typed_type": tnear["type"].to_numpy() if tnear is not None else "",
             "typed_brdf_l1": tdist,

@@ -118,6 +118,11 @@ with script_logging(snakemake) as log:
         "test split (real materials never seen in training): samples much closer than that are "
         "near-copies." + report.nn_bins_note("the diffusion section"),
         report.md_table(novelty),
+        "The BRDF-L1 is absolute, and a specular material's values run tens of times a diffuse "
+        f"one's, so a set's median depends on its mix: `ours_type` holds {cfg['per_type']} "
+        "samples of every type asked, the specular ones included, where the test split is "
+        "mostly interpolations. The relative column divides each distance by the nearest "
+        "training material's mean value on the same bins: it compares sets of other mixes.",
         "### Unconditional samples",
         f"Mitsuba 3 ({mitsuba['variant']}, {mitsuba['resolution']} px, {mitsuba['spp']} spp, "
         f"{mitsuba['images']} images in {mitsuba['seconds']:.0f} s): samples of `ours` (top) and "

@@ -16,14 +16,18 @@ import pandas as pd
 from neumat.render.gallery import gallery as image_grid
 
 NOVELTY = "median BRDF-L1 to nearest training"
+RELATIVE = "median, relative to the nearest's mean value"
 
 
 def novelty(nearest: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """Per sample set (`nearest.tsv` tables, `reference` among them: the test split): the median
-    BRDF-L1 to the nearest training material, and the share of its materials closer than a
-    tenth of the reference's median (near-copies)."""
+    BRDF-L1 to the nearest training material, the median of that distance relative to the
+    nearest's mean value (`relative_l1`: comparable between sets of other mixes of diffuse and
+    specular materials), and the share of its materials closer than a tenth of the reference's
+    median (near-copies)."""
     near_copy = 0.1 * nearest["reference"]["brdf_l1"].median()
     return pd.DataFrame([{"set": k, NOVELTY: v["brdf_l1"].median(),
+                          RELATIVE: v["relative_l1"].median(),
                           "share closer than 10 % of the reference median":
                               (v["brdf_l1"] < near_copy).mean()}
                          for k, v in nearest.items()])
