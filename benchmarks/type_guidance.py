@@ -11,8 +11,9 @@ the model per step; other scales take two). Prints the ISA and the CPU model.
 
 Draw 1 is the run's own (seed stream `sample_type`): at the scale its samples/ours_type/timing.tsv
 records, it must equal the run's samples/ours_type/weights.npy (checked). Draw k > 1 comes from
-stream `sample_type`/check<k>. Settings (DDIM steps, eta, clamp step, per_type, nn_bins) are the
-run's recorded config (report/index.md), else the schema's defaults; one torch thread.
+stream `sample_type`/check<k>. Settings (the types, per_type, DDIM steps, eta, clamp step and
+refit, nn_bins) are the run's recorded config (report/index.md), else the schema's defaults; on
+the CPU, one torch thread (the check assumes the run sampled on the CPU too).
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def main():
     print(f"machine: {machine.describe()}; torch threads 1")
     setting = cli.Run(a.run).setting
     s = {k: setting("diffusion", "sample", k) for k in ("steps", "eta", "batch_size", "clip",
-                                                        "negative_step")}
+                                                        "negative_step", "refit_steps")}
     activation = setting("fit", "activation")
     weights = np.load(a.run / "neumerl/weights.npy")
     man = dataset.read_manifest(a.run / "neumerl/manifest.tsv", len(weights))
@@ -59,7 +60,7 @@ def main():
     f_train = fv(weights[train])
     train_mean = f_train.abs().mean(1).numpy()
     f_typed = f_train[np.searchsorted(train, typed)]
-    types = sorted(dataset.training_types(man))
+    types = setting("diffusion", "types") or sorted(dataset.training_types(man))  # as sample_type
     asked = np.array([t for t in types for _ in range(setting("diffusion", "per_type"))])
 
     ref = dataset.reference_rows(man)
@@ -70,18 +71,20 @@ def main():
     run_w = np.load(a.run / "samples/ours_type/weights.npy")
     run_scale = float(pd.read_csv(a.run / "samples/ours_type/timing.tsv", sep="\t")["guidance"][0])
     base = setting("seed")
-    times = {}
+    sampler = Sampler(a.run / "diffusion/ours/model.pt", "cpu")  # loaded once, outside the timer
+    times, checked = {}, False
     for g in a.scales:
         for k in range(1, a.draws + 1):
             seed = seed_for(base, "sample_type") if k == 1 else seed_for(base, "sample_type",
                                                                          f"check{k}")
             t = time.perf_counter()
-            w = Sampler(a.run / "diffusion/ours/model.pt", "cpu").sample(
-                len(asked), seed, list(asked), s["steps"], s["eta"], g, s["batch_size"],
-                s["clip"], s["negative_step"], activation)
+            w = sampler.sample(len(asked), seed, list(asked), s["steps"], s["eta"], g,
+                               s["batch_size"], s["clip"], s["negative_step"], activation,
+                               refit_steps=s["refit_steps"])
             times.setdefault(g, []).append(time.perf_counter() - t)
             if k == 1 and g == run_scale:
                 assert np.array_equal(w, run_w), "draw 1 differs from the run's ours_type"
+                checked = True
             f = fv(w)
             _, d, rel = nearest(f, f_train, train_mean)
             tidx, _ = dataset.nearest(f, f_typed)
@@ -90,12 +93,14 @@ def main():
                          "type hits %": 100 * hits.mean(), "median BRDF-L1": np.median(d),
                          "median relative": np.median(rel),
                          "relative p90": np.percentile(rel, 90), "time ratio": None})
-    t1 = np.mean(times.get(1.0, [np.nan]))
+    base_scale = 1.0 if 1.0 in times else a.scales[0]  # the baseline: scale 1, one pass a step
     for r in rows[1:]:
-        r["time ratio"] = np.mean(times[r["scale"]]) / t1
+        r["time ratio"] = np.mean(times[r["scale"]]) / np.mean(times[base_scale])
     print(f"{len(asked)} samples per draw ({len(types)} types x "
           f"{setting('diffusion', 'per_type')}), {s['steps']} DDIM steps, clamp step "
-          f"{s['negative_step']:g}; run {a.run} (its ours_type at scale {run_scale:g})")
+          f"{s['negative_step']:g}; run {a.run} (its ours_type at scale {run_scale:g}: "
+          f"{'draw 1 equal to it' if checked else 'not among --scales, unchecked'}); "
+          f"time ratio to scale {base_scale:g}")
     print(pd.DataFrame(rows).to_string(index=False, float_format=lambda v: f"{v:.3f}"))
 
 

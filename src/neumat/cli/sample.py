@@ -122,7 +122,7 @@ class Composed:
         self.class_names = sampler.class_names
 
     def sample(self, n: int, seed: int, types: list[str] | None = None, steps: int = 100,
-               eta: float = 0.0, guidance: float = 2.0, batch_size: int = 256,
+               eta: float = 0.0, guidance: float = 1.0, batch_size: int = 256,
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
                category_step: float = 0.0, refit_steps: int = 0,
