@@ -3,6 +3,7 @@ with known answers."""
 
 import numpy as np
 import pandas as pd
+import pytest
 from PIL import Image
 
 from neumat.diffusion import summary
@@ -32,12 +33,13 @@ def test_novelty_is_the_median_distance_and_the_share_of_near_copies():
 
 
 def test_type_match_counts_hits_per_type_and_the_test_split_yardstick():
-    typed = _near([0.1] * 3, ["a", "a", "b"], ["a", "b", "b"])
+    typed = _near([0.1] * 3, ["a", "a", "b"], ["a", "b", "b"], relative=[0.2, 0.4, 0.5])
     ref = _near([0.1] * 4, ["a", "", "c", "b"], ["b", "a", "c", "b"])
     man = pd.DataFrame({"split": ["train", "train", "train", "test"], "type": ["a", "b", "", "c"]})
     tm = summary.type_match(typed, ref, man)
     assert tm.hits.tolist() == [True, False, True]
-    assert tm.per_type.to_dict() == {"a": 50.0, "b": 100.0}
+    assert tm.per_type["match %"].to_dict() == {"a": 50.0, "b": 100.0}
+    assert tm.per_type[summary.RELATIVE].to_dict() == pytest.approx({"a": 0.3, "b": 0.5})
     # the untyped reference is left out; "c" is a type no training material has
     assert tm.ref_hits.index.tolist() == [0, 2, 3] and tm.ref_hits.tolist() == [False, True, True]
     assert tm.ref_known.index.tolist() == [0, 2, 3] and tm.ref_known.tolist() == [True, False, True]

@@ -37,7 +37,7 @@ def novelty(nearest: dict[str, pd.DataFrame]) -> pd.DataFrame:
 class TypeMatch:
     """Type hits of type-conditioned samples, and the same measure for the test split."""
     hits: pd.Series       # per sample: its nearest typed training material has the asked type
-    per_type: pd.Series   # "match %" per asked type
+    per_type: pd.DataFrame  # per asked type: "match %" and the median relative distance
     ref_hits: pd.Series   # per typed test material: the same for its own type
     ref_known: pd.Series  # per typed test material (index as ref_hits): training has its type
 
@@ -50,7 +50,9 @@ def type_match(typed: pd.DataFrame, reference: pd.DataFrame, manifest: pd.DataFr
     ref_hits = (reference["type"] == reference["nearest_typed_type"])[reference["type"] != ""]
     train_types = set(manifest.loc[manifest["split"] == "train", "type"]) - {""}
     ref_known = reference.loc[reference["type"] != "", "type"].isin(train_types)
-    per_type = typed.assign(match=hits).groupby("type")["match"].mean().mul(100).rename("match %")
+    by_type = typed.assign(match=hits).groupby("type")
+    per_type = pd.DataFrame({"match %": by_type["match"].mean().mul(100),
+                             RELATIVE: by_type["relative_l1"].median()})
     return TypeMatch(hits, per_type, ref_hits, ref_known)
 
 
