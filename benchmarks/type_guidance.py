@@ -35,7 +35,7 @@ from neumat.seeds import seed_for
 def nearest(f, f_train, train_mean):
     """(index, BRDF-L1, BRDF-L1 over the nearest's mean value) of each row's nearest row."""
     idx, dist = dataset.nearest(f, f_train)
-    return idx, dist, dist / np.maximum(train_mean[idx], 1e-12)
+    return idx, dist, dataset.relative(dist, idx, train_mean)
 
 
 def main():

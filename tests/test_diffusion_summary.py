@@ -104,3 +104,9 @@ def test_type_gallery_shows_each_asked_type_in_order_at_most_six_a_row(tmp_path)
     summary.type_gallery(samples, typed, 2, 9, _fake_render(calls), tmp_path / "t.png")
     # the first two types asked (b, then a); b's first six samples, then a's two
     assert calls[0][:, 0].tolist() == [0, 1, 2, 3, 4, 5, 8, 9]
+
+
+def test_relative_distance_divides_by_the_nearest_rows_mean():
+    from neumat.diffusion import dataset
+    got = dataset.relative(np.array([1.0, 4.0, 3.0]), np.array([1, 0, 1]), np.array([2.0, 0.5]))
+    assert got.tolist() == [2.0, 2.0, 6.0]

@@ -34,7 +34,7 @@ with script_logging(snakemake) as log:
             "type": info["type"] if "type" in info else "",
             "nearest_id": near["id"].to_numpy(), "nearest_name": near["name"].to_numpy(),
             "brdf_l1": dist,
-            "relative_l1": dist / np.maximum(train_mean[idx], 1e-12),
+            "relative_l1": dataset.relative(dist, idx, train_mean),
             "nearest_typed_name": tnear["name"].to_numpy() if tnear is not None else "",
             "nearest_typed_type": tnear["type"].to_numpy() if tnear is not None else "",
             "typed_brdf_l1": tdist,

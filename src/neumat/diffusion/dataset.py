@@ -112,6 +112,13 @@ def nearest(a: torch.Tensor, b: torch.Tensor, chunk: int = 256) -> tuple[np.ndar
     return np.concatenate(idx), np.concatenate(dist)
 
 
+def relative(dist: np.ndarray, idx: np.ndarray, b_mean: np.ndarray) -> np.ndarray:
+    """`nearest`'s distances over the nearest rows' mean absolute values `b_mean` (each row of b,
+    `b.abs().mean(1)`): a specular material's values run tens of times a diffuse one's, so only
+    this compares sets of other mixes (nearest.tsv `relative_l1`)."""
+    return dist / np.maximum(b_mean[idx], 1e-12)
+
+
 def same_source(sources) -> np.ndarray:
     """(N, N) bool: rows i, j share a MERL source material (manifest `sources`: 'name' for an
     original or its permuted copy, 'a@rgb|b@gbr' for a mixture), the diagonal included."""
