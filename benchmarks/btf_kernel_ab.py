@@ -15,6 +15,14 @@ hits one round of every build rather than every round of one.
     OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py --rev HEAD~1 [--march x86-64-v3]
                                                         [--methods hpb hextile] [--repeat 9]
                                                         [--coherent] [--tap-prefetch both]
+                                                        [--processes 5] [--control]
+
+--processes N repeats the whole comparison in N fresh processes and reports the medians, with the
+[min, max] between processes: a process's allocations, stack and libraries' addresses move its
+figures by more than its rounds do, so one process's best-of is not the build's figure (identical
+code in two libraries differed by up to 16.5 CPU-ms a frame, 7 %, in one process; docs/stages.md).
+--control adds a build of the working tree's own code as a library of its own; its row against
+the working tree's is the noise floor a change must clear.
 
 --tap-prefetch both times every build twice, with HPB's and hex-tiling's tap prefetch on and
 off (NEUMAT_TAP_PREFETCH, `neumat.btf.query.tap_prefetch`); the default, auto, leaves it to
@@ -24,7 +32,9 @@ this machine's choice.
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -43,6 +53,7 @@ from neumat.btf import models, query  # noqa: E402
 
 CHUNK = 259200  # as btf_synthesis.py on the CPU
 KERNEL = "src/neumat/btf/query_kernel.c"
+JSON_TAG = "btf_kernel_ab result: "
 
 
 def kernel_source(ref: str, tmp: Path) -> Path:
@@ -73,24 +84,16 @@ def build(source: Path, march: str):
     return lib
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--rev", nargs="+", default=["HEAD"],
-                    help="git revisions (or C files) of query_kernel.c to compare with the "
-                         "working tree's (default: HEAD)")
-    ap.add_argument("--methods", nargs="+", default=["hpb", "hextile"], choices=["hpb", "hextile"])
-    ap.add_argument("--march", default="native", help="-march of every build (x86-64-v3: AVX2)")
-    ap.add_argument("--repeat", type=int, default=9, help="alternating rounds (best kept)")
-    ap.add_argument("--tap-prefetch", choices=["auto", "both"], default="auto",
-                    help="both: time each build with the synthesis kernels' tap prefetch on and off")
-    ap.add_argument("--coherent", action="store_true",
-                    help="u of a x15 plane in pixel order (a rendered frame), not uniform random u")
-    a = ap.parse_args()
-    if a.repeat < 1:
-        ap.error("--repeat must be at least 1")
-
+def measure(a) -> tuple[dict, str]:
+    """One process's alternating rounds: best CPU-s per (build, kind), whether each build's
+    outputs equal the first build's, and the machine line."""
     tmp = Path(tempfile.mkdtemp(prefix="btf_kernel_ab_"))
-    sources = {"working tree": Path(__file__).resolve().parents[1] / KERNEL}
+    tree = Path(__file__).resolve().parents[1] / KERNEL
+    sources = {"working tree": tree}
+    if a.control:  # the same code in a library of its own: the noise floor of a comparison
+        copy = tmp / "query_kernel_control.c"
+        copy.write_text(tree.read_text() + "\n/* btf_kernel_ab.py --control: the working tree's code */\n")
+        sources["working tree (control)"] = copy
     sources.update({r: kernel_source(r, tmp) for r in a.rev})
     built = {name: build(src, a.march) for name, src in sources.items()}
     # label -> (library, NEUMAT_TAP_PREFETCH or None for this machine's choice)
@@ -146,24 +149,87 @@ def main():
     _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
     bound = FRAME * flops_per_query(m) / peak_cpu  # CPU-s per frame at the FLOP bound
     first = next(iter(libs))
-    print(f"machine: {machine.describe(a.march)}; torch threads {torch.get_num_threads()}; "
-          f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} CPU-ms/frame; "
-          f"u {'coherent (a x15 plane in pixel order)' if a.coherent else 'uniform random'}")
+    times = {name: {k: best[name, k] for k in kinds} for name in libs}
+    same = {name: all(torch.equal(outs[name][k], outs[first][k]) for k in kinds) for name in libs}
+    where = (f"machine: {machine.describe(a.march)}; torch threads {torch.get_num_threads()}; "
+             f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} "
+             f"CPU-ms/frame; u {'coherent (a x15 plane in pixel order)' if a.coherent else 'uniform random'}")
+    return {"times": times, "same": same, "bound": bound}, where
+
+
+def report(a, runs: list[dict], where: str) -> None:
+    """The table of one process's figures, or of the medians over several (each process's own
+    best of --repeat), with the spread between processes."""
+    med = statistics.median
+    names = list(runs[0]["times"])
+    first = names[0]
+    n = len(runs)
+    bound = med(r["bound"] for r in runs)
+    t = lambda name, k: [r["times"][name][k] for r in runs]
+    ov = lambda name, k: [r["times"][name][k] / r["times"][name]["plain"] - 1 for r in runs]
+    span = lambda xs, f: "" if n == 1 else f" [{f(min(xs))}, {f(max(xs))}]"
+    print(where + (f"; median of {n} processes, [min, max] between them" if n > 1 else ""))
     print(f"{'build':28s} {'plain CPU-ms':>12s} {'of bound':>8s}  "
           + "  ".join(f"{k + ' CPU-ms (overhead)':>26s}" for k in a.methods) + "  outputs")
-    for name in libs:
-        p = best[name, "plain"]
-        same = all(torch.equal(outs[name][k], outs[first][k]) for k in kinds)
-        cells = "  ".join(f"{best[name, k] * 1e3:12.1f} ({(best[name, k] / p - 1) * 100:+6.1f} %)     "
-                          for k in a.methods)
+    for name in names:
+        p = med(t(name, "plain"))
+        cells = "  ".join(f"{med(t(name, k)) * 1e3:12.1f} ({med(ov(name, k)) * 100:+6.1f} %)"
+                          + span(ov(name, k), lambda x: f"{x * 100:+.1f}") for k in a.methods)
+        same = all(r["same"][name] for r in runs)
         print(f"{name:28s} {p * 1e3:12.1f} {bound / p:8.3f}  {cells}  "
               f"{'same' if same else 'DIFFER'} as {first}")
     for k in a.methods:
-        ref = [n for n in libs if n != first]
-        for n in ref:
-            d = best[first, k] - best[n, k]
-            print(f"{k}: {first} against {n}: {d * 1e3:+.1f} CPU-ms a frame "
-                  f"({(best[first, k] / best[n, k] - 1) * 100:+.1f} %)")
+        for other in names[1:]:
+            d = [x - y for x, y in zip(t(first, k), t(other, k))]
+            rel = med([x / y - 1 for x, y in zip(t(first, k), t(other, k))])
+            print(f"{k}: {first} against {other}: {med(d) * 1e3:+.1f} CPU-ms a frame "
+                  f"({rel * 100:+.1f} %)" + span(d, lambda x: f"{x * 1e3:+.1f}"))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--rev", nargs="+", default=["HEAD"],
+                    help="git revisions (or C files) of query_kernel.c to compare with the "
+                         "working tree's (default: HEAD)")
+    ap.add_argument("--methods", nargs="+", default=["hpb", "hextile"], choices=["hpb", "hextile"])
+    ap.add_argument("--march", default="native", help="-march of every build (x86-64-v3: AVX2)")
+    ap.add_argument("--repeat", type=int, default=9, help="alternating rounds (best kept)")
+    ap.add_argument("--tap-prefetch", choices=["auto", "both"], default="auto",
+                    help="both: time each build with the synthesis kernels' tap prefetch on and off")
+    ap.add_argument("--coherent", action="store_true",
+                    help="u of a x15 plane in pixel order (a rendered frame), not uniform random u")
+    ap.add_argument("--processes", type=int, default=1,
+                    help="repeat the whole comparison in this many fresh processes and report "
+                         "medians, with the spread between processes")
+    ap.add_argument("--control", action="store_true",
+                    help="add a build of the working tree's own code as a library of its own: its "
+                         "row against the working tree's is the comparison's noise floor")
+    ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # a --processes child
+    a = ap.parse_args()
+    if a.repeat < 1 or a.processes < 1:
+        ap.error("--repeat and --processes must be at least 1")
+    if a.processes == 1 or a.one:
+        result, where = measure(a)
+        if a.one:  # a child of --processes: its figures to the parent
+            print(JSON_TAG + json.dumps({"where": where, **result}))
+        else:
+            report(a, [result], where)
+        return
+    # each process its own allocations, stack and libraries' addresses: between processes the
+    # same build's figures move by more than within one (docs/stages.md)
+    runs, where = [], ""
+    for i in range(a.processes):
+        done = subprocess.run([sys.executable, __file__, *sys.argv[1:], "--one"],
+                              capture_output=True, text=True)
+        lines = [l for l in done.stdout.splitlines() if l.startswith(JSON_TAG)]
+        if done.returncode or not lines:
+            sys.exit(f"process {i + 1} of {a.processes} failed (exit {done.returncode}):\n"
+                     + done.stderr[-4000:])
+        r = json.loads(lines[-1][len(JSON_TAG):])
+        where = r.pop("where")
+        runs.append(r)
+        print(f"process {i + 1} of {a.processes} done", file=sys.stderr, flush=True)
+    report(a, runs, where)
 
 
 if __name__ == "__main__":
