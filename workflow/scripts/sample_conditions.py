@@ -21,41 +21,21 @@ samples and keep, per image, the best by the PSNR of their metric-view render ag
 without the clamp constraint (`diffusion.sample.negative_step` 0, seed stream "unconstrained"),
 and best of n chooses among all: materials that clamp by nature (chrome) keep their look, at the
 clamp penalty. samples.tsv names each kept draw (`candidate`, the constrained draws first),
-whether it was `constrained`, its `render_psnr` and whether it `clamps`."""
+whether it was `constrained`, its `render_psnr` and whether it `clamps`. The conditions and
+starts: `neumat.conditions.sampling`; best of n: `neumat.conditions.image`; the draws:
+`neumat.diffusion.sample.sample`."""
 import time
 
 import numpy as np
 import pandas as pd
 import torch
 
-from neumat.conditions import image, starts, text
+from neumat.conditions import image, sampling
 from neumat.diffusion import Sampler, dataset
 from neumat.diffusion.sample import sample
 from neumat.io.atomic import save_npy
 from neumat.logs import script_logging
-from neumat.render import sphere
 from neumat.seeds import seed_for
-
-
-def image_conditions(inp, p, enc, weights, man):
-    """Test-split typed materials (evenly picked) and user images -> table, embeddings (M, D),
-    conditioning images (M, R, R, 3) linear HDR in the metric view."""
-    test = dataset.reference_rows(man)
-    test = test[man["type"].iloc[test].to_numpy() != ""]
-    k = p.test_images or len(test)
-    test = test[np.unique(np.linspace(0, len(test) - 1, min(k, len(test))).round().astype(int))]
-    emb = [image.embed(enc, sphere.render_fields(weights[test], enc.cfg.resolution, p.activation))]
-    imgs = [sphere.render_fields(weights[test], p.resolution, p.activation).numpy()]
-    table = pd.DataFrame({"source": man["name"].iloc[test].to_numpy(), "id": test,
-                          "type": man["type"].iloc[test].to_numpy()})
-    paths = list(inp.images)
-    if paths:
-        emb.append(np.concatenate([image.embed(enc, image.load_image(f, enc.cfg.resolution)[None])
-                                   for f in paths]))
-        imgs.append(np.stack([image.load_image(f, p.resolution) for f in paths]))
-        table = pd.concat([table, pd.DataFrame({"source": paths, "id": -1, "type": ""})],
-                          ignore_index=True)
-    return table, np.concatenate(emb), np.concatenate(imgs).astype(np.float32)
 
 
 def training_set(inp):
@@ -64,64 +44,6 @@ def training_set(inp):
     weights = np.load(inp.weights)
     man = dataset.read_manifest(inp.manifest, len(weights))
     return weights, man, dataset.training_rows(man, "ours")
-
-
-def trained_types(inp, conds, log):
-    """The rows of `conds` whose type some training material (training_set's rows) has; all of
-    them, with a warning, when none has."""
-    have = dataset.training_types(dataset.read_manifest(inp.manifest))
-    ok = conds["type"].isin(have).to_numpy()
-    if not ok.any():
-        log.warning("mm_type: no test prompt's type is among the training materials' types: "
-                    "all %d drawn from noise, their class embeddings untrained", len(conds))
-        return conds
-    if not ok.all():
-        log.info("mm_type: %d of %d test prompts have a type no training material has (%s): not "
-                 "drawn, the model never saw it", int((~ok).sum()), len(conds),
-                 ", ".join(sorted(set(conds["type"][~ok]))))
-    return conds[ok]
-
-
-def type_starts(inp, conds, k, seed, log):
-    """(start vectors (len(conds) k, 675), conds with a `start` column): for each of a
-    condition's k samples a training material of its type (training_set), drawn with `seed`;
-    NaN rows (from noise) where training has no such type."""
-    weights, man, rows = training_set(inp)
-    picks = starts.type_picks(conds["type"], rows, man["type"].iloc[rows].to_numpy(), k,
-                              np.random.default_rng(seed))
-    got = picks.reshape(-1)
-    start = np.where(got[:, None] >= 0, weights[np.maximum(got, 0)], np.nan)
-    conds = conds.assign(start=[",".join(man["name"].iloc[r] for r in g) if (g >= 0).all() else ""
-                                for g in picks])
-    log.info("mm_type: %d of %d samples start from a training material of their type",
-             int((got >= 0).sum()), len(got))
-    return start, conds
-
-
-def text_starts(inp, conds, emb, k, vote, activation, log):
-    """(start vectors (len(conds) k, 675), conds with `start` (and `voted_type`) columns): for
-    each prompt embedding (rows of `emb`) its k nearest training materials (training_set) by
-    description embedding (cosine: text.embed writes unit vectors; conditions/text.npy is in
-    manifest order), sample i from the i-th nearest; ties (shared descriptions) in row order.
-    With `vote` (conditions.text.start_match) only materials of the type voted by the prompt's
-    nearest typed descriptions (text.vote_types, vote size by text.choose_votes) are drawn,
-    those whose metric-view colour matches the prompt's colour word first."""
-    weights, man, rows = training_set(inp)
-    library = np.load(inp.text)[rows]
-    if vote:
-        got, voted, size, acc = text.training_starts(emb, library, weights, man, rows,
-                                                     list(conds["colour"]), k, activation)
-        log.info("text: type vote over the %d nearest typed descriptions (leave-source-out "
-                 "accuracy on the training originals by vote size: %s)", size,
-                 ", ".join(f"{n}: {a:.3f}" for n, a in acc.items()))
-        conds = conds.assign(voted_type=voted)
-    else:  # the nearest of any type; fewer rows than k: cycled
-        sim = emb.astype(np.float64) @ library.astype(np.float64).T
-        got = rows[text.typed_starts(sim, np.full(len(rows), ""), np.full(len(sim), ""), k)]
-    conds = conds.assign(start=[",".join(man["name"].iloc[g]) for g in got])
-    log.info("text: each prompt's %d samples start from its %d nearest training descriptions%s",
-             k, k, " of its voted type, those of its colour word first" if vote else "")
-    return weights[got.reshape(-1)], conds
 
 
 with script_logging(snakemake) as log:
@@ -137,7 +59,9 @@ with script_logging(snakemake) as log:
     if p.mode == "image":
         weights = np.load(inp.weights)
         man = dataset.read_manifest(inp.manifest, len(weights))
-        conds, emb, imgs = image_conditions(inp, p, image.load(inp.encoder), weights, man)
+        conds, emb, imgs = sampling.image_conditions(weights, man, p.test_images, inp.images,
+                                                     image.load(inp.encoder), p.resolution,
+                                                     p.activation)
         save_npy(out.conditioning, imgs)
         save_npy(out.embeddings, emb.astype(np.float32))
         conditions = {"image": np.repeat(emb, kd, 0)}
@@ -158,13 +82,16 @@ with script_logging(snakemake) as log:
             emb = np.load(inp.prompt_embeddings)[conds.index.to_numpy()]
             conditions = {"text": np.repeat(emb, k, 0)}
             if strength < 1:
-                start, conds = text_starts(inp, conds, emb, k, getattr(p, "start_match", False),
-                                           p.activation, log)
+                weights, man, rows = training_set(inp)
+                start, conds = sampling.text_starts(weights, man, rows, np.load(inp.text)[rows],
+                                                    conds, emb, k,
+                                                    getattr(p, "start_match", False), p.activation)
         elif p.mode == "mm_type":
-            conds = trained_types(inp, conds, log)
+            conds = sampling.trained_conditions(conds, dataset.read_manifest(inp.manifest))
             conditions = {"type": list(np.repeat(conds["type"].to_numpy(), k))}
             if strength < 1:
-                start, conds = type_starts(inp, conds, k, seed_for(p.seed, "type_start"), log)
+                start, conds = sampling.type_starts(*training_set(inp), conds, k,
+                                                    seed_for(p.seed, "type_start"))
         else:
             conditions = {}
     if refine:  # unconditionally: the refiner takes no condition
