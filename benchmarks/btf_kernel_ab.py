@@ -32,9 +32,7 @@ this machine's choice.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -44,6 +42,7 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import fresh_processes  # noqa: E402
 from btf_query import flops_per_query  # noqa: E402
 from btf_synthesis import FRAME, frame  # noqa: E402
 
@@ -53,7 +52,6 @@ from neumat.btf import models, query  # noqa: E402
 
 CHUNK = 259200  # as btf_synthesis.py on the CPU
 KERNEL = "src/neumat/btf/query_kernel.c"
-JSON_TAG = "btf_kernel_ab result: "
 
 
 def kernel_source(ref: str, tmp: Path) -> Path:
@@ -160,7 +158,7 @@ def measure(a) -> tuple[dict, str]:
 def report(a, runs: list[dict], where: str) -> None:
     """The table of one process's figures, or of the medians over several (each process's own
     best of --repeat), with the spread between processes."""
-    med = statistics.median
+    med = fresh_processes.median
     names = list(runs[0]["times"])
     first = names[0]
     n = len(runs)
@@ -204,33 +202,19 @@ def main():
     ap.add_argument("--control", action="store_true",
                     help="add a build of the working tree's own code as a library of its own: its "
                          "row against the working tree's is the comparison's noise floor")
-    ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # a --processes child
+    ap.add_argument(fresh_processes.FLAG, action="store_true", help=argparse.SUPPRESS)  # a child
     a = ap.parse_args()
     if a.repeat < 1 or a.processes < 1:
         ap.error("--repeat and --processes must be at least 1")
-    if a.processes == 1 or a.one:
+    if a.processes == 1 or a.one_process:
         result, where = measure(a)
-        if a.one:  # a child of --processes: its figures to the parent
-            print(JSON_TAG + json.dumps({"where": where, **result}))
+        if a.one_process:  # a child of --processes: its figures to the parent
+            fresh_processes.emit({"where": where, **result})
         else:
             report(a, [result], where)
         return
-    # each process its own allocations, stack and libraries' addresses: between processes the
-    # same build's figures move by more than within one (docs/stages.md)
-    runs, where = [], ""
-    for i in range(a.processes):
-        done = subprocess.run([sys.executable, __file__, *sys.argv[1:], "--one"],
-                              capture_output=True, text=True)
-        lines = [l for l in done.stdout.splitlines() if l.startswith(JSON_TAG)]
-        if done.returncode or not lines:
-            sys.exit(f"process {i + 1} of {a.processes} failed (exit {done.returncode}):\n"
-                     + done.stderr[-4000:])
-        r = json.loads(lines[-1][len(JSON_TAG):])
-        where = r.pop("where")
-        runs.append(r)
-        print(f"process {i + 1} of {a.processes} done", file=sys.stderr, flush=True)
-    report(a, runs, where)
-
+    runs = fresh_processes.gather(__file__, a.processes)
+    report(a, runs, runs[0]["where"])
 
 if __name__ == "__main__":
     main()

@@ -23,6 +23,7 @@ compares those (query.query's dispatch is host time). HPB and hex-tiling also ge
 layout before the float16 planes), the baseline of that change.
 
     OMP_NUM_THREADS=2 python benchmarks/btf_synthesis.py [--methods hpb] [--repeat 3] [--coherent]
+                                                          [--processes 5]
                                                           [--model results/<run>/btf/models/<m>/triple_plane.pt]
                                                           [--march x86-64-v3] [--size 200]
     python benchmarks/btf_synthesis.py --device cuda --no-torch --methods hpb hextile
@@ -51,6 +52,7 @@ import time
 
 import torch
 
+import fresh_processes
 import neumat.btf.synthesis as syn
 from btf_query import flops_per_query
 from neumat import machine
@@ -76,6 +78,25 @@ class _Fn:
 
     def __call__(self, u):
         return self.fn(u)
+
+
+def timed(runs: dict, repeat: int, sync) -> tuple[dict, dict]:
+    """Best wall and CPU seconds of each run over `repeat` rounds, after a warm-up (kernel build
+    or load, first touch). Rounds interleave all variants: on a shared machine a load spike then
+    hits one round of every variant rather than all rounds of one."""
+    wall = {k: float("inf") for k in runs}
+    cpu = dict(wall)
+    for fn in runs.values():
+        fn(4096)
+    for _ in range(repeat):
+        for k, fn in runs.items():
+            sync()
+            t0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            sync()
+            wall[k] = min(wall[k], time.perf_counter() - t0)
+            cpu[k] = min(cpu[k], time.process_time() - c0)
+    return wall, cpu
 
 
 def frame(coherent: bool = False):
@@ -117,7 +138,14 @@ def main():
     ap.add_argument("--coherent", action="store_true",
                     help="u of a x15 plane across the frame in pixel order (a rendered frame), "
                          "not uniform random u")
+    ap.add_argument("--processes", type=int, default=1,
+                    help="CPU: the whole run in this many fresh processes, the medians reported "
+                         "with the [min, max] of the CPU overhead between them (a process's figures "
+                         "move by more than its rounds do: fresh_processes.py)")
+    ap.add_argument(fresh_processes.FLAG, action="store_true", help=argparse.SUPPRESS)  # a child
     a = ap.parse_args()
+    if a.processes < 1 or (a.processes > 1 and a.device != "cpu"):
+        ap.error("--processes must be at least 1, and above 1 only with --device cpu")
     for item in a.launch:  # the kernels read query_triton.LAUNCH at each launch
         method, _, shape = item.partition("=")
         b, _, w = shape.partition("x")
@@ -189,20 +217,21 @@ def main():
             wc = syn.Synthesized(m, _Fn(fast))
             runs[f"{method} (compiled torch)"] = run(lambda s, wc=wc: wc.torch_forward(u[s], w[s], w[s]))
             refs[f"{method} (compiled torch)"] = "plain (torch)"
-    # rounds interleave all variants and keep each one's best: on a shared machine a load spike
-    # then hits one round of every variant rather than all rounds of one
-    wall = {k: float("inf") for k in runs}
-    cpu = dict(wall)
-    for fn in runs.values():  # warm-up: kernel build or load, first touch
-        fn(4096)
-    for _ in range(a.repeat):
-        for k, fn in runs.items():
-            sync()
-            t0, c0 = time.perf_counter(), time.process_time()
-            fn()
-            sync()
-            wall[k] = min(wall[k], time.perf_counter() - t0)
-            cpu[k] = min(cpu[k], time.process_time() - c0)
+    spread, how = {}, "one process"
+    if a.processes > 1 and not a.one_process:
+        per = fresh_processes.gather(__file__, a.processes)
+        med = fresh_processes.median
+        wall = {k: med(r["wall"][k] for r in per) for k in runs}
+        cpu = {k: med(r["cpu"][k] for r in per) for k in runs}
+        spread = {k: [r["cpu"][k] / r["cpu"][refs[k]] - 1 for r in per] for k in refs}
+        how = f"median of {a.processes} processes"
+        print(f"{how}, each its best of {a.repeat} rounds; [min, max] of the CPU overhead "
+              f"between processes")
+    else:
+        wall, cpu = timed(runs, a.repeat, sync)
+        if a.one_process:  # a child of --processes: its figures to the parent
+            fresh_processes.emit({"wall": wall, "cpu": cpu})
+            return
     print(f"{'':28s} {'wall ms/frame':>14s} {'CPU ms/frame':>13s}   overhead vs plain (wall, CPU)")
     for k in runs:
         line = f"{k:28s} {wall[k] * 1e3:14.1f} {cpu[k] * 1e3:13.1f}"
@@ -210,6 +239,8 @@ def main():
             r = refs[k]
             ow, oc = wall[k] / wall[r] - 1, cpu[k] / cpu[r] - 1
             line += f"   {ow * 100:+7.1f} %  {oc * 100:+7.1f} %   vs {r}"
+            if k in spread:
+                line += f"  [{min(spread[k]) * 100:+.1f}, {max(spread[k]) * 100:+.1f}]"
         print(line, flush=True)
     if dev.type == "cpu" and fused:  # the baseline against the machine: its FLOP bound
         _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
@@ -237,7 +268,8 @@ def main():
         verdict = "met" if max(ow, oc) <= GOAL else "not met"
         print(f"{syn.LABELS[method]} synthesis overhead per frame, fused C: {ow * 100:+.1f} % wall, {oc * 100:+.1f} % "
               f"CPU ({(wall[k] - wall[r]) * 1e3:+.1f} ms, {(cpu[k] - cpu[r]) * 1e3:+.1f} CPU-ms) "
-              f"against {wall[r] * 1e3:.1f} ms; goal <= {GOAL * 100:.0f} %: {verdict}  [{where}]")
+              f"against {wall[r] * 1e3:.1f} ms ({how}); goal <= {GOAL * 100:.0f} %: {verdict}  "
+              f"[{where}]")
 
 
 if __name__ == "__main__":
