@@ -32,6 +32,7 @@ this machine's choice.
 from __future__ import annotations
 
 import argparse
+import statistics
 import os
 import subprocess
 import sys
@@ -158,7 +159,7 @@ def measure(a) -> tuple[dict, str]:
 def report(a, runs: list[dict], where: str) -> None:
     """The table of one process's figures, or of the medians over several (each process's own
     best of --repeat), with the spread between processes."""
-    med = fresh_processes.median
+    med = statistics.median
     names = list(runs[0]["times"])
     first = names[0]
     n = len(runs)

@@ -48,6 +48,7 @@ HPB's (f5f8541) +30.9 % (+39.1 %); with its rotated fetch coordinate in fixed po
 from __future__ import annotations
 
 import argparse
+import statistics
 import time
 
 import torch
@@ -220,7 +221,7 @@ def main():
     spread, how = {}, "one process"
     if a.processes > 1 and not a.one_process:
         per = fresh_processes.gather(__file__, a.processes)
-        med = fresh_processes.median
+        med = statistics.median
         wall = {k: med(r["wall"][k] for r in per) for k in runs}
         cpu = {k: med(r["cpu"][k] for r in per) for k in runs}
         spread = {k: [r["cpu"][k] / r["cpu"][refs[k]] - 1 for r in per] for k in refs}

@@ -12,7 +12,6 @@ prints its figures as one tagged JSON line (`emit`)."""
 from __future__ import annotations
 
 import json
-import statistics
 import subprocess
 import sys
 
@@ -39,7 +38,3 @@ def gather(script: str, n: int) -> list[dict]:
         runs.append(json.loads(lines[-1][len(TAG):]))
         print(f"process {i + 1} of {n} done", file=sys.stderr, flush=True)
     return runs
-
-
-def median(xs) -> float:
-    return statistics.median(list(xs))

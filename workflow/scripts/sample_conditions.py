@@ -57,8 +57,7 @@ with script_logging(snakemake) as log:
     n_free = getattr(p, "unconstrained_candidates", 0) if p.mode == "image" else 0
     kd = k * (n_cand + n_free)  # draws per condition: the constrained ones first
     if p.mode == "image":
-        weights = np.load(inp.weights)
-        man = dataset.read_manifest(inp.manifest, len(weights))
+        weights, man, rows = training_set(inp)  # rows: conditions_eval's retrieval set
         conds, emb, imgs = sampling.image_conditions(weights, man, p.test_images, inp.images,
                                                      image.load(inp.encoder), p.resolution,
                                                      p.activation)
@@ -66,7 +65,6 @@ with script_logging(snakemake) as log:
         save_npy(out.embeddings, emb.astype(np.float32))
         conditions = {"image": np.repeat(emb, kd, 0)}
         if strength < 1:  # start from the retrieved training material (SDEdit)
-            rows = dataset.training_rows(man, "ours")  # conditions_eval's retrieval set
             got = image.retrieve(emb, np.load(inp.image_embeddings)[rows, 0], rows)
             conds["start"] = man["name"].iloc[got].to_numpy()
             start = weights[np.repeat(got, kd)]
