@@ -168,7 +168,8 @@ def _grid_ref(u):
 def _hextile_ref(s, u):
     """Hex-tiling at one point in Python float64 / ints (rotation about the vertex centre)."""
     vs, ws = _grid_ref(u)
-    pl = s.plane_lum.double().numpy()
+    pl = s.plane.double().numpy()
+    la, lb = s.lum_weights[:-1].double().numpy(), float(s.lum_weights[-1])
     cs, W = [], []
     for (vx, vy), w in zip(vs, ws):
         hx, hy, ha = _hash_ref(vx, vy, s.seed, 3)
@@ -178,8 +179,9 @@ def _hextile_ref(s, u):
         px = math.cos(a) * dx - math.sin(a) * dy + cx % 1 + hx
         py = math.sin(a) * dx + math.cos(a) * dy + cy % 1 + hy
         t = _bilinear64(pl, px % 1, py % 1)
-        cs.append(t[:-1])
-        W.append((1 + s.s["contrast"] * (t[-1] - 1)) * w ** s.s["exponent"])
+        cs.append(t)
+        lum = min(max(float(la @ t) + lb, 0.0), 1.0)
+        W.append((1 + s.s["contrast"] * (lum - 1)) * w ** s.s["exponent"])
     W = np.asarray(W) / sum(W)
     k = math.log(1 - s.s["gain"]) / math.log(0.5)
     W = np.where(W < 0.5, 0.5 * (2 * W) ** k, 1 - 0.5 * (2 - 2 * W) ** k)
@@ -200,17 +202,48 @@ def test_hextile_at_u_1e5_equals_float64_reference():
     assert np.abs(got32[:25] - ref[:25]).max() > 100 * np.abs(got[:25] - ref[:25]).max()
 
 
-def test_hextile_features_are_float16_values_and_its_luminance_is_kept():
+def test_hextile_features_are_float16_values_and_its_luminance_fit_is_least_squares():
+    from neumat.btf.synthesis import hextile
     m = _plane_model()
     s = syn.build(m, "hextile", 5)
-    f = s.plane_lum[..., :-1]
+    f = s.plane
     assert torch.equal(f, f.half().float())  # what the C kernel stores in float16, exactly
     assert (f - m.f_u.detach()).abs().max() <= 2 ** -11 * m.f_u.detach().abs().max()
-    assert torch.equal(s.plane_lum[..., -1], syn.luminance(m).float())  # not rounded
+    # the fit's residual is orthogonal to the features and to 1 (normal equations)
+    lum = syn.luminance(m).double().reshape(-1)
+    A = torch.cat([f.double().reshape(-1, f.shape[-1]), torch.ones(len(lum), 1, dtype=torch.float64)], 1)
+    res = A @ s.lum_weights.double() - lum
+    assert (A.T @ res).abs().max() < 1e-5 * len(lum)
+    assert 0 < s.lum_r2 <= 1
+    # a luminance linear in the features is recovered exactly, R^2 = 1; noise lowers R^2
+    g = torch.Generator().manual_seed(1)
+    plane = torch.rand(20, 30, 4, generator=g)
+    coef = torch.tensor([0.1, -0.2, 0.3, 0.05, 0.4])
+    exact = plane @ coef[:-1] + coef[-1]
+    got, r2 = hextile.fit_luminance(plane, exact)
+    torch.testing.assert_close(got, coef, rtol=0, atol=1e-6)
+    assert r2 > 1 - 1e-9
+    _, r2 = hextile.fit_luminance(plane, (exact + 0.1 * torch.rand(20, 30, generator=g)).clamp(0, 1))
+    assert 0.3 < r2 < 0.99
+    c = torch.tensor([[0.0, 0, 0, 0], [10.0, 0, 0, 0], [-10.0, 0, 0, 0]])
+    torch.testing.assert_close(hextile.HexTile(1, plane, coef).luminance_of(c),
+                               torch.tensor([0.4, 1.0, 0.0]))
+    with pytest.raises(ValueError, match=r"must lie in \[0, 1\]"):
+        hextile.fit_luminance(plane, exact + 2)
+    with pytest.raises(ValueError, match=r"needs \(H, W\) = \(20, 30\)"):
+        hextile.fit_luminance(plane, exact.T)
     again = type(s).from_state(m.f_u.detach(), 5, s.state())
-    assert torch.equal(again.plane_lum, s.plane_lum)
+    assert torch.equal(again.plane, s.plane) and torch.equal(again.lum_weights, s.lum_weights)
     with pytest.raises(ValueError, match="float16 ends at 65504"):
         type(s).from_state(m.f_u.detach() * 1e6, 5, s.state())
+    with pytest.raises(ValueError, match=r"lacks \['lum_weights', 'plane_shape'\] \(a state of an older"):
+        type(s).from_state(m.f_u.detach(), 5, {"luminance": syn.luminance(m)})
+    with pytest.raises(ValueError, match="luminance weights have shape"):
+        type(s).from_state(m.f_u.detach(), 5, {**s.state(), "lum_weights": torch.zeros(3)})
+    with pytest.raises(ValueError, match="not all finite"):
+        bad = s.lum_weights.clone()
+        bad[0] = float("nan")
+        type(s).from_state(m.f_u.detach(), 5, {**s.state(), "lum_weights": bad})
 
 
 def test_blend_preserves_mean_and_variance_of_gaussians():
@@ -519,8 +552,8 @@ def test_hextile_black_taps_at_contrast_1_give_equal_weights_in_both_paths():
     m = _plane_model()
     u = torch.rand(2000, 2, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 3
     wi = torch.nn.functional.normalize(torch.rand(2000, 3) + torch.tensor([0, 0, 1.0]), dim=1)
-    dark = {"luminance": torch.zeros(m.f_u.shape[:2])}
     plane = m.f_u.detach()
+    dark = {"lum_weights": torch.zeros(plane.shape[-1] + 1), "plane_shape": list(plane.shape)}
     s = hextile.HexTile.from_state(plane, 3, dark, {"contrast": 1.0, "gain": 0.7})
     f = s(u)
     assert torch.isfinite(f).all()
@@ -545,9 +578,7 @@ def test_load_refuses_a_state_of_another_model(tmp_path, method):
     m = _plane_model()
     path = tmp_path / f"{method}.pt"
     syn.save(path, method, 4, st, {"triple_plane": syn.build(m, method, 4, st)})
-    others = [_plane_model(size=20), TriplePlane(24, 20)]
-    if method != "hextile":  # its state is a luminance per texel: (H, W) only
-        others.append(TriplePlane(24, 24, u_channels=6))
+    others = [_plane_model(size=20), TriplePlane(24, 20), TriplePlane(24, 24, u_channels=6)]
     for other in others:
         with pytest.raises(ValueError, match=rf"{method}\.pt: the {method} state of "
                                              r"'triple_plane' does not fit the given"):

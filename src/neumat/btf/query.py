@@ -14,7 +14,7 @@ runs inside the kernel instead (`btf_triple_plane_hpb`: grid, hash, three fetche
 Gaussianised plane, blend and LUT per tile, at float64 u, no (N, C_U) buffer); its inverse PCA
 is folded into the first layer (`neumat.btf.fold.fold_pca`). A `HexTile` (neumat.btf.synthesis.hextile) runs
 inside it the same way (`btf_triple_plane_hex`: the same grid, hash and taps, rotated, of its
-plane, each texel's luminance stored after its features (`hex_planes`), and hex-tiling's
+plane (`hex_plane`), its luminance linear in the fetched features, and hex-tiling's
 blend).
 
 On a CUDA GPU the plain query of a Triple Plane, and its query with an HPB or hex-tiling
@@ -63,8 +63,8 @@ def _library(march: str = "native"):
                                          p, i, i]
     lib.btf_triple_plane_hpb.restype = None
     d, f = ctypes.c_double, ctypes.c_float
-    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i, i,
-                                         p, p, p, i, i]
+    lib.btf_triple_plane_hex.argtypes = [l, p, p, p, p, p, i, i, i, u32, d, f, f, f, p, p, i, i,
+                                         i, p, p, p, i, i]
     lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
     lib.hpb_features.restype = None
@@ -79,42 +79,36 @@ def lut_pairs(lut: torch.Tensor) -> torch.Tensor:
     return torch.stack([lut, slope], -1).contiguous()
 
 
-def hpb_plane(hpb) -> torch.Tensor:
-    """HPB's Gaussianised plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C) float16,
-    wrapped by one row and column, so a bilinear footprint is one offset (struct hpb). float16
-    holds HPB's values exactly (hpb.gaussianise rounds them to it). Cached on the synthesis
-    object: a frame is queried in chunks, and the copy is a pass over the plane."""
-    g = hpb.gauss
-    cached = getattr(hpb, "_kernel_plane", None)
-    if cached is not None and cached[0] is g:
-        return cached[1]
-    p = _wrapped(g.detach().to(torch.float16))
-    hpb._kernel_plane = (g, p)
-    return p
-
-
 def _wrapped(t: torch.Tensor) -> torch.Tensor:
     """(H, W, ...) -> (H + 1, W + 1, ...): the first row and column repeated at the end."""
     t = torch.cat([t, t[:, :1]], 1)
     return torch.cat([t, t[:1]], 0).contiguous()
 
 
-def hex_planes(hexs) -> torch.Tensor:
-    """Hex-tiling's plane (H, W, C + 1) as the kernel reads it: (H + 1, W + 1, C + 2) 16-bit
-    slots, wrapped by one row and column so a vertex's bilinear footprint is one texel offset
-    (struct hpb). Per texel the C features in float16 (which holds them exactly:
-    hextile._rounded rounds them), then the float32 luminance's bits in two slots, so the
-    luminance taps read the features' cache lines. Cached on the synthesis object, as
-    hpb_plane."""
-    pl = hexs.plane_lum
-    cached = getattr(hexs, "_kernel_planes", None)
-    if cached is not None and cached[0] is pl:
+def plane16(synth, plane: torch.Tensor) -> torch.Tensor:
+    """A synthesis's plane (H, W, C) as the kernel reads it: (H + 1, W + 1, C) float16, wrapped
+    by one row and column, so a bilinear footprint is one offset (struct hpb). float16 holds
+    the values exactly: HPB's Gaussianised plane (hpb.gaussianise rounds it) and hex-tiling's
+    features (hextile._rounded). Cached on the synthesis object: a frame is queried in chunks,
+    and the copy is a pass over the plane."""
+    cached = getattr(synth, "_kernel_plane", None)
+    if cached is not None and cached[0] is plane:
         return cached[1]
-    p = _wrapped(pl.detach().float())
-    lum = p[..., -1:].contiguous().view(torch.int16)  # (H + 1, W + 1, 2), native byte order
-    plane = torch.cat([p[..., :-1].to(torch.float16).view(torch.int16), lum], -1).contiguous()
-    hexs._kernel_planes = (pl, plane)
-    return plane
+    p = _wrapped(plane.detach().to(torch.float16))
+    synth._kernel_plane = (plane, p)
+    return p
+
+
+def hpb_plane(hpb) -> torch.Tensor:
+    """HPB's Gaussianised plane as the kernel reads it (`plane16`)."""
+    return plane16(hpb, hpb.gauss)
+
+
+def hex_plane(hexs) -> torch.Tensor:
+    """Hex-tiling's features as the kernel reads it (`plane16`): texels of C float16 features
+    and no luminance, which the kernel forms from the fetched features (hextile.HexTile.
+    luminance_of)."""
+    return plane16(hexs, hexs.plane)
 
 
 def tap_prefetch() -> bool:
@@ -169,11 +163,10 @@ def _hpb(features_u):
     method = getattr(features_u, "method", None)
     if method not in ("hpb", "hextile"):
         return None
-    H, W, C = (features_u.gauss if method == "hpb" else features_u.plane_lum).shape
+    H, W, C = (features_u.gauss if method == "hpb" else features_u.plane).shape
     if method == "hpb":
         check_lut(features_u.lut, C)
-    # int32 offsets: HPB's in elements of hpb_plane's (H + 1, W + 1, C), hex-tiling's in texels
-    # (the bound is strict for those)
+    # int32 offsets in elements of plane16's (H + 1, W + 1, C)
     return features_u if (H + 1) * (W + 1) * C < 2 ** 31 else None
 
 
@@ -224,17 +217,18 @@ def query(model, u, wi, wo, features_u: torch.Tensor | Callable | None = None,
     elif hpb.method == "hextile":
         u = u.detach().double().contiguous()
         st = hpb.s
-        if hpb.plane_lum.shape[-1] != cu + 1:
-            raise ValueError(f"hex-tiling plane has {hpb.plane_lum.shape[-1] - 1} channels, "
+        if hpb.plane.shape[-1] != cu:
+            raise ValueError(f"hex-tiling plane has {hpb.plane.shape[-1]} channels, "
                              f"the model {cu}")
-        plane = hex_planes(hpb)
-        H, W = hpb.plane_lum.shape[:2]
+        plane, lumw = hex_plane(hpb), hpb.lum_weights.float().contiguous()
+        H, W = hpb.plane.shape[:2]
         pf = int(tap_prefetch())
 
         def call(a, n, out_ptr):
             lib.btf_triple_plane_hex(
                 n, u.data_ptr() + 2 * 8 * a, wi.data_ptr() + 3 * f4 * a,
-                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), H, W, cu, hpb.seed & 0xFFFFFFFF,
+                wo.data_ptr() + 3 * f4 * a, plane.data_ptr(), lumw.data_ptr(), H, W, cu,
+                hpb.seed & 0xFFFFFFFF,
                 float(st["rotation"]), float(st["contrast"]),
                 float(st["exponent"]), float(st["gain"]), fh.data_ptr(), fd.data_ptr(),
                 fh.shape[0], fh.shape[2], len(lin), dims.data_ptr(), params.data_ptr(),

@@ -20,8 +20,8 @@
  * alone (neumat.btf.synthesis.kernel). Both run the same tile code: the same decorrelated q.
  * btf_triple_plane_hex: f_U synthesised by hex-tiling (neumat.btf.synthesis.hextile) on the
  * same grid, hash and taps (struct hpb with `hex` set; its features in float16 as HPB's plane,
- * which hextile._rounded rounds them to, each texel's float32 luminance after them), blended in
- * hex_fill8 (8 channels) or hex_fill_c.
+ * which hextile._rounded rounds them to), each vertex's luminance linear in its bilinear
+ * features (`lumw`), blended in hex_fill8 (8 channels) or hex_fill_c.
  *
  * Vector width and register blocking follow the target ISA as in fit_step.c: accumulators of
  * an AJ x AS block plus its inputs fit the register file (32 or 16 vector registers).
@@ -225,21 +225,25 @@ struct hpb {
                                the three vertices are read from L2/L3 at random; HPB's overhead
                                over the plain query, float32 -> float16 (one thread, CPU time,
                                best of 15; AMD EPYC): +12.5 -> +11.6 % (AVX-512 build), +24.3
-                               -> +20.3 % (AVX2 build). Hex-tiling: its features f_U (H + 1,
-                               W + 1, C), wrapped the same way (hextile._rounded rounds them to
-                               float16), which took
+                               -> +20.3 % (AVX2 build). Hex-tiling: its features f_U, the
+                               same way (hextile._rounded rounds them to float16), which took
                                hex-tiling's overhead from +25.4, +24.9 to +21.2, +19.9 %
                                (AVX-512 build) and from +33.6, +34.3 to +31.5, +31.7 % (AVX2
                                build; btf_synthesis.py --methods hpb hextile --no-torch
                                --repeat 9, one thread, two alternating rounds; AMD EPYC,
-                               2026-11-26). Each texel's float32 luminance follows its C
-                               features, as two float16 slots (neumat.btf.query.hex_planes:
-                               texels of C + 2), so the luminance taps read the lines the
-                               feature taps read: in a plane of its own, the luminance's lines
-                               were a further 2 per vertex, fetched at random, and its taps
-                               stalled on them (`perf`; figures before and after this and the
-                               loop split in grid_prepare: docs/stages.md, "BTF synthesis on the
-                               positional plane") */
+                               2026-11-26) */
+    const float *lumw;      /* hex-tiling: C + 1 coefficients (a, b) of its luminance
+                               a . c + b of the bilinear features c, clamped to [0, 1]
+                               (hextile.HexTile.luminance_of). Formed from the features the
+                               taps fetch anyway (hex_fill8): no luminance taps, texels of 16
+                               bytes, as HPB's. Hex-tiling's overhead over the plain query,
+                               AVX-512 build, against each texel's luminance stored and tapped
+                               after its features: +17.9 -> +14.7 % (-7.3 CPU-ms a frame; the
+                               control build, the same code as the former, +18.4 %); with
+                               texels of 20 bytes kept, +15.6 %: the taps, not the texel
+                               size (benchmarks/btf_kernel_ab.py --control --processes 5
+                               --repeat 5 --methods hextile, medians of 5 processes; Intel
+                               Xeon, 2026-11-30) */
 };
 
 /* A float16 value (IEEE binary16 bits) as float, exactly: F16C where the target has it, else
@@ -262,9 +266,9 @@ static inline float h2f(uint16_t h)
 }
 
 struct hpb_taps {           /* one tile's prepared fetches: 3 vertices x 4 texels */
-    int32_t off[3][T];      /* off[v]: the first texel of vertex v's 2 x 2 (the planes are
-                               wrapped by one row and column: the others are 1, W + 1 and W + 2
-                               texels on); HPB: in elements, hex-tiling: in texels */
+    int32_t off[3][T];      /* off[v]: the first element of vertex v's 2 x 2 texels (the
+                               planes are wrapped by one row and column: the others are 1,
+                               W + 1 and W + 2 texels on) */
     float tw[12][T];        /* bilinear weights; HPB: times the vertex's blend weight */
     float w[3][T];          /* blend weights */
     float inv[T];           /* 1 / sqrt(sum of their squares) */
@@ -417,7 +421,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
             xa += xa < 0 ? s->W : 0, ya += ya < 0 ? s->H : 0;
             float wv = (float)wd[v][q];
             p->w[v][q] = wv;
-            if (!hex) {  /* one offset; the blend weight folded into the bilinear ones */
+            if (!hex) {  /* the blend weight folded into the bilinear ones */
                 p->off[v][q] = (ya * (s->W + 1) + xa) * C;
                 p->tw[4 * v][q] = wv * ((1 - ax) * (1 - ay));
                 p->tw[4 * v + 1][q] = wv * (ax * (1 - ay));
@@ -425,7 +429,7 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
                 p->tw[4 * v + 3][q] = wv * (ax * ay);
                 continue;
             }
-            p->off[v][q] = ya * (s->W + 1) + xa;
+            p->off[v][q] = (ya * (s->W + 1) + xa) * C;
             p->tw[4 * v][q] = (1 - ax) * (1 - ay), p->tw[4 * v + 1][q] = ax * (1 - ay);
             p->tw[4 * v + 2][q] = (1 - ax) * ay, p->tw[4 * v + 3][q] = ax * ay;
         }
@@ -436,30 +440,17 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
     }
     if (!s->prefetch)
         return;
-    if (!hex) {  /* a 2 x 2 footprint: two rows of 2C floats, each in one or two lines, so
-                    both ends of each row (a scratch build prefetching only each row's first
-                    line was clearly slower; figures in issue #18's note) */
-        const long pitch = (long)C * (s->W + 1);
-        for (int v = 0; v < 3; v++)
-            for (int q = 0; q < T; q++) {
-                const uint16_t *a = s->gauss16 + p->off[v][q];
-                __builtin_prefetch(a, 0, 1);
-                __builtin_prefetch(a + 2 * C - 1, 0, 1);
-                __builtin_prefetch(a + pitch, 0, 1);
-                __builtin_prefetch(a + pitch + 2 * C - 1, 0, 1);
-            }
-        return;
-    }
-    /* hex-tiling: the rows as HPB's, of texels of S = C + 2 slots (features and luminance) */
-    const int S = C + 2;
-    const long pitch = (long)S * (s->W + 1);
+    /* a 2 x 2 footprint: two rows of 2C float16, each in one or two lines, so both ends of each
+       row (a scratch build prefetching only each row's first line was clearly slower; figures
+       in issue #18's note) */
+    const long pitch = (long)C * (s->W + 1);
     for (int v = 0; v < 3; v++)
         for (int q = 0; q < T; q++) {
-            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S;
+            const uint16_t *a = s->gauss16 + p->off[v][q];
             __builtin_prefetch(a, 0, 1);
-            __builtin_prefetch(a + 2 * S - 1, 0, 1);
+            __builtin_prefetch(a + 2 * C - 1, 0, 1);
             __builtin_prefetch(a + pitch, 0, 1);
-            __builtin_prefetch(a + pitch + 2 * S - 1, 0, 1);
+            __builtin_prefetch(a + pitch + 2 * C - 1, 0, 1);
         }
 }
 
@@ -507,14 +498,14 @@ static inline __attribute__((always_inline)) IEEE void store8x8(const __m256 r[8
 }
 #endif
 
-/* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at element off[v] * scale
- * of the float16 `plane` (texels of S slots, the first C the features), weighted by tw (the
- * blend weights folded into the bilinear ones), for a tile. Shared by HPB (scale 1, S = C) and
- * hex-tiling (scale S = C + 2); C, S and scale are constants after inlining. */
+/* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at element off[v] of the
+ * float16 `plane` (texels of C), weighted by tw (the blend weights folded into the bilinear
+ * ones), for a tile. Shared by HPB and hex-tiling; C is a constant after inlining. */
 static inline __attribute__((always_inline)) IEEE void
-blend_taps(int C, int S, const uint16_t *plane, long scale, long pitch,
-           const int32_t (*restrict off)[T], const float (*restrict tw)[T], float *restrict X)
+blend_taps(int C, const uint16_t *plane, long pitch, const int32_t (*restrict off)[T],
+           const float (*restrict tw)[T], float *restrict X)
 {
+    const int S = C;
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
     if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
                       into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
@@ -524,7 +515,7 @@ blend_taps(int C, int S, const uint16_t *plane, long scale, long pitch,
                 int q = q0 + k;
                 __m256 acc0 = _mm256_setzero_ps(), acc1 = _mm256_setzero_ps();
                 for (int v = 0; v < 3; v++) {  /* rows y and y + 1: two chains */
-                    const uint16_t *a = plane + off[v][q] * scale, *d = a + pitch;
+                    const uint16_t *a = plane + off[v][q], *d = a + pitch;
                     acc0 = tap8(acc0, a, tw[4 * v][q]);
                     acc1 = tap8(acc1, d, tw[4 * v + 2][q]);
                     acc0 = tap8(acc0, a + S, tw[4 * v + 1][q]);
@@ -542,7 +533,7 @@ blend_taps(int C, int S, const uint16_t *plane, long scale, long pitch,
         for (int c = 0; c < C; c++)
             acc[c] = 0;
         for (int v = 0; v < 3; v++) {
-            long o = off[v][q] * scale;
+            long o = off[v][q];
             float t0 = tw[4 * v][q], t1 = tw[4 * v + 1][q], t2 = tw[4 * v + 2][q],
                   t3 = tw[4 * v + 3][q];
 #define AT(k) h2f(plane[k])
@@ -595,7 +586,7 @@ lut_fetch(const pair_t *restrict row, const int *restrict is, pair_t *restrict o
 static inline __attribute__((always_inline)) IEEE void
 hpb_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    blend_taps(C, C, s->gauss16, 1, (long)C * (s->W + 1), p->off, p->tw, X);
+    blend_taps(C, s->gauss16, (long)C * (s->W + 1), p->off, p->tw, X);
     const int L = s->L;
 #if defined(__AVX512F__)
     if (s->planar) {  /* the 128-entry LUT of a channel in 16 registers (8 of values, 8 of
@@ -787,62 +778,68 @@ hex_weights(const struct hpb *s, float (*restrict lum)[T], const float (*restric
     }
 }
 
-/* The float32 whose bits are the two float16 slots at a (little-endian: low half first). */
-static inline __attribute__((always_inline)) IEEE float f32at(const uint16_t *a)
-{
-    float f;
-    memcpy(&f, a, 4);
-    return f;
-}
-
-/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the bilinear
- * luminance, the weights W_v (hex_weights), then sum W_v c_v with W_v folded into the bilinear
- * weights, as HPB's blend (blend_taps). */
+/* Rows c < C of X: hex-tiling's features (hextile.HexTile.__call__): per vertex the luminance
+ * of the bilinear features, the weights W_v (hex_weights), then sum W_v c_v with W_v folded into
+ * the bilinear weights, as HPB's blend (blend_taps). */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    const int S = C + 2;
-    const long pitch = (long)S * (s->W + 1);
+    const long pitch = (long)C * (s->W + 1);
     float lum[3][T], wt[3][T], tw[12][T];
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {  /* each texel's luminance after its features, in lines
-                                          in L2 (grid_prepare's prefetch) */
-            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S + C;
-            lum[v][q] = fmaf(p->tw[4 * v + 1][q], f32at(a + S), p->tw[4 * v][q] * f32at(a)) +
-                        fmaf(p->tw[4 * v + 3][q], f32at(a + pitch + S),
-                             p->tw[4 * v + 2][q] * f32at(a + pitch));
+        for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
+            const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
+            const float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q],
+                        t2 = p->tw[4 * v + 2][q], t3 = p->tw[4 * v + 3][q];
+            float l = 0;
+            for (int c = 0; c < C; c++)
+                l += s->lumw[c] * ((t0 * h2f(a[c]) + t1 * h2f(a[C + c])) +
+                                   (t2 * h2f(d[c]) + t3 * h2f(d[C + c])));
+            l += s->lumw[C];
+            lum[v][q] = l < 0 ? 0 : l > 1 ? 1 : l;
         }
     hex_weights(s, lum, p->w, wt);
     for (int k = 0; k < 12; k++)
         for (int q = 0; q < T; q++)
             tw[k][q] = wt[k / 4][q] * p->tw[k][q];
-    blend_taps(C, S, s->gauss16, S, pitch, p->off, tw, X);
+    blend_taps(C, s->gauss16, pitch, p->off, tw, X);
 }
 
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
 /* hex_fill_c for C = 8 in two passes over the tile's queries: each vertex's bilinear features
- * (one register) and luminance from the same texels, then, with the weights, their blend
- * (sum_v W_v c_v, in hextile's order). One pass over the taps, not a scalar pass for the
- * luminance and another for the features with the weights folded in (struct hpb has the
- * figures). */
+ * (one register) and, by a horizontal-add tree over 8 queries, its luminance a . c + b; then,
+ * with the weights, their blend (sum_v W_v c_v, in hextile's order). The luminance linear in
+ * the features (hextile) needs no taps of its own and leaves texels of 16 bytes. */
 static inline __attribute__((always_inline)) IEEE void
 hex_fill8(const struct hpb *s, const struct hpb_taps *p, float *restrict X)
 {
-    enum { C = 8, S = C + 2 };
-    const long pitch = (long)S * (s->W + 1);
-    float lum[3][T], wt[3][T];
+    enum { C = 8 };
+    const long pitch = (long)C * (s->W + 1);
+    float lum[3][T] __attribute__((aligned(32))), wt[3][T];
     float r[T][3][8] __attribute__((aligned(32)));
-    for (int q = 0; q < T; q++)
+    const __m256 la = _mm256_loadu_ps(s->lumw), lb = _mm256_set1_ps(s->lumw[C]);
+    for (int q0 = 0; q0 < T; q0 += 8)
         for (int v = 0; v < 3; v++) {
-            const uint16_t *a = s->gauss16 + (long)p->off[v][q] * S, *d = a + pitch;
-            const float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q],
-                        t2 = p->tw[4 * v + 2][q], t3 = p->tw[4 * v + 3][q];
-            __m256 acc0 = tap8(_mm256_setzero_ps(), a, t0), acc1 = tap8(_mm256_setzero_ps(), d, t2);
-            acc0 = tap8(acc0, a + S, t1);
-            acc1 = tap8(acc1, d + S, t3);
-            _mm256_store_ps(r[q][v], _mm256_add_ps(acc0, acc1));
-            lum[v][q] = fmaf(t1, f32at(a + S + C), t0 * f32at(a + C)) +
-                        fmaf(t3, f32at(d + S + C), t2 * f32at(d + C));
+            __m256 m[8];
+            for (int k = 0; k < 8; k++) {
+                const int q = q0 + k;
+                const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
+                __m256 acc0 = tap8(_mm256_setzero_ps(), a, p->tw[4 * v][q]),
+                       acc1 = tap8(_mm256_setzero_ps(), d, p->tw[4 * v + 2][q]);
+                acc0 = tap8(acc0, a + C, p->tw[4 * v + 1][q]);
+                acc1 = tap8(acc1, d + C, p->tw[4 * v + 3][q]);
+                const __m256 c = _mm256_add_ps(acc0, acc1);
+                _mm256_store_ps(r[q][v], c);
+                m[k] = _mm256_mul_ps(c, la);
+            }
+            /* the 8 sums of m[k]'s lanes, in query order: per 128-bit half the pairs, then
+               the quads (hadd), then the halves added across */
+            __m256 h0 = _mm256_hadd_ps(_mm256_hadd_ps(m[0], m[1]), _mm256_hadd_ps(m[2], m[3])),
+                   h1 = _mm256_hadd_ps(_mm256_hadd_ps(m[4], m[5]), _mm256_hadd_ps(m[6], m[7]));
+            __m256 l = _mm256_add_ps(_mm256_add_ps(_mm256_permute2f128_ps(h0, h1, 0x20),
+                                                   _mm256_permute2f128_ps(h0, h1, 0x31)), lb);
+            l = _mm256_min_ps(_mm256_max_ps(l, _mm256_setzero_ps()), _mm256_set1_ps(1));
+            _mm256_store_ps(lum[v] + q0, l);
         }
     hex_weights(s, lum, p->w, wt);
     for (int q0 = 0; q0 < T; q0 += 8) {
@@ -1010,10 +1007,10 @@ void btf_triple_plane_hpb(long N, const double *u, const float *wi, const float 
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);
 }
 
-/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu + 2): per texel Cu
- * float16 features, then the float32 luminance in two slots; neumat.btf.query.hex_planes). */
+/* The query with hex-tiling's f_U at float64 u (plane (H + 1, W + 1, Cu) float16, wrapped:
+ * neumat.btf.query.hex_plane; lumw: its luminance's Cu + 1 coefficients, struct hpb). */
 void btf_triple_plane_hex(long N, const double *u, const float *wi, const float *wo,
-                          const uint16_t *plane, int H, int W, int Cu,
+                          const uint16_t *plane, const float *lumw, int H, int W, int Cu,
                           uint32_t seed,
                           double rotation, float contrast, float exponent, float gain,
                           const float *fh, const float *fd, int R, int C, int L,
@@ -1021,6 +1018,7 @@ void btf_triple_plane_hex(long N, const double *u, const float *wi, const float 
 {
     struct hpb s = {u, H, W, NULL, 0, seed, 1, 0, (float)rotation, contrast, exponent, gain};
     s.gauss16 = plane;
+    s.lumw = lumw;
     s.prefetch = prefetch;
     struct source src = {NULL, NULL, NULL, 0, 0, Cu, &s};
     run(N, &src, wi, wo, fh, fd, R, C, L, dims, params, out, raw);

@@ -163,7 +163,7 @@ def packed(model, synth=None) -> dict:
 
 def _synth_tensors(synth):
     if synth.method == "hextile":
-        return (synth.plane_lum,)
+        return synth.plane, synth.lum_weights
     return synth.mean, synth.basis, synth.gauss, synth.lut
 
 
@@ -212,17 +212,20 @@ def _pack_hpb(model, hpb, dtype) -> dict:
 
 def _pack_hex(model, hexs, dtype) -> dict:
     """pack(model) with the feature plane (H, W, C) as `dtype` (float16 holds it exactly:
-    hextile rounds the features so), the float32 luminance as each texel's wrapped 2 x 2
+    hextile rounds the features so), the luminance a . f + b of each texel's features (linear:
+    the bilinear tap of these is the luminance of the bilinear features, which the kernel then
+    clamps to [0, 1] as hextile.HexTile.luminance_of) in float32 as each texel's wrapped 2 x 2
     neighbourhood (H, W, 4) (texels (x, y), (x + 1, y), (x, y + 1), (x + 1, y + 1): a tap's
     four values in one 16-byte load; triton_kernels.hex_tap), and hex-tiling's settings as the
     kernel takes them."""
     dev = model.f_u.device
     p, s = pack(model), hexs.s
     _narrow(p)
-    pl = hexs.plane_lum.detach().to(dev)
-    lum = pl[..., -1].float()
+    pl = hexs.plane.detach().to(dev)
+    a = hexs.lum_weights.to(dev, torch.float64)
+    lum = (pl.double() @ a[:-1] + a[-1]).float()
     lum4 = torch.stack([lum, lum.roll(-1, 1), lum.roll(-1, 0), lum.roll((-1, -1), (0, 1))], -1)
-    p.update(plane=pl[..., :-1].to(dtype).contiguous(), lum4=lum4.contiguous(),
+    p.update(plane=pl.to(dtype).contiguous(), lum4=lum4.contiguous(),
              hs=_seed_hash(hexs.seed),
              rotation=float(s["rotation"]),  # float32 in the kernel, as the C kernel's
              contrast=float(s["contrast"]), exponent=float(s["exponent"]),

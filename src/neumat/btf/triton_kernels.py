@@ -332,7 +332,8 @@ def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m, LUM4: tl.con
     is frac(offset + frac(u) + (R d - d)), so the offset and frac(u) (fx, fy) add in 32-bit
     fixed point and only R d - d is float32, d from the skewed fractions less the vertex's
     corner (e0, e1), unskewed (grid.vertex_uv). Returns the bilinear taps (texels and
-    fractions, as `texels`) and the luminance there (BLOCK); the features are fetched once the
+    fractions, as `texels`) and the luminance there, clamped to [0, 1] (BLOCK; the plane's is
+    linear in the features, unclamped: query_triton._pack_hex); the features are fetched once the
     blend weights are known (`accumulate`). LUM4: the luminance plane holds each texel's 2 x 2
     wrapped neighbourhood (H, W, 4) (query_triton._pack_hex), so a tap's four values are one
     16-byte load, not four scattered 4-byte ones; else the plain (H, W) plane (the layout
@@ -364,7 +365,7 @@ def hex_tap(lum_ptr, fx, fy, e0, e1, bx, by, hs, rotation, H, W, m, LUM4: tl.con
         d = tl.load(lum_ptr + i10, mask=m, other=0.0)
         e = tl.load(lum_ptr + i11, mask=m, other=0.0)
     lum = ((1 - tx) * (1 - ty)) * a + (tx * (1 - ty)) * b + ((1 - tx) * ty) * d + (tx * ty) * e
-    return i00, i01, i10, i11, tx, ty, lum
+    return i00, i01, i10, i11, tx, ty, tl.minimum(tl.maximum(lum, 0.0), 1.0)
 
 
 @triton.jit

@@ -47,6 +47,8 @@ def synthesize(model_paths: dict, method: str, seed: int, settings: dict, out_pa
                     if torch.is_tensor(v))
         log.info("%s on %s (%s): state %.3f MB beyond the model", method, name,
                  tuple(m.f_u.shape), extra / 1e6)
+        if hasattr(synths[name], "lum_r2"):  # hex-tiling: how linear the luminance is in f_U
+            log.info("hex-tiling's luminance fit on %s: R^2 %.3f", name, synths[name].lum_r2)
     syn.save(out_path, method, seed, settings, synths)
 
 
