@@ -932,6 +932,42 @@ static void fill(const struct source *src, long t0, int nt, const struct prepare
             interp(src->fu, Cu, p->off[q], p->w[q], X, q);
 }
 
+/* The lines of [p, p + bytes) into the cache (rw 1: about to be written). */
+static inline __attribute__((always_inline)) void prefetch_lines(const void *p, long bytes, int rw)
+{
+    for (long k = 0; k < bytes; k += 64)
+        if (rw)
+            __builtin_prefetch((const char *)p + k, 1, 3);
+        else
+            __builtin_prefetch((const char *)p + k, 0, 3);
+}
+
+/* The streamed arrays of the tile at t (its u, directions, caller's features, output), which
+ * run() asks for a tile before `prepare` reads its u: between two tiles' reads the random
+ * plane taps and the MLP left the hardware prefetcher behind (`perf annotate`, Intel Xeon: the
+ * first loads of a tile's u were 44 % of hpb_prepare's samples). Per frame, against the kernel
+ * without it (benchmarks/btf_kernel_ab.py --control --processes 5 --repeat 5, medians; Intel
+ * Xeon, 2026-11-30; outputs equal to the bit): AVX-512 build plain query 266.5 -> 253.4, HPB
+ * 289.1 -> 280.0, hex-tiling 295.1 -> 288.4 CPU-ms; AVX2 build 295.6 -> 282.8, 331.4 -> 324.6,
+ * 341.8 -> 327.7. A tile further ahead, or without the output lines: inside the noise. */
+static inline __attribute__((always_inline)) void
+prefetch_streams(const struct source *src, const float *wi, const float *wo, float *out, long t,
+                 long N)
+{
+    if (t >= N)
+        return;
+    long n = N - t < T ? N - t : T;
+    if (src->hpb)
+        prefetch_lines(src->hpb->u + 2 * t, 16 * n, 0);
+    else if (src->feat)
+        prefetch_lines(src->feat + (long)src->Cu * t, 4L * src->Cu * n, 0);
+    else
+        prefetch_lines(src->u + 2 * t, 8 * n, 0);
+    prefetch_lines(wi + 3 * t, 12 * n, 0);
+    prefetch_lines(wo + 3 * t, 12 * n, 0);
+    prefetch_lines(out + 3 * t, 12 * n, 1);
+}
+
 /* always_inline: each entry point gets its own copy, specialised on its source (GCC's
  * constprop clone served the plain query alone) */
 static inline __attribute__((always_inline)) void run(long N, const struct source *src, const float *wi, const float *wo,
@@ -948,6 +984,7 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
         prepare(src, k * T, N, &pre[k]);
     for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile = tile == ahead ? 0 : tile + 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
+        prefetch_streams(src, wi, wo, out, t0 + (ahead + 1) * T, N);
         if (t0 + ahead * T < N)
             prepare(src, t0 + ahead * T, N, &pre[tile == 0 ? ahead : tile - 1]);
         for (int q = 0; q < T; q++) {
