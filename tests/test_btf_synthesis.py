@@ -234,6 +234,7 @@ def test_hextile_features_are_float16_values_and_its_luminance_fit_is_least_squa
         hextile.fit_luminance(plane, exact.T)
     again = type(s).from_state(m.f_u.detach(), 5, s.state())
     assert torch.equal(again.plane, s.plane) and torch.equal(again.lum_weights, s.lum_weights)
+    assert again.lum_r2 == s.lum_r2
     with pytest.raises(ValueError, match="float16 ends at 65504"):
         type(s).from_state(m.f_u.detach() * 1e6, 5, s.state())
     with pytest.raises(ValueError, match=r"lacks \['lum_weights', 'plane_shape'\] \(a state of an older"):

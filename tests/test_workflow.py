@@ -196,6 +196,8 @@ def test_tiny_config_runs_every_stage(tiny_run):
     syn = pd.read_csv(res / "btf_synthesize/synthesis.tsv", sep="\t")
     assert {"tiling", "linear", "hpb", "hextile", "quilting"} <= set(syn["method"])
     assert (syn[syn.method == "tiling"]["acf"] > 0.99).all()
+    r2 = syn[syn.method == "hextile"]["lum_r2"]  # its luminance's linear fit, in the report
+    assert len(r2) > 0 and ((r2 > 0) & (r2 <= 1)).all() and "R^2 of that fit" in md
     t3 = pd.read_csv(res / "hyperbrdf/table3.csv")
     assert list(t3["method"]) == ["mean training material", "HyperBRDF (merl)",
                                   "HyperBRDF (augmerl)", "NeuMERL fit"]

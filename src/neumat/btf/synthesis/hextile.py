@@ -124,10 +124,11 @@ def _rounded(plane: torch.Tensor) -> torch.Tensor:
 class HexTile:
     method, dynamic = "hextile", True
 
-    def __init__(self, seed, plane, lum_weights, settings=None):
+    def __init__(self, seed, plane, lum_weights, settings=None, lum_r2=None):
         self.s = _settings.check(self.method, settings)
         self.seed, self.plane = int(seed), _rounded(plane)
         self.lum_weights = _checked_weights(lum_weights, self.plane.shape[-1])
+        self.lum_r2 = None if lum_r2 is None else float(lum_r2)  # of the fit, for the report
 
     @classmethod
     def build(cls, plane, seed, settings=None, luminance=None):
@@ -136,13 +137,13 @@ class HexTile:
         s = _settings.check(cls.method, settings)  # before the fit
         rounded = _rounded(plane)
         lum_weights, r2 = fit_luminance(rounded, luminance)
-        out = cls(seed, rounded, lum_weights, s)
-        out.lum_r2 = r2
-        return out
+        return cls(seed, rounded, lum_weights, s, r2)
 
     def state(self) -> dict:
-        """The luminance's coefficients, and the shape of the plane they were fitted to."""
-        return {"lum_weights": self.lum_weights.clone(), "plane_shape": list(self.plane.shape)}
+        """The luminance's coefficients, the shape of the plane they were fitted to, and the
+        fit's R^2."""
+        return {"lum_weights": self.lum_weights.clone(), "plane_shape": list(self.plane.shape),
+                "lum_r2": self.lum_r2}
 
     @classmethod
     def from_state(cls, plane, seed, state, settings=None):
@@ -156,7 +157,7 @@ class HexTile:
         if list(state["plane_shape"]) != list(plane.shape):
             raise ValueError(f"hex-tiling state was fitted to a plane (H, W, C) = "
                              f"{tuple(state['plane_shape'])}, not {tuple(plane.shape)}")
-        return cls(seed, plane, state["lum_weights"], settings)
+        return cls(seed, plane, state["lum_weights"], settings, state.get("lum_r2"))
 
     def luminance_of(self, c: torch.Tensor) -> torch.Tensor:
         """luminance(c) of features c (..., C): a . c + b, clamped to [0, 1]."""

@@ -26,6 +26,7 @@ import torch
 import neumat.btf.synthesis as syn
 from neumat.btf import evaluate as ev
 from neumat.btf import figures, models
+from neumat.btf.synthesis.hextile import HexTile
 from neumat.btf.synthesis.quilting import Quilting
 from neumat.seeds import seed_for
 
@@ -47,7 +48,7 @@ def synthesize(model_paths: dict, method: str, seed: int, settings: dict, out_pa
                     if torch.is_tensor(v))
         log.info("%s on %s (%s): state %.3f MB beyond the model", method, name,
                  tuple(m.f_u.shape), extra / 1e6)
-        if hasattr(synths[name], "lum_r2"):  # hex-tiling: how linear the luminance is in f_U
+        if isinstance(synths[name], HexTile):  # how linear the luminance is in f_U
             log.info("hex-tiling's luminance fit on %s: R^2 %.3f", name, synths[name].lum_r2)
     syn.save(out_path, method, seed, settings, synths)
 
@@ -212,6 +213,8 @@ def evaluate(material, model_paths: dict, synth_paths: dict, render: dict, measu
                 row[f"psnr_x{s}"] = float(np.mean([q["psnr"] for q in mets])) if mets else math.nan
             if isinstance(w.synth, Quilting):
                 row["seam_ssd"] = float(w.synth.seam_ssd)
+            if isinstance(w.synth, HexTile) and w.synth.lum_r2 is not None:
+                row["lum_r2"] = w.synth.lum_r2
             rows.append(row)
             log.info("%s %s %s: %s", material, k, method,
                      {a: round(b, 4) for a, b in row.items() if isinstance(b, float)})
@@ -352,6 +355,13 @@ def write_section(metric_files, md_out, table_out, measure, render, quilt_scale,
         lines += ["Quilting: mean squared feature difference over the overlaps of the chosen "
                   "blocks: " + ", ".join(f"{r.material}/{r.model} {r.seam_ssd:.3g}"
                                          for r in q.itertuples()) + ".", ""]
+    if "lum_r2" in df:
+        h = df.dropna(subset=["lum_r2"])
+        lines += ["Hex-tiling weights its blend by a luminance linear in the features (as the "
+                  "shader's is in the colour), fitted by least squares to the decoded BTF's "
+                  "luminance at head-on light and view; R^2 of that fit: "
+                  + ", ".join(f"{r.material}/{r.model} {r.lum_r2:.3f}" for r in h.itertuples())
+                  + ".", ""]
     for m in dict.fromkeys(df.material):
         lines += [f"![{m}: synthesis methods](figures/btf_{m}_synthesis.png)", "",
                   f"![{m}: NeuMIP and Triple Plane with HPB](figures/btf_{m}_synthesis_models.png)", "",
