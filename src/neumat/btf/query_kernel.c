@@ -505,7 +505,6 @@ static inline __attribute__((always_inline)) IEEE void
 blend_taps(int C, const uint16_t *plane, long pitch, const int32_t (*restrict off)[T],
            const float (*restrict tw)[T], float *restrict X)
 {
-    const int S = C;
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
     if (C == 8) {  /* a query's 8 channels in one register; 8 queries' registers transposed
                       into 8 rows of X (3 x 8 shuffles) rather than stored lane by lane */
@@ -518,8 +517,8 @@ blend_taps(int C, const uint16_t *plane, long pitch, const int32_t (*restrict of
                     const uint16_t *a = plane + off[v][q], *d = a + pitch;
                     acc0 = tap8(acc0, a, tw[4 * v][q]);
                     acc1 = tap8(acc1, d, tw[4 * v + 2][q]);
-                    acc0 = tap8(acc0, a + S, tw[4 * v + 1][q]);
-                    acc1 = tap8(acc1, d + S, tw[4 * v + 3][q]);
+                    acc0 = tap8(acc0, a + C, tw[4 * v + 1][q]);
+                    acc1 = tap8(acc1, d + C, tw[4 * v + 3][q]);
                 }
                 r[k] = _mm256_add_ps(acc0, acc1);
             }
@@ -538,8 +537,8 @@ blend_taps(int C, const uint16_t *plane, long pitch, const int32_t (*restrict of
                   t3 = tw[4 * v + 3][q];
 #define AT(k) h2f(plane[k])
             for (int c = 0; c < C; c++)  /* two short chains: more in flight */
-                acc[c] += (t0 * AT(o + c) + t1 * AT(o + S + c)) +
-                          (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + S + c));
+                acc[c] += (t0 * AT(o + c) + t1 * AT(o + C + c)) +
+                          (t2 * AT(o + pitch + c) + t3 * AT(o + pitch + C + c));
 #undef AT
         }
         for (int c = 0; c < C; c++)
