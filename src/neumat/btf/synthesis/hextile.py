@@ -153,7 +153,8 @@ class HexTile:
         missing = sorted({"lum_weights", "plane_shape"} - set(state))
         if missing:
             hint = (" (a state of an older neumat, which kept a luminance per texel: rerun "
-                    "btf_synthesize)" if "luminance" in state else "")
+                    "its jobs, e.g. snakemake report --cores 2 --forcerun btf_synthesize)"
+                    if "luminance" in state else "")
             raise ValueError(f"hex-tiling state lacks {missing}{hint}")
         if list(state["plane_shape"]) != list(plane.shape):
             raise ValueError(f"hex-tiling state was fitted to a plane (H, W, C) = "
