@@ -42,7 +42,7 @@ from neumat.btf.synthesis.grid import triangle_grid, vertex_hash, vertex_uv
 DEFAULTS = _settings.defaults("hextile")
 # Gain3's power b^k is floored here as the C kernel's powk floors it (query_kernel.c): no
 # matter beside weights of order 1, but where all three blend weights are 0 (contrast 1 and
-# three black luminance taps) both paths then give equal weights 1/3, not 0 / 0
+# luminance 0 at all three taps) both paths then give equal weights 1/3, not 0 / 0
 POW_FLOOR = 2.0 ** -126
 
 
@@ -135,10 +135,10 @@ class HexTile:
     def build(cls, plane, seed, settings=None, luminance=None):
         if luminance is None:
             raise ValueError("hex-tiling needs the luminance plane of the decoded BTF")
-        s = _settings.check(cls.method, settings)  # before the fit
-        rounded = _rounded(plane)
-        lum_weights, r2 = fit_luminance(rounded, luminance)
-        return cls(seed, rounded, lum_weights, s, r2)
+        # the constructor checks the settings and rounds the plane (once), then the fit
+        out = cls(seed, plane, torch.zeros(plane.shape[-1] + 1), settings)
+        out.lum_weights, out.lum_r2 = fit_luminance(out.plane, luminance)
+        return out
 
     def state(self) -> dict:
         """The luminance's coefficients, the shape of the plane they were fitted to, and the
