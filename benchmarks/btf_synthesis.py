@@ -116,6 +116,59 @@ def frame(coherent: bool = False):
     return u, u32, w
 
 
+def timed_runs(a, m, u, u32, w, c, dev, fused, K):
+    """The timed functions of a frame by name, and for each synthesis row the plain query it
+    is measured against."""
+    run = lambda f: lambda n=FRAME: chunked(f, n, c)
+    runs, refs = {}, {}   # name -> timed function; name -> the plain query it is measured against
+    if fused:
+        runs[f"plain ({K})"] = run(lambda s: query.query(m, u32[s], w[s], w[s], march=a.march))
+    if dev.type == "cuda":
+        p0 = query_triton.packed(m)
+        runs["plain (GPU kernel)"] = run(lambda s: query_triton.query(m, u32[s], w[s], w[s],
+                                                                      packed=p0))
+    if not a.no_torch:
+        runs["plain (torch)"] = run(lambda s: m(u32[s], w[s], w[s]))
+        runs["plain f_U fetch (torch)"] = run(lambda s: fetch(m.f_u, u32[s], True))
+    for method in a.methods:
+        st = {"scale": a.quilt_scale} if method == "quilting" else {}
+        wr = syn.Synthesized(m, syn.build(m, method, 1, st))
+        if fused:
+            # Synthesized.forward, with the build chosen: query.query with the synthesis as f_U
+            runs[f"{method} ({K})"] = run(lambda s, wr=wr: query.query(
+                m, u[s], w[s], w[s], features_u=wr.synth, march=a.march))
+            refs[f"{method} ({K})"] = f"plain ({K})"
+            if dev.type == "cuda" and method in query_triton.METHODS:
+                # the kernels alone, packed once (no dispatch in query.query), and the baseline
+                # of the float16 planes: the same kernel reading its plane as float32
+                for name, half in (("kernel", True), ("kernel, fp32 plane", False)):
+                    p = query_triton._pack(m, wr.synth, half=half)
+                    runs[f"{method} (GPU {name})"] = run(
+                        lambda s, wr=wr, p=p: query_triton.query(m, u[s], w[s], w[s], packed=p,
+                                                                 synth=wr.synth))
+                    refs[f"{method} (GPU {name})"] = "plain (GPU kernel)"
+            if method == "hpb" and dev.type == "cpu":
+                hook = _Fn(wr.synth)  # not an HPB object: its features are fed to the kernel
+                runs[f"hpb (hook, {K})"] = run(
+                    lambda s, h=hook: query.query(m, u[s], w[s], w[s], features_u=h, march=a.march))
+                refs[f"hpb (hook, {K})"] = f"plain ({K})"
+        runs[f"{method} synthesis alone"] = run(lambda s, wr=wr: wr.synth(u[s]))
+        if not a.no_torch:
+            tf = _Fn(wr.synth.torch_features) if method == "hpb" else wr.synth
+            wt = syn.Synthesized(m, tf)
+            runs[f"{method} (torch)"] = run(lambda s, wt=wt: wt.torch_forward(u[s], w[s], w[s]))
+            refs[f"{method} (torch)"] = "plain (torch)"
+        if a.compile:
+            fast = torch.compile(wr.synth.__call__, dynamic=False)
+            t0 = time.perf_counter()
+            fast(u[:c])
+            print(f"{method}: torch.compile {time.perf_counter() - t0:.0f} s", flush=True)
+            wc = syn.Synthesized(m, _Fn(fast))
+            runs[f"{method} (compiled torch)"] = run(lambda s, wc=wc: wc.torch_forward(u[s], w[s], w[s]))
+            refs[f"{method} (compiled torch)"] = "plain (torch)"
+    return runs, refs
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", help="trained triple_plane.pt (default: random --size model)")
@@ -170,57 +223,14 @@ def main():
     print(f"model {m.method} {m.kwargs}, frame {FRAME} queries "
           f"({'coherent: a x15 plane in pixel order' if a.coherent else 'uniform random u'}), "
           f"chunk {c}" + (f"; launch shapes {query_triton.LAUNCH}" if dev.type == "cuda" else ""))
-    run = lambda f: lambda n=FRAME: chunked(f, n, c)
     K = "fused C" if dev.type == "cpu" else "GPU"  # the fused path of this device
-    runs, refs = {}, {}   # name -> timed function; name -> the plain query it is measured against
-    if fused:
-        runs[f"plain ({K})"] = run(lambda s: query.query(m, u32[s], w[s], w[s], march=a.march))
-    if dev.type == "cuda":
-        p0 = query_triton.packed(m)
-        runs["plain (GPU kernel)"] = run(lambda s: query_triton.query(m, u32[s], w[s], w[s],
-                                                                      packed=p0))
-    if not a.no_torch:
-        runs["plain (torch)"] = run(lambda s: m(u32[s], w[s], w[s]))
-        runs["plain f_U fetch (torch)"] = run(lambda s: fetch(m.f_u, u32[s], True))
-    for method in a.methods:
-        st = {"scale": a.quilt_scale} if method == "quilting" else {}
-        wr = syn.Synthesized(m, syn.build(m, method, 1, st))
-        if fused:
-            # Synthesized.forward, with the build chosen: query.query with the synthesis as f_U
-            runs[f"{method} ({K})"] = run(lambda s, wr=wr: query.query(
-                m, u[s], w[s], w[s], features_u=wr.synth, march=a.march))
-            refs[f"{method} ({K})"] = f"plain ({K})"
-            if dev.type == "cuda" and method in query_triton.METHODS:
-                # the kernels alone, packed once (no dispatch in query.query), and the baseline
-                # of the float16 planes: the same kernel reading its plane as float32
-                for name, half in (("kernel", True), ("kernel, fp32 plane", False)):
-                    p = query_triton._pack(m, wr.synth, half=half)
-                    runs[f"{method} (GPU {name})"] = run(
-                        lambda s, wr=wr, p=p: query_triton.query(m, u[s], w[s], w[s], packed=p,
-                                                                 synth=wr.synth))
-                    refs[f"{method} (GPU {name})"] = "plain (GPU kernel)"
-            if method == "hpb" and dev.type == "cpu":
-                hook = _Fn(wr.synth)  # not an HPB object: its features are fed to the kernel
-                runs[f"hpb (hook, {K})"] = run(
-                    lambda s, h=hook: query.query(m, u[s], w[s], w[s], features_u=h, march=a.march))
-                refs[f"hpb (hook, {K})"] = f"plain ({K})"
-        runs[f"{method} synthesis alone"] = run(lambda s, wr=wr: wr.synth(u[s]))
-        if not a.no_torch:
-            tf = _Fn(wr.synth.torch_features) if method == "hpb" else wr.synth
-            wt = syn.Synthesized(m, tf)
-            runs[f"{method} (torch)"] = run(lambda s, wt=wt: wt.torch_forward(u[s], w[s], w[s]))
-            refs[f"{method} (torch)"] = "plain (torch)"
-        if a.compile:
-            fast = torch.compile(wr.synth.__call__, dynamic=False)
-            t0 = time.perf_counter()
-            fast(u[:c])
-            print(f"{method}: torch.compile {time.perf_counter() - t0:.0f} s", flush=True)
-            wc = syn.Synthesized(m, _Fn(fast))
-            runs[f"{method} (compiled torch)"] = run(lambda s, wc=wc: wc.torch_forward(u[s], w[s], w[s]))
-            refs[f"{method} (compiled torch)"] = "plain (torch)"
+    parent = a.processes > 1 and not a.one_process
+    # the parent of --processes builds no synthesis (nor torch.compile's): its children time them
+    runs, refs = ({}, {}) if parent else timed_runs(a, m, u, u32, w, c, dev, fused, K)
     spread, how = {}, "one process"
-    if a.processes > 1 and not a.one_process:
+    if parent:
         per = fresh_processes.gather(__file__, a.processes)
+        runs, refs = dict.fromkeys(per[0]["cpu"]), per[0]["refs"]
         med = statistics.median
         wall = {k: med(r["wall"][k] for r in per) for k in runs}
         cpu = {k: med(r["cpu"][k] for r in per) for k in runs}
@@ -231,7 +241,7 @@ def main():
     else:
         wall, cpu = timed(runs, a.repeat, sync)
         if a.one_process:  # a child of --processes: its figures to the parent
-            fresh_processes.emit({"wall": wall, "cpu": cpu})
+            fresh_processes.emit({"wall": wall, "cpu": cpu, "refs": refs})
             return
     print(f"{'':28s} {'wall ms/frame':>14s} {'CPU ms/frame':>13s}   overhead vs plain (wall, CPU)")
     for k in runs:
