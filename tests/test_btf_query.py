@@ -153,7 +153,7 @@ def test_fused_synthesis_query_is_a_pure_function_of_u_and_seed(method, seed):
 
 @pytest.mark.parametrize("method", FUSED_METHODS)
 def test_tap_prefetch_changes_no_output(method, monkeypatch):
-    """The synthesis kernels' tap prefetch (on except on Intel) is a hint: the queries equal
+    """The synthesis kernels' tap prefetch (on by default) is a hint: the queries equal
     each other to the bit with it on and off, at u around 0 and +-1e5."""
     from neumat.btf import synthesis
     m, (u, wi, wo) = model(), hpb_queries(3000, 12)
@@ -166,14 +166,11 @@ def test_tap_prefetch_changes_no_output(method, monkeypatch):
     assert torch.equal(out["0"], out["1"])
 
 
-def test_tap_prefetch_follows_the_vendor_and_the_override(monkeypatch):
-    from neumat import machine
+def test_tap_prefetch_is_on_unless_overridden(monkeypatch):
     monkeypatch.delenv("NEUMAT_TAP_PREFETCH", raising=False)
-    for vendor, want in (("GenuineIntel", False), ("AuthenticAMD", True), ("", True)):
-        monkeypatch.setattr(machine, "cpu_vendor", lambda v=vendor: v)
-        assert query.tap_prefetch() is want
-    monkeypatch.setenv("NEUMAT_TAP_PREFETCH", "1")
     assert query.tap_prefetch() is True
+    monkeypatch.setenv("NEUMAT_TAP_PREFETCH", "0")
+    assert query.tap_prefetch() is False
     monkeypatch.setenv("NEUMAT_TAP_PREFETCH", "yes")
     with pytest.raises(ValueError, match="NEUMAT_TAP_PREFETCH must be 0 or 1, got 'yes'"):
         query.tap_prefetch()

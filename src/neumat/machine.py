@@ -38,13 +38,6 @@ def cpu_flags() -> frozenset[str]:
     return frozenset((_cpuinfo(("flags", "Features")) or "").split())
 
 
-@cache
-def cpu_vendor() -> str:
-    """The CPU's vendor id (/proc/cpuinfo's vendor_id, e.g. "GenuineIntel", "AuthenticAMD"),
-    or "" where it does not say."""
-    return _cpuinfo("vendor_id") or ""
-
-
 def _isa_name(has) -> str:
     """The widest float vector ISA among the names `has` accepts."""
     for name, keys in (("AVX-512", ("avx512f", "__AVX512F__")), ("AVX2", ("avx2", "__AVX2__")),

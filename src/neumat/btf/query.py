@@ -37,7 +37,7 @@ from typing import Callable
 
 import torch
 
-from neumat import cbuild, machine
+from neumat import cbuild
 from neumat.btf.fold import check_lut, fold_pca
 from neumat.btf import query_triton
 
@@ -112,23 +112,22 @@ def hex_plane(hexs) -> torch.Tensor:
 
 
 def tap_prefetch() -> bool:
-    """Whether the HPB and hex-tiling queries prefetch a tile's taps two tiles ahead (struct
-    hpb's `prefetch` in query_kernel.c). Outputs are the same either way. On Intel CPUs they do
-    not: the bursts of prefetches (768 a tile of 64 queries) cost more than they hide. Without
-    them, per 1920 x 1080 frame, HPB took 7.0 CPU-ms less (AVX-512 build) and 10.4 less (AVX2
-    build), hex-tiling 6.6 and 10.9 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py
-    --rev 9504fb1 --tap-prefetch both`, its working-tree rows, and with `--march x86-64-v3`;
-    Intel Xeon AVX-512, idle, 2026-11-29; docs/stages.md, "BTF synthesis on the positional plane").
-    Elsewhere they do: the kernel was designed with them on an AMD EPYC, where going without
-    has not been measured. The plain query prefetches its f_U taps everywhere (a scratch build
-    without took 6.3 CPU-ms a frame more on the same Intel host). NEUMAT_TAP_PREFETCH=0 or 1
-    overrides the choice (read on every query)."""
+    """Whether the HPB and hex-tiling queries prefetch the next tile's taps (struct hpb's
+    `prefetch` in query_kernel.c: one query's footprints at a time, spread over the tile
+    before, `prefetch_taps`). Outputs are the same either way; NEUMAT_TAP_PREFETCH=0 or 1
+    overrides the default, on (read on every query). Per 1920 x 1080 frame on an Intel Xeon,
+    against no prefetch, HPB took 9.4 and 12.8 CPU-ms less on the AVX-512 and AVX2 builds,
+    hex-tiling 13.5 and 10.4 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py --rev
+    beb9859 --control --processes 5 --repeat 5 --tap-prefetch both`, and with `--march
+    x86-64-v3`; medians of 5 processes, idle, 2026-11-30). Not measured on AMD, where the earlier burst of
+    a tile's prefetches (on there, off on Intel, where it cost more than it hid) was
+    designed."""
     env = os.environ.get("NEUMAT_TAP_PREFETCH")
-    if env is not None:
-        if env not in ("0", "1"):
-            raise ValueError(f"NEUMAT_TAP_PREFETCH must be 0 or 1, got {env!r}")
-        return env == "1"
-    return machine.cpu_vendor() != "GenuineIntel"
+    if env is None:
+        return True
+    if env not in ("0", "1"):
+        raise ValueError(f"NEUMAT_TAP_PREFETCH must be 0 or 1, got {env!r}")
+    return env == "1"
 
 
 def available(march: str = "native") -> bool:

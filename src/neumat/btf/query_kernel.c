@@ -55,9 +55,6 @@ enum { AJ = 6, AS = 2 };
 #define LUT_REG 128  /* the LUT size hpb_fill_c looks up in registers (AVX-512) */
 #define T 64        /* queries per tile: a multiple of AS * VL for every VL */
 #define MAXW 128    /* widest layer the scratch holds */
-#ifndef AHEAD
-#define AHEAD 2     /* tiles HPB's taps are prefetched ahead */
-#endif
 
 typedef float vf __attribute__((vector_size(4 * VL), aligned(4), may_alias));  /* may_alias: it reads and writes float arrays */
 typedef int vi __attribute__((vector_size(4 * VL), aligned(4), may_alias));
@@ -157,22 +154,14 @@ static inline void fetch(const float *plane, int H, int W, int C, float px, floa
     interp(plane, C, off, w, X, q);
 }
 
-/* The f_U taps of the tile of queries t0 ... t0 + T - 1 (a short tile repeats its last query),
- * prefetched: f_U (megabytes) is read at random texels, and a tile's 4 T fetches in flight
- * while the previous tile runs its MLP hide most of the memory latency. */
-static void prepare_u(const float *u, long t0, long N, const float *fu, int Hu, int Wu, int Cu,
+/* The f_U taps of the tile of queries t0 ... t0 + T - 1 (a short tile repeats its last query);
+ * run() prefetches them (prefetch_taps) while the tile before runs. */
+static void prepare_u(const float *u, long t0, long N, int Hu, int Wu, int Cu,
                       long (*off)[4], float (*w)[4])
 {
     for (int q = 0; q < T; q++) {
         long i = t0 + q < N ? t0 + q : N - 1;
         taps(Hu, Wu, Cu, u[2 * i], u[2 * i + 1], 1, off[q], w[q]);
-        for (int k = 0; k < 4; k++) {  /* locality 2 (prefetcht1): the plain query took 4 %
-                                          less time than with prefetcht0, which brings a
-                                          tile's lines into L1 a tile early (btf_query.py,
-                                          AMD EPYC AVX-512: 231.7 against 242.3 CPU-ms) */
-            __builtin_prefetch(fu + off[q][k], 0, 2);
-            __builtin_prefetch(fu + off[q][k] + Cu - 1, 0, 2);  /* a texel may straddle two lines */
-        }
     }
 }
 
@@ -214,8 +203,8 @@ struct hpb {
     int L;
     uint32_t seed;
     int hex;                /* hex-tiling: rotated taps and hextile's blend (settings below) */
-    int prefetch;           /* grid_prepare prefetches the tile's taps (neumat.btf.query.
-                               tap_prefetch says where that pays) */
+    int prefetch;           /* run() prefetches the next tile's taps (prefetch_taps;
+                               neumat.btf.query.tap_prefetch) */
     float rotation, contrast, exponent, gain;  /* the angle is formed in float (sincos_polyf) */
     const float *planar;    /* HPB, L = LUT_REG: (C, 2, L) values then slopes, for the register
                                lookup (hpb_fill_c); else NULL */
@@ -320,8 +309,7 @@ static inline __attribute__((always_inline)) IEEE void sincos_polyf(float a, flo
 }
 
 /* Grid, hash and bilinear taps of the tile t0 ... t0 + T - 1 (lanes of plain loops the
- * compiler vectorises), then, where s->prefetch, the texels prefetched while the previous tile
- * runs its MLP.
+ * compiler vectorises); prefetch_footprints fetches their texels.
  * `hex` is a constant after inlining (hpb_prepare, hex_prepare): a run-time branch in the
  * vertex loop kept GCC from vectorising it and doubled HPB's cost. */
 static inline __attribute__((always_inline)) IEEE void
@@ -438,14 +426,17 @@ grid_prepare(const struct hpb *s, int C, long t0, long N, struct hpb_taps *p, co
         p->inv[q] = (float)(1 / sqrt((double)ww));
         p->bias[q] = 0.5f - 0.5f * ((p->w[0][q] + p->w[1][q]) + p->w[2][q]) * p->inv[q];
     }
-    if (!s->prefetch)
-        return;
-    /* a 2 x 2 footprint: two rows of 2C float16, each in one or two lines, so both ends of each
-       row (a scratch build prefetching only each row's first line was clearly slower; figures
-       in issue #18's note) */
+}
+
+/* The texels of queries q0 ... q1 - 1 of a prepared tile into L2. A 2 x 2 footprint is two
+ * rows of 2C float16, each in one or two lines, so both ends of each row (a scratch build
+ * prefetching only each row's first line was clearly slower; figures in issue #18's note). */
+static inline __attribute__((always_inline)) void
+prefetch_footprints(const struct hpb *s, int C, const struct hpb_taps *p, int q0, int q1)
+{
     const long pitch = (long)C * (s->W + 1);
-    for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {
+    for (int q = q0; q < q1; q++)
+        for (int v = 0; v < 3; v++) {
             const uint16_t *a = s->gauss16 + p->off[v][q];
             __builtin_prefetch(a, 0, 1);
             __builtin_prefetch(a + 2 * C - 1, 0, 1);
@@ -895,7 +886,7 @@ struct source {
     const struct hpb *hpb;
 };
 
-struct prepared {           /* a tile's f_U fetches, prepared (and prefetched) a tile ahead */
+struct prepared {           /* a tile's f_U fetches, prepared a tile ahead */
     long off[T][4];
     float w[T][4];
     struct hpb_taps hpb;
@@ -911,7 +902,37 @@ static __attribute__((noinline)) void prepare(const struct source *src, long t0,
     else if (src->hpb)
         hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (!src->feat)
-        prepare_u(src->u, t0, N, src->fu, src->Hu, src->Wu, src->Cu, p->off, p->w);
+        prepare_u(src->u, t0, N, src->Hu, src->Wu, src->Cu, p->off, p->w);
+}
+
+/* Query q's f_U texels of the next tile, prepared, into the cache: run() asks for one query's
+ * at a time, between the direction fetches of the tile before. Issued in one burst after the
+ * tile's preparation (768 prefetches for HPB's 3 footprints of 64 queries, 512 for the plain
+ * query's 4 texels), they queued on the few lines a core has in flight; spread over the tile,
+ * they overlap its work. Per 1920 x 1080 frame against the burst, and against no tap prefetch
+ * for HPB and hex-tiling (Intel's choice until then): AVX-512 build, plain query 263.2 ->
+ * 254.8 CPU-ms, HPB 302.5 / 294.0 -> 279.3 (+8.1 % over the plain query), hex-tiling 312.5 /
+ * 299.4 -> 278.8 (+8.8 %); AVX2 build 263.4 -> 256.5, HPB 311.7 / 298.8 -> 286.4 (+10.1 %),
+ * hex-tiling 321.2 / 311.4 -> 294.8 (+14.8 %); outputs equal to the bit
+ * (benchmarks/btf_kernel_ab.py --rev beb9859 --control --processes 5 --repeat 5 --tap-prefetch
+ * both, and with --march x86-64-v3; medians of 5 processes; Intel Xeon, idle, 2026-11-30). A
+ * scratch build spreading them over the MLP's row blocks in place gained as much on the
+ * AVX-512 build, nothing on AVX2. */
+static inline __attribute__((always_inline)) void
+prefetch_taps(const struct source *src, const struct prepared *p, int q)
+{
+    if (src->hpb) {
+        if (src->hpb->prefetch)
+            prefetch_footprints(src->hpb, src->Cu, &p->hpb, q, q + 1);
+    } else if (!src->feat)
+        for (int k = 0; k < 4; k++) {  /* locality 2 (prefetcht1): the plain query took 4 %
+                                          less time than with prefetcht0, which brings a
+                                          tile's lines into L1 a tile early (btf_query.py,
+                                          AMD EPYC AVX-512: 231.7 against 242.3 CPU-ms) */
+            __builtin_prefetch(src->fu + p->off[q][k], 0, 2);
+            __builtin_prefetch(src->fu + p->off[q][k] + src->Cu - 1, 0, 2);  /* a texel may
+                                                                       straddle two lines */
+        }
 }
 
 /* Rows 0 ... Cu - 1 of X for the tile at t0 (nt queries, the rest repeat the last). */
@@ -975,17 +996,17 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
 {
     float bufa[MAXW * T], bufb[MAXW * T];  /* a tile's activations, ping-pong between layers */
     float wi_[3 * T], wo_[3 * T];
-    /* f_U fetches prepared (and prefetched) `ahead` tiles ahead: HPB's 12 taps a query need
-     * more time in flight than the plane fetch's 4 */
-    struct prepared pre[AHEAD + 1];
-    int Cu = src->Cu, ahead = src->hpb ? AHEAD : 1;
-    for (int k = 0; k < ahead && k * T < N; k++)
-        prepare(src, k * T, N, &pre[k]);
-    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile = tile == ahead ? 0 : tile + 1) {
+    /* f_U fetches prepared, and their texels prefetched, a tile ahead */
+    struct prepared pre[2];
+    int Cu = src->Cu;
+    if (N > 0)
+        prepare(src, 0, N, &pre[0]);
+    for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile ^= 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
-        prefetch_streams(src, wi, wo, out, t0 + (ahead + 1) * T, N);
-        if (t0 + ahead * T < N)
-            prepare(src, t0 + ahead * T, N, &pre[tile == 0 ? ahead : tile - 1]);
+        const struct prepared *next = t0 + T < N ? &pre[tile ^ 1] : NULL;
+        prefetch_streams(src, wi, wo, out, t0 + 2 * T, N);
+        if (next)
+            prepare(src, t0 + T, N, &pre[tile ^ 1]);
         for (int q = 0; q < T; q++) {
             long i = t0 + (q < nt ? q : nt - 1);
             for (int k = 0; k < 3; k++)
@@ -994,6 +1015,8 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
         fill(src, t0, nt, &pre[tile], bufa);
         for (int q = 0; q < T; q++) {
             float hxy[2], dxy[2];
+            if (next)
+                prefetch_taps(src, next, q);
             half_diff(wi_ + 3 * q, wo_ + 3 * q, hxy, dxy);
             fetch(fh, R, R, C, hxy[0], hxy[1], 0, bufa + Cu * T, q);
             fetch(fd, R, R, C, dxy[0], dxy[1], 0, bufa + (Cu + C) * T, q);
@@ -1067,7 +1090,6 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
 {
     struct hpb s = {u, H, W, lut, Lut, seed};
     s.gauss16 = gauss;
-    s.prefetch = 1;  /* as before the flag existed (not measured without) */
     float planar[Lut == LUT_REG && C <= MAXW ? 2 * C * LUT_REG : 1];
     s.planar = lut_planar(&s, C, planar);
     struct hpb_taps p;
@@ -1075,6 +1097,7 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
     for (long t0 = 0; t0 < N; t0 += T) {
         int nt = N - t0 < T ? (int)(N - t0) : T;
         hpb_prepare(&s, C, t0, N, &p);
+        prefetch_footprints(&s, C, &p, 0, T);
         hpb_fill(C, &s, &p, X);
         for (int q = 0; q < nt; q++)
             for (int j = 0; j < C; j++) {
