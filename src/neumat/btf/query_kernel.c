@@ -518,7 +518,7 @@ blend_taps(int C, const uint16_t *plane, long pitch, const int32_t (*restrict of
         return;
     }
 #endif
-    for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
+    for (int q = 0; q < T; q++) {  /* the taps are in L2 (run's prefetch_taps) */
         float acc[C];
         for (int c = 0; c < C; c++)
             acc[c] = 0;
@@ -777,7 +777,7 @@ hex_fill_c(int C, const struct hpb *s, const struct hpb_taps *p, float *restrict
     const long pitch = (long)C * (s->W + 1);
     float lum[3][T], wt[3][T], tw[12][T];
     for (int v = 0; v < 3; v++)
-        for (int q = 0; q < T; q++) {  /* the taps are in L2 (grid_prepare's prefetch) */
+        for (int q = 0; q < T; q++) {  /* the taps are in L2 (run's prefetch_taps) */
             const uint16_t *a = s->gauss16 + p->off[v][q], *d = a + pitch;
             const float t0 = p->tw[4 * v][q], t1 = p->tw[4 * v + 1][q],
                         t2 = p->tw[4 * v + 2][q], t3 = p->tw[4 * v + 3][q];
