@@ -119,9 +119,9 @@ def tap_prefetch() -> bool:
     against no prefetch, HPB took 9.4 and 12.8 CPU-ms less on the AVX-512 and AVX2 builds,
     hex-tiling 13.5 and 10.4 less (`OMP_NUM_THREADS=1 python benchmarks/btf_kernel_ab.py --rev
     beb9859 --control --processes 5 --repeat 5 --tap-prefetch both`, and with `--march
-    x86-64-v3`; medians of 5 processes, idle, 2026-11-30). Not measured on AMD, where the earlier burst of
-    a tile's prefetches (on there, off on Intel, where it cost more than it hid) was
-    designed."""
+    x86-64-v3`; medians of 5 processes, idle, 2026-11-30). Not measured on AMD, where the
+    earlier burst of a tile's prefetches (on there, off on Intel, where it cost more than it
+    hid) was designed."""
     env = os.environ.get("NEUMAT_TAP_PREFETCH")
     if env is None:
         return True

@@ -910,9 +910,10 @@ static __attribute__((noinline)) void prepare(const struct source *src, long t0,
  * tile's preparation (768 prefetches for HPB's 3 footprints of 64 queries, 512 for the plain
  * query's 4 texels), they queued on the few lines a core has in flight; spread over the tile,
  * they overlap its work. Per 1920 x 1080 frame against the burst, and against no tap prefetch
- * for HPB and hex-tiling (Intel's choice until then): AVX-512 build, plain query 263.2 ->
- * 254.8 CPU-ms, HPB 302.5 / 294.0 -> 279.3 (+8.1 % over the plain query), hex-tiling 312.5 /
- * 299.4 -> 278.8 (+8.8 %); AVX2 build 263.4 -> 256.5, HPB 311.7 / 298.8 -> 286.4 (+10.1 %),
+ * for HPB and hex-tiling (Intel's choice until then): AVX-512 build, plain query 263.2 and
+ * 267.5 (its two rows) -> 254.8 CPU-ms, HPB 302.5 / 294.0 -> 279.3 (+8.1 % over the plain
+ * query), hex-tiling 312.5 / 299.4 -> 278.8 (+8.8 %); AVX2 build, plain 263.4 and 266.5 ->
+ * 256.5, HPB 311.7 / 298.8 -> 286.4 (+10.1 %),
  * hex-tiling 321.2 / 311.4 -> 294.8 (+14.8 %); outputs equal to the bit
  * (benchmarks/btf_kernel_ab.py --rev beb9859 --control --processes 5 --repeat 5 --tap-prefetch
  * both, and with --march x86-64-v3; medians of 5 processes; Intel Xeon, idle, 2026-11-30). A
@@ -1003,10 +1004,10 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
         prepare(src, 0, N, &pre[0]);
     for (long t0 = 0, tile = 0; t0 < N; t0 += T, tile ^= 1) {
         int nt = N - t0 < T ? (int)(N - t0) : T;  /* a short last tile repeats its last query */
-        const struct prepared *next = t0 + T < N ? &pre[tile ^ 1] : NULL;
+        struct prepared *next = t0 + T < N ? &pre[tile ^ 1] : NULL;
         prefetch_streams(src, wi, wo, out, t0 + 2 * T, N);
         if (next)
-            prepare(src, t0 + T, N, &pre[tile ^ 1]);
+            prepare(src, t0 + T, N, next);
         for (int q = 0; q < T; q++) {
             long i = t0 + (q < nt ? q : nt - 1);
             for (int k = 0; k < 3; k++)
