@@ -19,7 +19,10 @@ constraint (diffusion.sample.negative_step) does: cheap measurements on a traine
            same bins and seed as the workflow) and the median BRDF-L1 to the nearest training
            material (diffusion_nearest: same bins and seed), next to the real fits' figures
            (--real). Setting keys: steps, eta, clip, negative_step, and gauss_below (the
-           Gaussian MMSE denoiser replaces the model below that t: an experiment).
+           Gaussian MMSE denoiser replaces the model below that t: an experiment). Where the
+           run has metrics/reference.pt: dark_share, the share of samples whose metric render
+           is as dark as the references' darkest fifth (20 % would match them; kinds --by
+           brightness), and dark_any_negative, the share of those that clamp a bin.
   kinds  : where Table 2's image rows are won and lost: for every column of a finished run
            (its samples/<column>/ files, cut into the run's draws) the terms of MMD and COV
            under render RMSE, i.e. each reference's distance to its nearest sample and whether
@@ -30,6 +33,11 @@ constraint (diffusion.sample.negative_step) does: cheap measurements on a traine
            --exposure E1 E2 ...: the samples also rendered E stops brighter (negative: darker)
            than the metric view, as rows "<column> <E:+g>": does a global exposure offset
            explain a column's loss?
+           --by brightness: the references in fifths by the mean sRGB of their metric render
+           (Q1 darkest), with each column's share of samples whose render falls in each fifth
+           ("samples %": 20 % each would match the references).
+           --linear: MMD RMSE also on the renders decoded to linear light (the inverse sRGB
+           curve), where an error near black weighs up to 12.92x less than in sRGB.
 
 The model is a workflow model.pt or a train_diffusion checkpoint.pt (its EMA weights; the
 normaliser is refitted on the training rows, exactly as train() does).
@@ -40,6 +48,7 @@ normaliser is refitted on the training rows, exactly as train() does).
       --grid steps=100,eta=0,negative_step=0 --grid steps=100,eta=0,negative_step=1
   python benchmarks/diffusion_diagnose.py kinds --results R --draws 3
   python benchmarks/diffusion_diagnose.py kinds --results R --draws 1 --by type --exposure -0.15 -0.5
+  python benchmarks/diffusion_diagnose.py kinds --results R --draws 3 --by brightness --linear
 """
 
 import argparse
@@ -57,6 +66,7 @@ from neumat.diffusion.model import Normalizer
 from neumat.diffusion.schedule import RowNoise
 from neumat.io import modelfile
 from neumat.metrics import distances, evaluate, materials
+from neumat.render import sphere
 from neumat.seeds import seed_for
 
 T_GRID = [0, 25, 50, 100, 200, 300, 400, 500, 600, 700, 800, 900, 999]
@@ -276,15 +286,30 @@ def cmd_sample(a):
     kw = dict(n_angles=a.angles, seed=seed_for(a.seed, "diffusion_plausibility"),
               activation=a.activation, albedo_kw=dict(n_theta_o=4, n_theta_h=32, n_phi_h=32))
     out = []
+    # the darkest fifth of the references by render brightness (kinds --by brightness), where
+    # the run's metrics/reference.pt exists: how many samples land there, and how many of those
+    # clamp a bin
+    ref_path = f"{a.results}/metrics/reference.pt"
+    ri = evaluate.load_reference(ref_path)["images"] if os.path.exists(ref_path) else None
+    dark_edge = np.quantile(brightness(ri), BRIGHTNESS_FIFTHS[0]) if ri is not None else None
+
+    def darkness(w, pl):
+        if ri is None:
+            return {}
+        dark = brightness(materials.renders(np.nan_to_num(w), ri.shape[1], a.activation)) < dark_edge
+        return {"dark_share": dark.mean(),
+                "dark_any_negative": (pl["negative_share"][dark] > 0).mean() if dark.any() else np.nan}
 
     def row(name, w, seconds=float("nan"), nearest=True, **extra):
-        s = plausibility.summarize(plausibility.plausibility(w, **kw))
+        pl = plausibility.plausibility(w, **kw)
+        s = plausibility.summarize(pl)
         out.append({"set": name, **extra, "n": len(w),
                     "share_any_negative": s["share_any_negative"],
                     "mean_negative_share": s["mean_negative_share"],
                     "median_max_albedo": s["median_max_albedo"],
                     "share_passivity_violation": s["share_passivity_violation"],
                     **(nearest_quantiles(fv(w), f_train) if nearest else {}),
+                    **darkness(w, pl),
                     "seconds": seconds})
         print(pd.DataFrame(out[-1:]).to_string(index=False, header=len(out) == 1,
                                                float_format="%.4f"), flush=True)
@@ -312,7 +337,8 @@ def cmd_sample(a):
     keys = ["steps", "eta", "clip", "negative_step", "gauss_below"]
     agg = df[df["set"] == "ours"].fillna({"clip": -1}).groupby(keys)[
         ["share_any_negative", "mean_negative_share", "share_passivity_violation",
-         "median_nearest_l1"]].agg(["mean", "std"])
+         "median_nearest_l1", *(["dark_share", "dark_any_negative"] if ri is not None else [])]
+    ].agg(["mean", "std"])
     print("\nmean (std) over seeds; clip -1 = none\n" + agg.to_string(float_format="%.4f"))
     print(f"[{machine.describe()}]")
 
@@ -320,23 +346,36 @@ def cmd_sample(a):
 COLUMNS = ["training", "pca_a", "pca_n", "vae_a", "vae_n", "merl100", "ours"]
 
 
-def reference_kinds(results, n, by="operation"):
-    """Each reference's AugMERL operation (original, permutation, interpolation), or its
-    material type (`by` "type")."""
+BRIGHTNESS_FIFTHS = [0.2, 0.4, 0.6, 0.8]
+
+
+def brightness(images: torch.Tensor) -> np.ndarray:
+    """Mean sRGB of each metric render (N, H, W, 3) -> (N,)."""
+    return images.flatten(1).mean(1).numpy()
+
+
+def reference_kinds(results, ri, by="operation"):
+    """Each reference's AugMERL operation (original, permutation, interpolation), material type
+    (`by` "type"), or fifth by render brightness (`by` "brightness"; also returns the fifths'
+    edges, else None)."""
+    n = len(ri)
+    if by == "brightness":
+        b = brightness(ri)
+        edges = np.quantile(b, BRIGHTNESS_FIFTHS)
+        return np.array([f"Q{q + 1}" for q in np.searchsorted(edges, b)]), edges
     man = pd.read_csv(f"{results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
     ids = pd.read_csv(f"{results}/samples/reference/samples.tsv", sep="\t")["id"]
     kind = man.set_index("id").loc[ids, by].to_numpy()
     if len(kind) != n:
         raise SystemExit(f"{len(kind)} reference ids for {n} prepared renders: "
                          "metrics/reference.pt is not this run's reference set")
-    return kind
+    return kind, None
 
 
-def nearest_terms(ri, smp, activation, exposure=0.0):
+def nearest_terms(ri, si):
     """Per reference: render RMSE to its nearest sample (MMD's terms) and whether it is some
-    sample's nearest reference (COV's); the samples rendered `exposure` stops brighter."""
-    rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](
-        ri, materials.renders(smp, ri.shape[1], activation, exposure=exposure)))
+    sample's nearest reference (COV's), between reference renders ri and sample renders si."""
+    rs = torch.as_tensor(distances.IMAGE_DISTANCES["RMSE"](ri, si))
     covered = np.zeros(len(ri), bool)
     covered[rs.argmin(0).unique().numpy()] = True
     return rs.min(1).values.numpy(), covered
@@ -344,7 +383,8 @@ def nearest_terms(ri, smp, activation, exposure=0.0):
 
 def cmd_kinds(a):
     ri = evaluate.load_reference(f"{a.results}/metrics/reference.pt")["images"]
-    kind = reference_kinds(a.results, len(ri), a.by)
+    kind, edges = reference_kinds(a.results, ri, a.by)
+    ri_linear = sphere.srgb_decode(ri) if a.linear else None
     out = []
     for col in COLUMNS:
         path = next((f"{a.results}/samples/{col}/{f}" for f in ("weights.npy", "tables.npz")
@@ -355,18 +395,31 @@ def cmd_kinds(a):
         s = materials.load(path)
         n = len(s) // a.draws
         for d, e in itertools.product(range(a.draws), [0.0, *a.exposure]):
-            nearest, covered = nearest_terms(ri, materials.rows(s, slice(d * n, (d + 1) * n)),
-                                             a.activation, e)
+            si = materials.renders(materials.rows(s, slice(d * n, (d + 1) * n)), ri.shape[1],
+                                   a.activation, exposure=e)
+            nearest, covered = nearest_terms(ri, si)
+            extra = {}
+            if a.linear:
+                extra["MMD linear RMSE x10^2"] = nearest_terms(ri_linear, sphere.srgb_decode(si))[0]
+            if edges is not None:
+                fifth = np.array([f"Q{q + 1}" for q in np.searchsorted(edges, brightness(si))])
             for k in [*np.unique(kind), "all"]:
                 m = kind == k if k != "all" else np.ones(len(kind), bool)
-                out.append({"kind": f"{k or '(untyped)'} ({m.sum()})", "draw": d,
-                            "column": col if e == 0 else f"{col} {e:+g}",
-                            "MMD RMSE x10^2": 100 * nearest[m].mean(),
-                            "COV RMSE %": 100 * covered[m].mean()})
+                row = {"kind": f"{k or '(untyped)'} ({m.sum()})", "draw": d,
+                       "column": col if e == 0 else f"{col} {e:+g}",
+                       "MMD RMSE x10^2": 100 * nearest[m].mean(),
+                       "COV RMSE %": 100 * covered[m].mean()}
+                row.update({key: 100 * v[m].mean() for key, v in extra.items()})
+                if edges is not None:
+                    row["samples %"] = 100 * (np.mean(fifth == k) if k != "all" else 1.0)
+                out.append(row)
         print(f"{col}: {a.draws} draws of {n}", flush=True)
-    t = pd.DataFrame(out).groupby(["kind", "column"], sort=False)[
-        ["MMD RMSE x10^2", "COV RMSE %"]].agg(["mean", "std"])
-    pd.set_option("display.width", 160)
+    if edges is not None:
+        print("reference fifths by mean sRGB of the metric render, edges "
+              + ", ".join(f"{x:.3f}" for x in edges))
+    stats = [c for c in out[0] if c not in ("kind", "draw", "column")]
+    t = pd.DataFrame(out).groupby(["kind", "column"], sort=False)[stats].agg(["mean", "std"])
+    pd.set_option("display.width", 200)
     print(t.to_string(float_format="%.2f"))
     print(f"[{machine.describe()}]")
 
@@ -376,8 +429,11 @@ def main():
     p.add_argument("command", choices=["loss", "roundtrip", "sample", "kinds"])
     p.add_argument("--model", help="model.pt or checkpoint.pt of train_diffusion (not for kinds)")
     p.add_argument("--draws", type=int, default=3, help="kinds: the run's metrics.draws")
-    p.add_argument("--by", choices=["operation", "type"], default="operation",
-                   help="kinds: group the references by AugMERL operation or material type")
+    p.add_argument("--by", choices=["operation", "type", "brightness"], default="operation",
+                   help="kinds: group the references by AugMERL operation, material type or "
+                        "fifth of render brightness")
+    p.add_argument("--linear", action="store_true",
+                   help="kinds: MMD RMSE also on the renders decoded to linear light")
     p.add_argument("--exposure", type=float, nargs="*", default=[],
                    help="kinds: also render the samples these stops brighter (negative: darker)")
     p.add_argument("--results", required=True, help="results/<run> directory (neumerl/ inside)")

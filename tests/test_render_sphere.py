@@ -137,6 +137,14 @@ def test_tonemap_srgb_curve():
     assert sphere.tonemap(np.full(3, 0.25), exposure=1.0).tolist() == [188] * 3
 
 
+def test_srgb_decode_inverts_the_metric_curve():
+    x = torch.linspace(0, 1, 1001)
+    np.testing.assert_allclose(sphere.srgb_decode(sphere.to_srgb(x, 0.0)), x, atol=2e-7)
+    # known answers: the curve's linear toe (1/12.92) and mid grey (sRGB 0.5 -> 0.214 linear)
+    np.testing.assert_allclose(sphere.srgb_decode(torch.tensor([0.04, 0.5])), [0.04 / 12.92, 0.21404],
+                               rtol=1e-4)
+
+
 def test_bad_shapes_are_reported():
     with pytest.raises(ValueError, match=r"\(B, 675\)"):
         sphere.render_fields(torch.zeros(2, 10), R)

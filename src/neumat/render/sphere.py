@@ -263,6 +263,14 @@ def to_srgb(img, exposure: float = EXPOSURE) -> torch.Tensor:
     return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
+def srgb_decode(x) -> torch.Tensor:
+    """sRGB-encoded [0, 1] -> linear [0, 1], the inverse of `to_srgb`'s curve: the light the
+    metric renders hold, after their exposure and clip (benchmarks/diffusion_diagnose.py kinds
+    --linear compares errors there)."""
+    x = torch.as_tensor(x, dtype=torch.float32)
+    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0) + 0.055) / 1.055) ** 2.4)
+
+
 def tonemap(img, exposure: float = EXPOSURE) -> np.ndarray:
     """Linear HDR (..., 3) -> uint8 sRGB: `to_srgb` rounded to 8 bits. With exposure 0 a
     white Lambertian (albedo 1) facing the light is 1.0 linear plus the ambient (clipped: 255)."""
