@@ -354,15 +354,19 @@ def brightness(images: torch.Tensor) -> np.ndarray:
     return images.flatten(1).mean(1).numpy()
 
 
+def fifth_of(images: torch.Tensor, edges: np.ndarray) -> np.ndarray:
+    """Each render's brightness fifth, "Q1" (darkest) to "Q5", between the references' `edges`."""
+    return np.array([f"Q{q + 1}" for q in np.searchsorted(edges, brightness(images))])
+
+
 def reference_kinds(results, ri, by="operation"):
     """Each reference's AugMERL operation (original, permutation, interpolation), material type
     (`by` "type"), or fifth by render brightness (`by` "brightness"; also returns the fifths'
     edges, else None)."""
     n = len(ri)
     if by == "brightness":
-        b = brightness(ri)
-        edges = np.quantile(b, BRIGHTNESS_FIFTHS)
-        return np.array([f"Q{q + 1}" for q in np.searchsorted(edges, b)]), edges
+        edges = np.quantile(brightness(ri), BRIGHTNESS_FIFTHS)
+        return fifth_of(ri, edges), edges
     man = pd.read_csv(f"{results}/augmerl/manifest.tsv", sep="\t", keep_default_na=False)
     ids = pd.read_csv(f"{results}/samples/reference/samples.tsv", sep="\t")["id"]
     kind = man.set_index("id").loc[ids, by].to_numpy()
@@ -402,7 +406,7 @@ def cmd_kinds(a):
             if a.linear:
                 extra["MMD linear RMSE x10^2"] = nearest_terms(ri_linear, sphere.srgb_decode(si))[0]
             if edges is not None:
-                fifth = np.array([f"Q{q + 1}" for q in np.searchsorted(edges, brightness(si))])
+                fifth = fifth_of(si, edges)
             for k in [*np.unique(kind), "all"]:
                 m = kind == k if k != "all" else np.ones(len(kind), bool)
                 row = {"kind": f"{k or '(untyped)'} ({m.sum()})", "draw": d,
