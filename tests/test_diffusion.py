@@ -946,3 +946,72 @@ def test_channel_permutation_permutes_the_fields_output():
     assert len(np.unique(many.round(6), axis=0)) == 6
     with pytest.raises(ValueError, match=r"\(6, 3\)"):
         symmetry.permute_channels(w, perms[:2])
+
+
+# ----------------------------------------------------------------------------- field term
+
+
+def _fields(n=4, seed=0):
+    return torch.randn(n, nbrdf.N_PARAMS, generator=torch.Generator().manual_seed(seed)) * 0.3
+
+
+def test_field_log_map_is_odd_and_resolves_values_near_zero():
+    from neumat.diffusion.field_loss import log_map
+    f = torch.tensor([0.0, 3e-3, -3e-3, 0.3])
+    assert torch.allclose(log_map(f, 3e-3), torch.tensor([0.0, math.log(2), -math.log(2),
+                                                          math.log(101)]))
+
+
+def test_field_error_counts_what_the_render_sees():
+    """Zero for the same weights; a bin clamped (black) in both costs nothing however deep the
+    prediction goes; a prediction below zero where the clean field is positive costs the full
+    log-mapped value."""
+    from neumat.diffusion.field_loss import field_error, log_map
+    w = _fields()
+    x = torch.rand(64, 6)
+    assert torch.equal(field_error(w, w, x, 3e-3), torch.zeros(4))
+    # shift the output layer's bias: every raw value moves by the same amount, per channel
+    b3 = slice(nbrdf.N_PARAMS - 3, nbrdf.N_PARAMS)
+    up, down = w.clone(), w.clone()
+    up[:, b3] += 50.0   # every bin of the clean field positive...
+    down[:, b3] -= 50.0  # ...and every bin of this one clamped
+    f_up = torch.expm1(nbrdf.forward_raw(up, x))
+    err = field_error(down, up, x, 3e-3)
+    want = ((log_map(torch.expm1(nbrdf.forward_raw(down, x)), 3e-3) - log_map(f_up, 3e-3)) ** 2)
+    assert torch.allclose(err, want.flatten(1).mean(1))
+    deeper = w.clone()
+    deeper[:, b3] -= 100.0
+    assert torch.equal(field_error(deeper, down, x, 3e-3), torch.zeros(4))  # both black
+
+
+def test_field_term_trains_resumes_and_keeps_old_fingerprints(tmp_path):
+    """field_loss > 0 changes the training; with it at 0 the other field keys change neither
+    the fingerprint (checkpoints of before the keys resume) nor the run."""
+    from dataclasses import replace
+
+    from neumat.diffusion.train import fingerprint
+    w, labels, _ = _two_modes(32)
+    mcfg = DenoiserConfig(width=16, depth=1, heads=2, n_classes=2)
+    cfg = TrainConfig(steps=6, batch_size=8, warmup_steps=1, checkpoint_every=3, log_every=3)
+    assert (fingerprint(w, labels, mcfg, cfg, seed=1)
+            == fingerprint(w, labels, mcfg, replace(cfg, field_eps=1.0, field_bins=7), seed=1))
+    on = replace(cfg, field_loss=0.5, field_bins=64)
+    assert fingerprint(w, labels, mcfg, on, seed=1) != fingerprint(w, labels, mcfg, cfg, seed=1)
+    args = (w, labels, ["a", "b"], mcfg, TOY_SCHED)
+    plain = train(*args, cfg, tmp_path / "p.pt", tmp_path / "p_ck.pt", seed=1, device="cpu")
+    full = train(*args, on, tmp_path / "f.pt", tmp_path / "f_ck.pt", seed=1, device="cpu")
+    assert full["history"][0][1] > plain["history"][0][1]  # the term adds to the loss
+
+    def kill(step, loss):
+        if step == 4:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train(*args, on, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=1, device="cpu",
+              on_step=kill)
+    resumed = train(*args, on, tmp_path / "r.pt", tmp_path / "r_ck.pt", seed=1, device="cpu")
+    assert resumed["history"] == full["history"]
+    assert all(torch.equal(v, resumed["ema"][k]) for k, v in full["ema"].items())
+    with pytest.raises(ValueError, match="field_eps > 0"):
+        train(*args, replace(on, field_eps=0.0), tmp_path / "e.pt", tmp_path / "e_ck.pt", seed=1,
+              device="cpu")

@@ -862,3 +862,23 @@ def test_new_ubo2014_url_keeps_locked_downloads(tmp_path):
     res = _snakemake(wd, target, "--dry-run", "--configfile", config("mirror_b"))
     assert "Nothing to be done" in res.stdout + res.stderr, res.stdout[-2000:]
     assert (wd / target).stat().st_mtime_ns == before
+
+
+@pytest.mark.slow
+def test_field_term_is_a_param_of_the_trainings_and_zero_reruns_nothing(tiny_run):
+    """diffusion.train.field_loss (neutral 0): on, it retrains the diffusion models (the tiny
+    config's refiner and multimodal model too) and nothing before them; 0, set explicitly with
+    another field_eps, reruns nothing."""
+    import yaml
+    for value, expect in ((0.1, True), (0.0, False)):
+        cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
+        _set(cfg, "diffusion.train.field_loss", value)
+        _set(cfg, "diffusion.train.field_eps", 0.01)
+        (tiny_run / f"config/field_{value}.yaml").write_text(yaml.safe_dump(cfg))
+        jobs = _planned_jobs(tiny_run, f"config/field_{value}.yaml")
+        if expect:
+            assert {j for j in jobs if j.startswith("train_")} == {
+                "train_diffusion", "train_multimodal", "train_refiner"}, jobs
+            assert not [j for j in jobs if j.startswith(HEAVY) and not j.startswith("train_")], jobs
+        else:
+            assert jobs == [], jobs

@@ -163,6 +163,7 @@ rule train_multimodal:
         class_names=DIFF_CLASSES,
         seed=cond_seed("train"),
         checkpoint=out(f"diffusion/{COND_MODEL}/checkpoint.pt"),
+        **FIELD_PARAMS,
     log:
         log("train_multimodal"),
     benchmark:
@@ -192,6 +193,7 @@ rule train_refiner:
         class_names=DIFF_CLASSES,
         seed=cond_seed("train_refiner"),
         checkpoint=out("diffusion/{model}/checkpoint.pt"),
+        **FIELD_PARAMS,
     wildcard_constraints:
         model="refiner",
     log:

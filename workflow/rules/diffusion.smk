@@ -13,6 +13,9 @@ DIFF_MODELS = ["ours", "merl100"]
 # Class names of the type condition: every type of this run's MERL catalogue (48 for MERL).
 DIFF_CLASSES = sorted(set(MERL["type"]))
 DIFF_ACTIVATION = config["fit"]["activation"]
+# the training loss's field term (diffusion.train.field_loss) evaluates the NBRDF: its
+# activation is a param of the trainings only where the term is on
+FIELD_PARAMS = {"activation": DIFF_ACTIVATION} if DIFF["train"]["field_loss"] else {}
 # diffusion.sample keys for the unconditional draws of `ours` alone (and ours_plain): merl100's
 # rows are not closed under channel permutation and are all typed, and conditioned draws keep
 # their channel order, their condition, and draws independent of one another
@@ -48,6 +51,7 @@ rule train_diffusion:
         class_names=DIFF_CLASSES,
         seed=seed_for("train_diffusion"),
         checkpoint=out("diffusion/{model}/checkpoint.pt"),
+        **FIELD_PARAMS,
     wildcard_constraints:
         model="|".join(DIFF_MODELS),
     log:

@@ -23,7 +23,8 @@ with script_logging(snakemake) as log:
                    ScheduleConfig(**cfg["schedule"]),
                    TrainConfig(**cfg["train"], checkpoint_every=c["train"]["checkpoint_every"],
                                compile=c["train"]["compile"]),
-                   snakemake.output.model, p.checkpoint, p.seed, snakemake.config["device"])
+                   snakemake.output.model, p.checkpoint, p.seed, snakemake.config["device"],
+                   activation=getattr(p, "activation", "relu"))
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)

@@ -26,7 +26,7 @@ with script_logging(snakemake) as log:
     Path(p.checkpoint).parent.mkdir(parents=True, exist_ok=True)
     bundle = train(weights[rows], labels, p.class_names, mcfg, ScheduleConfig(**cfg["schedule"]),
                    tcfg, snakemake.output.model, p.checkpoint, p.seed, snakemake.config["device"],
-                   vectors={"text": text, "image": img})
+                   vectors={"text": text, "image": img}, activation=getattr(p, "activation", "relu"))
     pd.DataFrame(bundle["history"], columns=["step", "loss"]).to_csv(
         snakemake.output.history, sep="\t", index=False, float_format="%.6g")
     Path(p.checkpoint).unlink(missing_ok=True)

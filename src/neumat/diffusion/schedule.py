@@ -102,8 +102,9 @@ class Diffusion:
             return ab.sqrt() * x_t - (1 - ab).sqrt() * out, (1 - ab).sqrt() * x_t + ab.sqrt() * out
         return (x_t - (1 - ab).sqrt() * out) / ab.sqrt(), out
 
-    def loss(self, model, x0, cond=None, drop=None, generator=None):
-        """Mean squared error on the prediction target at uniformly drawn timesteps.
+    def loss(self, model, x0, cond=None, drop=None, generator=None, extra=None):
+        """Mean squared error on the prediction target at uniformly drawn timesteps, plus
+        `extra(x0_hat, x0, alpha_bar, generator)` if given (`neumat.diffusion.field_loss`).
 
         All randomness comes from `generator` (CPU), so training is reproducible and resumable."""
         b = x0.shape[0]
@@ -113,12 +114,16 @@ class Diffusion:
         ab = self._ab(t, x0)
         out = model(x_t, t, cond, drop)
         if self.cfg.loss == "x0":
-            return torch.mean((self.split(out, x_t, ab)[0] - x0) ** 2)
-        if self.cfg.prediction == "v":
-            target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
+            loss = torch.mean((self.split(out, x_t, ab)[0] - x0) ** 2)
         else:
-            target = x0 if self.cfg.prediction == "x0" else noise
-        return torch.mean((out - target) ** 2)
+            if self.cfg.prediction == "v":
+                target = ab.sqrt() * noise - (1 - ab).sqrt() * x0
+            else:
+                target = x0 if self.cfg.prediction == "x0" else noise
+            loss = torch.mean((out - target) ** 2)
+        if extra is not None:
+            loss = loss + extra(self.split(out, x_t, ab)[0], x0, ab, generator)
+        return loss
 
     def timesteps_for(self, steps: int) -> list[int]:
         """Evenly spaced DDIM timesteps, descending, always ending at t = 0."""

@@ -27,6 +27,7 @@ import torch
 from neumat import nbrdf
 from neumat.device import resolve_device, to_device
 from neumat.diffusion.constraints import constraint_for
+from neumat.diffusion.field_loss import FieldLoss
 from neumat.diffusion.refit import clamp_refit
 from neumat.diffusion.model import Denoiser, DenoiserConfig, Normalizer
 from neumat.diffusion.schedule import Diffusion, RowNoise, ScheduleConfig, guided
@@ -51,6 +52,9 @@ class TrainConfig:
     log_every: int = 50
     precision: str = "fp32"  # "bf16": the denoiser's forward under bfloat16 autocast
     compile: str = "none"  # GPU only: the forward under torch.compile in this mode (speed only)
+    field_loss: float = 0.0  # weight of the field term (neumat.diffusion.field_loss); 0 = off
+    field_eps: float = 3e-3  # its log mapping's eps
+    field_bins: int = 1024  # MERL bins it is evaluated at per step
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -123,7 +127,9 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, seed: int,
         h.update(k.encode() + np.ascontiguousarray(vectors[k], dtype=np.float32).tobytes())
     # `compile` is how the steps run and `checkpoint_every` when they are saved, not what they
     # compute (speed keys): a run resumes across either
-    d = [{k: v for k, v in asdict(c).items() if k not in ("compile", "checkpoint_every")} for c in cfgs]
+    d = [{k: v for k, v in asdict(c).items() if k not in ("compile", "checkpoint_every")
+          and not (k.startswith("field_") and not getattr(c, "field_loss", 0))} for c in cfgs]
+    # the field keys count only with the field term on: checkpoints of before they existed resume
     h.update(json.dumps(d, sort_keys=True).encode())
     h.update(json.dumps({"seed": int(seed)}).encode())
     return h.hexdigest()
@@ -132,7 +138,8 @@ def fingerprint(weights: np.ndarray, labels: np.ndarray, *cfgs, seed: int,
 def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
           model_cfg: DenoiserConfig, sched_cfg: ScheduleConfig, cfg: TrainConfig,
           out_path: str | os.PathLike, checkpoint_path: str | os.PathLike, seed: int,
-          device: str = "auto", on_step=None, vectors: dict | None = None) -> dict:
+          device: str = "auto", on_step=None, vectors: dict | None = None,
+          activation: str = "relu") -> dict:
     """Train on weight vectors (N, 675) with type labels (N,) (-1 = untyped) and write the
     final model (EMA weights, normaliser, configs, loss log) to `out_path`. Returns that dict.
 
@@ -140,6 +147,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     image; NaN rows = no value); with K alternatives per material (e.g. K renders) one is drawn
     per example. Every condition is dropped independently with probability `cond_drop`, so
     classifier-free guidance works for each one and for any subset.
+
+    `activation`: the NBRDF's, for the field term (`cfg.field_loss` > 0).
 
     `on_step(step, loss)` is called after every optimiser step (tests use it to simulate a kill)."""
     weights = np.asarray(weights, dtype=np.float32)
@@ -170,6 +179,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     # the batches' own stream: seeded with `seed` too, they replayed the initial weights' numbers
     gen = torch.Generator().manual_seed(seed_for(seed, "draws"))
     diffusion = Diffusion(sched_cfg)
+    field = (FieldLoss(norm, cfg.field_loss, cfg.field_eps, cfg.field_bins, activation)
+             if cfg.field_loss else None)
     step, history, elapsed = 0, [], 0.0
 
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, ema=ema, opt=opt, generator=gen)
@@ -217,7 +228,7 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
         # bf16: the denoiser's matmuls in bfloat16; weights, loss (the prediction minus an fp32
         # target promotes back), gradients, AdamW and the EMA stay fp32
         with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=cfg.precision == "bf16"):
-            loss = diffusion.loss(fwd, x_all[idx], cond or None, drops or None, gen)
+            loss = diffusion.loss(fwd, x_all[idx], cond or None, drops or None, gen, field)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         if cfg.grad_clip:
