@@ -9,6 +9,8 @@ constraint (diffusion.sample.negative_step) does: cheap measurements on a traine
                       that memorised every training item; on test items it shows the cost of
                       memorising), also for a 100-item subset (MERL100-sized),
              zero   - predict the mean (x0_hat = 0).
+           And in function space: the training loss's field term for the model's x0 and the
+           share of bins its BRDF clamps, next to the clean weights' own share.
            Plus the covariance spectrum of the standardised weights and the per-coordinate
            variance of the test split in the training standardisation.
   roundtrip: one denoising pass of real materials (train and test split) at small t: the
@@ -62,6 +64,8 @@ import torch
 
 from neumat import machine, nbrdf
 from neumat.diffusion import DenoiserConfig, Sampler, ScheduleConfig, dataset, plausibility
+from neumat.diffusion.constraints import constraint_directions
+from neumat.diffusion.field_loss import field_error
 from neumat.diffusion.model import Normalizer
 from neumat.diffusion.schedule import RowNoise
 from neumat.io import modelfile
@@ -104,8 +108,12 @@ def x0_hat(sampler, xt, tb):
 @torch.no_grad()
 def loss_table(sampler, x_train, x_test, live, seed=0, n=480):
     """Per-t x0-MSE (standardised units) of the model and the reference denoisers, over the
-    `live` coordinates (bool (675,)); 'model_frozen' is the model's over the others."""
+    `live` coordinates (bool (675,)); 'model_frozen' is the model's over the others. 'field':
+    the training loss's field term for the model's x0 (neumat.diffusion.field_loss, eps 3e-3,
+    1024 valid MERL bins, unweighted); 'clamped': the share of those bins (x 3 channels) where
+    the predicted x0's BRDF is clamped, 'clamped_x0' the clean weights' own."""
     d = sampler.diffusion
+    dirs = constraint_directions(0, 1024)
     g = torch.Generator().manual_seed(seed)
     tr = x_train[torch.randperm(len(x_train), generator=g)[:n]]
     te = x_test[:n]
@@ -122,6 +130,10 @@ def loss_table(sampler, x_train, x_test, live, seed=0, n=480):
             xt = a * x0 + s * eps
             tb = torch.full((len(x0),), t, dtype=torch.long)
             pred = x0_hat(sampler, xt, tb)
+            w_hat, w0 = sampler.norm.decode(pred), sampler.norm.decode(x0)
+            field = {"field": float(field_error(w_hat, w0, dirs, 3e-3).mean()),
+                     "clamped": float((nbrdf.forward_raw(w_hat, dirs) < 0).float().mean()),
+                     "clamped_x0": float((nbrdf.forward_raw(w0, dirs) < 0).float().mean())}
             frozen = mse(pred[:, ~live], x0[:, ~live]) if (~live).any() else float("nan")
             pred, x0, xt_all = pred[:, live], x0[:, live], xt
             # Gaussian MMSE: Sigma a (a^2 Sigma + s^2 I)^-1 x_t, in the eigenbasis
@@ -130,7 +142,7 @@ def loss_table(sampler, x_train, x_test, live, seed=0, n=480):
             row = {"t": t, "alpha_bar": ab, "split": split,
                    "model": mse(pred, x0), "gauss": mse(gauss, x0), "zero": mse(0 * x0, x0),
                    "memo": mse(memorised(xt_all, x_train, a, s)[:, live], x0),
-                   "model_frozen": frozen}
+                   "model_frozen": frozen, **field}
             if split == "train":  # the 100-item memoriser on its own items
                 m = memorised(a * sub + s * eps[:len(sub)], sub, a, s)
                 row["memo100"] = mse(m[:, live], sub[:, live])
@@ -174,7 +186,7 @@ def cmd_loss(a):
     pd.set_option("display.width", 200)
     print(df.to_string(index=False, float_format="%.4f"))
     print("\nmean over uniform t (the training loss's weighting):")
-    for col in ("model", "gauss", "memo", "zero", "model_frozen"):
+    for col in ("model", "gauss", "memo", "zero", "model_frozen", "field", "clamped"):
         print(f"  {col:6s} train {uniform_t_mean(df, col, 'train'):.4f}   "
               f"test {uniform_t_mean(df, col, 'test'):.4f}")
     print(f"  memo100 (100-item memoriser on its items) {uniform_t_mean(df, 'memo100', 'train'):.4f}")

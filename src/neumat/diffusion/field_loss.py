@@ -13,8 +13,8 @@ bins, maps both through a log mapping that resolves values near zero, e(f) = sig
 log(1 + |f| / eps) (Nielsen et al.'s mapping, the one PCA-A samples in, without its cosine
 and reference), and adds their mean squared difference. Where the clean value is clamped (f <=
 0: black in the render), a predicted value below zero costs nothing. Each example's term is
-weighted by alpha_bar(t), so it fades at high noise, where the x0 prediction is a blurred mean
-of many materials.
+weighted by alpha_bar(t) ** power, so it fades at high noise, where the x0 prediction is a
+blurred mean of many materials.
 """
 
 from __future__ import annotations
@@ -53,15 +53,17 @@ def valid_directions() -> torch.Tensor:
 
 
 class FieldLoss:
-    """weight * mean over the batch of alpha_bar(t) * field_error(decode(x0_hat), decode(x0)),
-    at `bins` valid MERL bins drawn per step from the training generator."""
+    """weight * mean over the batch of alpha_bar(t) ** power * field_error(decode(x0_hat),
+    decode(x0)), at `bins` valid MERL bins drawn per step from the training generator."""
 
-    def __init__(self, norm, weight: float, eps: float, bins: int, activation: str = "relu"):
-        if weight < 0 or eps <= 0 or bins < 1:
+    def __init__(self, norm, weight: float, eps: float, bins: int, activation: str = "relu",
+                 power: float = 1.0):
+        if weight < 0 or eps <= 0 or bins < 1 or power < 0:
             raise ValueError(f"diffusion.train: field_loss must be >= 0 (got {weight}), "
-                             f"field_eps > 0 (got {eps}) and field_bins >= 1 (got {bins})")
+                             f"field_eps > 0 (got {eps}), field_bins >= 1 (got {bins}) and "
+                             f"field_power >= 0 (got {power})")
         self.norm, self.weight, self.eps, self.bins = norm, float(weight), float(eps), int(bins)
-        self.activation = activation
+        self.activation, self.power = activation, float(power)
         self.x = valid_directions()
 
     def __call__(self, x0_hat: torch.Tensor, x0: torch.Tensor, ab: torch.Tensor,
@@ -70,4 +72,4 @@ class FieldLoss:
         x = to_device(self.x[idx], x0.device)
         err = field_error(self.norm.decode(x0_hat.float()), self.norm.decode(x0.float()), x,
                           self.eps, self.activation)
-        return self.weight * (ab.reshape(-1) * err).mean()
+        return self.weight * (ab.reshape(-1) ** self.power * err).mean()

@@ -55,6 +55,7 @@ class TrainConfig:
     field_loss: float = 0.0  # weight of the field term (neumat.diffusion.field_loss); 0 = off
     field_eps: float = 3e-3  # its log mapping's eps
     field_bins: int = 1024  # MERL bins it is evaluated at per step
+    field_power: float = 1.0  # its weight per example: alpha_bar(t) ** field_power
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -179,8 +180,8 @@ def train(weights: np.ndarray, labels: np.ndarray, class_names: list[str],
     # the batches' own stream: seeded with `seed` too, they replayed the initial weights' numbers
     gen = torch.Generator().manual_seed(seed_for(seed, "draws"))
     diffusion = Diffusion(sched_cfg)
-    field = (FieldLoss(norm, cfg.field_loss, cfg.field_eps, cfg.field_bins, activation)
-             if cfg.field_loss else None)
+    field = (FieldLoss(norm, cfg.field_loss, cfg.field_eps, cfg.field_bins, activation,
+                       cfg.field_power) if cfg.field_loss else None)
     step, history, elapsed = 0, [], 0.0
 
     ck = modelfile.resume(ckpt_path, fp, dev, model=model, ema=ema, opt=opt, generator=gen)
