@@ -1015,3 +1015,16 @@ def test_field_term_trains_resumes_and_keeps_old_fingerprints(tmp_path):
     with pytest.raises(ValueError, match="field_eps > 0"):
         train(*args, replace(on, field_eps=0.0), tmp_path / "e.pt", tmp_path / "e_ck.pt", seed=1,
               device="cpu")
+
+
+def test_field_term_weight_is_alpha_bar_to_the_power():
+    from neumat.diffusion.field_loss import FieldLoss
+    norm = Normalizer(torch.zeros(nbrdf.N_PARAMS), torch.ones(nbrdf.N_PARAMS))
+    x0, x0_hat = _fields(2, seed=1), _fields(2, seed=2)
+    ab = torch.tensor([[0.5], [0.5]])
+    terms = [FieldLoss(norm, 0.1, 3e-3, 256, power=p)(x0_hat, x0, ab, torch.Generator().manual_seed(0))
+             for p in (0.0, 1.0, 4.0)]
+    assert terms[0] > 0
+    assert torch.allclose(torch.stack(terms[1:]), terms[0] * torch.tensor([0.5, 0.5 ** 4]))
+    with pytest.raises(ValueError, match="field_power >= 0"):
+        FieldLoss(norm, 0.1, 3e-3, 256, power=-1.0)
