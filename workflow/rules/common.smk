@@ -129,6 +129,13 @@ def settings(section, keys=None, drop=()):
     return canon(substantive(chosen, section, keep))
 
 
+def train_settings():
+    """diffusion.train's params for the diffusion trainings: the field term's settings only
+    while it is on (off, they change nothing)."""
+    on = config["diffusion"]["train"]["field_loss"]
+    return settings("diffusion.train", drop=() if on else ("field_eps", "field_bins", "field_power"))
+
+
 def neutral_params(section, keys):
     """Keyword params for single keys of `section` (`**neutral_params(...)` in a rule's params):
     each key that is not at its neutral value (config/speed_keys.yaml), so that a key added

@@ -159,7 +159,7 @@ rule train_multimodal:
         # ours's model, schedule and training, with the conditions' dropout (the one used:
         # diffusion.train.cond_drop is ours's and reruns nothing here)
         cfg=canon({**settings("diffusion", ["model", "schedule"]),
-                   "train": {**settings("diffusion.train"), "cond_drop": COND["cond_drop"]}}),
+                   "train": {**train_settings(), "cond_drop": COND["cond_drop"]}}),
         class_names=DIFF_CLASSES,
         seed=cond_seed("train"),
         checkpoint=out(f"diffusion/{COND_MODEL}/checkpoint.pt"),
@@ -188,7 +188,7 @@ rule train_refiner:
         history=out("diffusion/{model}/history.tsv"),
     params:
         # ours's model and training; the schedule's prediction and loss set to v / x0
-        cfg=canon({**settings("diffusion", ["model", "train"]),
+        cfg=canon({**settings("diffusion", ["model"]), "train": train_settings(),
                    "schedule": {**settings("diffusion.schedule"), "prediction": "v", "loss": "x0"}}),
         class_names=DIFF_CLASSES,
         seed=cond_seed("train_refiner"),
