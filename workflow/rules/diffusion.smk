@@ -330,8 +330,9 @@ rule diffusion_section:
         types=report(out("report/figures/diffusion_types.png"), category="Diffusion",
                      caption="../report/diffusion_types.rst"),
     params:
-        cfg=settings("diffusion", ["model", "schedule", "train", "sample", "per_type", "gallery_types",
-                                   "gallery_count", "explode_factor"]),
+        cfg=canon({**settings("diffusion", ["model", "schedule", "sample", "per_type", "gallery_types",
+                                            "gallery_count", "explode_factor"]),
+                   "train": train_settings()}),
         resolution=config["report"]["sphere_resolution"],
         activation=DIFF_ACTIVATION,
     log:
