@@ -76,7 +76,14 @@ def constraint_directions(seed: int, n: int = CONSTRAINT_DIRECTIONS) -> torch.Te
     from neumat.io import merl
 
     valid = np.flatnonzero(merl.valid_mask())
-    idx = np.sort(np.random.default_rng(seed).choice(valid, size=min(n, len(valid)), replace=False))
+    return bin_inputs(np.sort(np.random.default_rng(seed).choice(valid, size=min(n, len(valid)),
+                                                                 replace=False)))
+
+
+def bin_inputs(idx: np.ndarray) -> torch.Tensor:
+    """(len(idx), 6) NBRDF inputs of MERL bins `idx` (flat indices)."""
+    from neumat.io import merl
+
     th, td, pd_ = (a[idx] for a in merl.grid_angles())
     return torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
 

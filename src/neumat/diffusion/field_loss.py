@@ -24,6 +24,7 @@ import torch
 
 from neumat import nbrdf
 from neumat.device import to_device
+from neumat.diffusion.constraints import bin_inputs
 
 
 def log_map(f: torch.Tensor, eps: float) -> torch.Tensor:
@@ -47,9 +48,7 @@ def valid_directions() -> torch.Tensor:
     """(n, 6) NBRDF inputs of every valid MERL bin."""
     from neumat.io import merl
 
-    idx = np.flatnonzero(merl.valid_mask())
-    th, td, pd_ = (a[idx] for a in merl.grid_angles())
-    return torch.as_tensor(merl.half_diff_cartesian(th, td, pd_), dtype=torch.float32)
+    return bin_inputs(np.flatnonzero(merl.valid_mask()))
 
 
 class FieldLoss:
