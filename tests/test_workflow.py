@@ -864,21 +864,24 @@ def test_new_ubo2014_url_keeps_locked_downloads(tmp_path):
     assert (wd / target).stat().st_mtime_ns == before
 
 
-@pytest.mark.slow
-def test_field_term_is_a_param_of_the_trainings_and_zero_reruns_nothing(tiny_run):
-    """diffusion.train.field_loss (neutral 0): on, it retrains the diffusion models (the tiny
-    config's refiner and multimodal model too) and nothing before them; 0, set explicitly with
-    another field_eps, reruns only the report (whose index lists the run's config)."""
-    import yaml
-    for value, expect in ((0.1, True), (0.0, False)):
-        cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
-        _set(cfg, "diffusion.train.field_loss", value)
-        _set(cfg, "diffusion.train.field_eps", 0.01)
-        (tiny_run / f"config/field_{value}.yaml").write_text(yaml.safe_dump(cfg))
-        jobs = _planned_jobs(tiny_run, f"config/field_{value}.yaml")
-        if expect:
-            assert {j for j in jobs if j.startswith("train_")} == {
-                "train_diffusion", "train_multimodal", "train_refiner"}, jobs
-            assert not [j for j in jobs if j.startswith(HEAVY) and not j.startswith("train_")], jobs
-        else:
-            assert set(jobs) == {"report"}, jobs
+def test_field_term_keys_are_params_of_the_trainings_alone_and_only_while_on(tmp_path):
+    """diffusion.train.field_loss (config/config.yaml 0.1, which the tiny config takes; schema
+    default 0 = off) and its keys: on, another field_eps changes the params of the diffusion
+    trainings (ours and merl100; the tiny config's refiner and multimodal model) and of the
+    report's diffusion section alone, and so does turning the term off; off, its keys are no
+    job's params (0 with another field_eps changes none)."""
+    def params(extra: str) -> dict:
+        f = tmp_path / f"over{len(list(tmp_path.iterdir()))}.yaml"
+        f.write_text("diffusion: {train: {" + extra + "}}\n")
+        return _job_params("texts", "config/tiny.yaml", str(f))
+
+    def changed(a: dict, b: dict) -> list[str]:
+        assert a.keys() == b.keys()
+        return sorted(k for k in a if a[k] != b[k])
+    on, off = params(""), params("field_loss: 0.0")
+    trainings = ["diffusion_section []", "train_diffusion [('model', 'merl100')]",
+                 "train_diffusion [('model', 'ours')]", "train_multimodal []",
+                 "train_refiner [('model', 'refiner')]"]
+    assert changed(on, params("field_eps: 0.01")) == trainings
+    assert changed(on, off) == trainings
+    assert changed(off, params("field_loss: 0.0, field_eps: 0.01")) == []
