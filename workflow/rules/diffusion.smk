@@ -16,7 +16,6 @@ DIFF_ACTIVATION = config["fit"]["activation"]
 # the training loss's field term (diffusion.train.field_loss) evaluates the NBRDF: its
 # activation is a param of the trainings only where the term is on
 FIELD_PARAMS = {"activation": DIFF_ACTIVATION} if DIFF["train"]["field_loss"] else {}
-
 # diffusion.sample keys for the unconditional draws of `ours` alone (and ours_plain): merl100's
 # rows are not closed under channel permutation and are all typed, and conditioned draws keep
 # their channel order, their condition, and draws independent of one another
@@ -48,8 +47,8 @@ rule train_diffusion:
         model=out("diffusion/{model}/model.pt"),
         history=out("diffusion/{model}/history.tsv"),
     params:
-        # not train.checkpoint_every
-        cfg=canon({**settings("diffusion", ["model", "schedule"]), "train": train_settings()}),
+        cfg=canon({**settings("diffusion", ["model", "schedule"]),  # not train.checkpoint_every
+                   "train": train_settings()}),
         class_names=DIFF_CLASSES,
         seed=seed_for("train_diffusion"),
         checkpoint=out("diffusion/{model}/checkpoint.pt"),
