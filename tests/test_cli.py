@@ -760,6 +760,20 @@ def test_run_settings_take_overrides_first(tmp_path):
     assert Run(tmp_path).setting("render", "resolution") == schema_default("render", "resolution")
 
 
+def test_clamp_step_is_the_one_the_workflow_drew_each_model_with(tmp_path):
+    """`neumat sample` takes conditions.negative_step for the multimodal model and the refiner,
+    as rules sample_text / sample_image / sample_multimodal do, and diffusion.sample's for the
+    other models; a null (the schema's default, and a run recorded before the key) falls back
+    to diffusion.sample's."""
+    from neumat.cli.run import MULTIMODAL, Run
+    from neumat.cli.sample import clamp_step
+    run = Run(tmp_path, {"diffusion": {"sample": {"negative_step": 0.0}},
+                         "conditions": {"negative_step": 30.0}})
+    assert [clamp_step(run, m) for m in (MULTIMODAL, "refiner", "ours", "merl100")] == [30, 30, 0, 0]
+    run = Run(tmp_path, {"diffusion": {"sample": {"negative_step": 10.0}}})  # conditions' null
+    assert [clamp_step(run, m) for m in (MULTIMODAL, "refiner", "ours")] == [10, 10, 10]
+
+
 def test_start_draws_the_workflows_text_starts_and_refines_them(tiny_run, tmp_path):
     """--text --start S --refiner: the starts are the workflow's for that prompt
     (conditions.text.start_match, the tiny config's), denoised by the run's refiner, and the

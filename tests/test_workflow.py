@@ -885,3 +885,26 @@ def test_field_term_keys_are_params_of_the_trainings_alone_and_only_while_on(tmp
     assert changed(on, params("field_eps: 0.01")) == trainings
     assert changed(on, off) == trainings
     assert changed(off, params("field_loss: 0.0, field_eps: 0.01")) == []
+
+
+def test_conditions_clamp_step_is_a_param_of_the_conditioned_draws_alone(tmp_path):
+    """conditions.negative_step (config/config.yaml 30, which the tiny config takes; schema
+    default null = diffusion.sample.negative_step): null, or the value diffusion.sample's has,
+    changes no job's params, so runs made before the key existed rerun nothing; another value
+    changes the conditioning stage's draws alone; and while it is set, diffusion.sample's step
+    no longer reaches those draws."""
+    def params(extra: str) -> dict:
+        f = tmp_path / f"over{len(list(tmp_path.iterdir()))}.yaml"
+        f.write_text(extra + "\n")
+        return _job_params("texts", "config/tiny.yaml", str(f))
+
+    def changed(a: dict, b: dict) -> list[str]:
+        assert a.keys() == b.keys()
+        return sorted(k for k in a if a[k] != b[k])
+    draws = ["guidance_sweep []", "sample_image []", "sample_mm_type []",
+             "sample_multimodal []", "sample_text []"]
+    base = params("conditions: {}")
+    assert changed(base, params("conditions: {negative_step: null}")) == []
+    assert changed(base, params("conditions: {negative_step: 10.0}")) == draws
+    other = changed(base, params("diffusion: {sample: {negative_step: 10.0}}"))
+    assert other and not set(other) & set(draws), other

@@ -30,10 +30,12 @@ if COND["image"]["images"]:  # a missing or broken image would fail only its job
 COND_SETS = ["text", "image", "mm_type", "mm_uncond"]
 # the sampling params every conditioned sampler shares: diffusion.sample's settings without
 # its guidance (each sampler takes its own scale of conditions.guidance: cond_guidance)
-COND_SAMPLING = dict(
-    sample=settings("diffusion.sample", drop=["guidance", *NOT_OF_OTHER_DRAWS]),  # conditioned
-    per_prompt=COND["per_condition"],
-)
+# and the stage's own clamp step (conditions.negative_step; null: diffusion.sample's, so a run
+# that leaves it null keeps the params it had)
+COND_NEG = DIFF["sample"]["negative_step"] if COND["negative_step"] is None else COND["negative_step"]
+COND_SAMPLE = canon({**settings("diffusion.sample", drop=["guidance", *NOT_OF_OTHER_DRAWS]),
+                     "negative_step": COND_NEG})
+COND_SAMPLING = dict(sample=COND_SAMPLE, per_prompt=COND["per_condition"])
 # `measured`: permuted and mixed materials are described by their own colour (text_embeddings
 # then reads the fields and writes the descriptions it embedded); `source`: the paper's words
 COND_MEASURED = COND["text"]["colour_words"] == "measured"
@@ -415,7 +417,7 @@ rule guidance_sweep:
         out("conditions/guidance_sweep.tsv"),
     params:
         **named(dict(
-            sample=settings("diffusion.sample", drop=["guidance", *NOT_OF_OTHER_DRAWS]),  # conditions.guidance instead
+            sample=COND_SAMPLE,  # conditions.guidance instead of its guidance
             scales=COND["sweep"]["scales"],
             per_prompt=COND["sweep"]["per_condition"],
             bins=DIFF["nn_bins"],

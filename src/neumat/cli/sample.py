@@ -164,6 +164,14 @@ def _check_start(args, chosen: list[str]) -> None:
         raise CLIError("--refiner uses the run's refiner model: leave out --model")
 
 
+def clamp_step(run: Run, model: str) -> float:
+    """The clamp step the run's workflow drew `model` with: conditions.negative_step for the
+    conditioning stage's models (the multimodal model, the refiner) unless null, else
+    diffusion.sample.negative_step."""
+    own = run.setting("conditions", "negative_step") if model in (MULTIMODAL, "refiner") else None
+    return float(run.setting("diffusion", "sample", "negative_step") if own is None else own)
+
+
 def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     """(weights, per-sample table) for the requested conditions."""
     import pandas as pd
@@ -209,9 +217,9 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     if args.image:
         info["image_encoder"] = str(enc_path)
         info["render_step"] = render[1] if render else 0.0
-    # the run's clamp constraint and refit (diffusion.sample.negative_step, refit_steps), as its
-    # workflow sampled
-    neg = float(run.setting("diffusion", "sample", "negative_step"))
+    # the run's clamp constraint and refit (diffusion.sample.refit_steps), as its workflow
+    # sampled this model
+    neg = clamp_step(run, model_path.parent.name)
     refit = int(run.setting("diffusion", "sample", "refit_steps"))
     T = int(bundle["sched_cfg"]["timesteps"])
     if args.steps is None:  # and its DDIM steps (at most the model's timesteps)
