@@ -402,6 +402,19 @@ def _job_params(mode: str, *configs: str) -> dict:
     return json.loads(line[-1].split(" ", 1)[1])
 
 
+def _tiny_params_with(tmp_path, overlay: str) -> dict:
+    """Each job's params texts for the tiny config with the YAML `overlay` on top."""
+    f = tmp_path / f"over{len(list(tmp_path.iterdir()))}.yaml"
+    f.write_text(overlay + "\n")
+    return _job_params("texts", "config/tiny.yaml", str(f))
+
+
+def _changed(a: dict, b: dict) -> list[str]:
+    """The jobs (same DAG) whose params differ between two _job_params('texts') answers."""
+    assert a.keys() == b.keys()
+    return sorted(k for k in a if a[k] != b[k])
+
+
 def test_readme_names_the_gpu_rules_and_the_long_trainings(tmp_path):
     """README "Running on Slurm or a GPU": the rules that ask Slurm for a GPU with device: cuda
     (a rule a user leaves out of the GPU partition is refused), and the time limits at
@@ -871,13 +884,8 @@ def test_field_term_keys_are_params_of_the_trainings_alone_and_only_while_on(tmp
     report's diffusion section alone, and so does turning the term off; off, its keys are no
     job's params (0 with another field_eps changes none)."""
     def params(extra: str) -> dict:
-        f = tmp_path / f"over{len(list(tmp_path.iterdir()))}.yaml"
-        f.write_text("diffusion: {train: {" + extra + "}}\n")
-        return _job_params("texts", "config/tiny.yaml", str(f))
-
-    def changed(a: dict, b: dict) -> list[str]:
-        assert a.keys() == b.keys()
-        return sorted(k for k in a if a[k] != b[k])
+        return _tiny_params_with(tmp_path, "diffusion: {train: {" + extra + "}}")
+    changed = _changed
     on, off = params(""), params("field_loss: 0.0")
     trainings = ["diffusion_section []", "train_diffusion [('model', 'merl100')]",
                  "train_diffusion [('model', 'ours')]", "train_multimodal []",
@@ -894,13 +902,8 @@ def test_conditions_clamp_step_is_a_param_of_the_conditioned_draws_alone(tmp_pat
     changes the conditioning stage's draws alone; and while it is set, diffusion.sample's step
     no longer reaches those draws."""
     def params(extra: str) -> dict:
-        f = tmp_path / f"over{len(list(tmp_path.iterdir()))}.yaml"
-        f.write_text(extra + "\n")
-        return _job_params("texts", "config/tiny.yaml", str(f))
-
-    def changed(a: dict, b: dict) -> list[str]:
-        assert a.keys() == b.keys()
-        return sorted(k for k in a if a[k] != b[k])
+        return _tiny_params_with(tmp_path, extra)
+    changed = _changed
     draws = ["guidance_sweep []", "sample_image []", "sample_mm_type []",
              "sample_multimodal []", "sample_text []"]
     base = params("conditions: {}")
