@@ -15,16 +15,35 @@ from functools import cache
 from pathlib import Path
 
 
+def _read_cpuinfo() -> str:
+    try:
+        return Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return ""
+
+
 def _cpuinfo(keys) -> str | None:
     """The value of the first /proc/cpuinfo line starting with `keys` (a prefix or a tuple of
     them), or None (no such line, no /proc/cpuinfo)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(keys):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    for line in _read_cpuinfo().splitlines():
+        if line.startswith(keys):
+            return line.split(":", 1)[1].strip()
     return None
+
+
+@cache
+def cpu_family() -> str | None:
+    """"family F model M" of an x86 CPU, or None. Under a hypervisor the model name may be just
+    "AMD EPYC", which Zen 4 (family 25) and Zen 5 (family 26) hosts both show, and hosts of one
+    ISA differ: the plain BTF query frame of one kernel took 257.2 CPU-ms on an Intel Xeon and
+    117.3 on a family-26 AMD EPYC, both AVX-512 (benchmarks/btf_synthesis.py; docs/stages.md)."""
+    fields = {}
+    for line in _read_cpuinfo().splitlines():
+        key, sep, value = line.partition(":")
+        if sep:
+            fields.setdefault(key.strip(), value.strip())
+    fam, mod = fields.get("cpu family", ""), fields.get("model", "")
+    return f"family {fam} model {mod}" if fam.isdigit() and mod.isdigit() else None
 
 
 @cache
@@ -69,8 +88,11 @@ def compiler_isa(march: str = "native") -> str | None:
 
 
 def describe(march: str | None = None) -> str:
-    """One line: CPU model, host ISA, CPUs, and the ISA of a C build for `march` if given."""
-    s = f"CPU {cpu_model()} ({platform.machine()}, {host_isa()}, {os.cpu_count()} CPUs)"
+    """One line: CPU model (and x86 family), host ISA, CPUs, and the ISA of a C build for
+    `march` if given."""
+    fam = cpu_family()
+    s = (f"CPU {cpu_model()} ({platform.machine()}{f' {fam}' if fam else ''}, {host_isa()}, "
+         f"{os.cpu_count()} CPUs)")
     if march:
         s += f"; C kernel -march={march} -> {compiler_isa(march) or 'no compiler'}"
     return s
