@@ -885,14 +885,13 @@ def test_field_term_keys_are_params_of_the_trainings_alone_and_only_while_on(tmp
     job's params (0 with another field_eps changes none)."""
     def params(extra: str) -> dict:
         return _tiny_params_with(tmp_path, "diffusion: {train: {" + extra + "}}")
-    changed = _changed
     on, off = params(""), params("field_loss: 0.0")
     trainings = ["diffusion_section []", "train_diffusion [('model', 'merl100')]",
                  "train_diffusion [('model', 'ours')]", "train_multimodal []",
                  "train_refiner [('model', 'refiner')]"]
-    assert changed(on, params("field_eps: 0.01")) == trainings
-    assert changed(on, off) == trainings
-    assert changed(off, params("field_loss: 0.0, field_eps: 0.01")) == []
+    assert _changed(on, params("field_eps: 0.01")) == trainings
+    assert _changed(on, off) == trainings
+    assert _changed(off, params("field_loss: 0.0, field_eps: 0.01")) == []
 
 
 def test_conditions_clamp_step_is_a_param_of_the_conditioned_draws_alone(tmp_path):
@@ -901,13 +900,12 @@ def test_conditions_clamp_step_is_a_param_of_the_conditioned_draws_alone(tmp_pat
     changes no job's params, so runs made before the key existed rerun nothing; another value
     changes the conditioning stage's draws alone; and while it is set, diffusion.sample's step
     no longer reaches those draws."""
-    def params(extra: str) -> dict:
-        return _tiny_params_with(tmp_path, extra)
-    changed = _changed
+    def params(overlay: str) -> dict:
+        return _tiny_params_with(tmp_path, overlay)
     draws = ["guidance_sweep []", "sample_image []", "sample_mm_type []",
              "sample_multimodal []", "sample_text []"]
     base = params("conditions: {}")
-    assert changed(base, params("conditions: {negative_step: null}")) == []
-    assert changed(base, params("conditions: {negative_step: 10.0}")) == draws
-    other = changed(base, params("diffusion: {sample: {negative_step: 10.0}}"))
+    assert _changed(base, params("conditions: {negative_step: null}")) == []
+    assert _changed(base, params("conditions: {negative_step: 10.0}")) == draws
+    other = _changed(base, params("diffusion: {sample: {negative_step: 10.0}}"))
     assert other and not set(other) & set(draws), other
