@@ -4,8 +4,9 @@ trainings.
 Rule train_diffusion's training as it ran: the run's NeuMERL weights and manifest, `ours`'
 training rows and type labels, and the configs, class names and seed recorded in the run's
 diffusion/ours/model.pt; the seed + K, so each K is one more training of the same config on
-the same data. Writes OUT (a model.pt; its checkpoint beside it, OUT's stem +
-.checkpoint.pt, so a killed run resumes) and prints the wall time and final loss. Score it as rule metrics scores the run's own:
+the same data, on the CPU. Writes OUT (a model.pt; its checkpoint beside it, OUT's stem +
+.checkpoint.pt, so a killed run resumes) and prints the wall time and final loss. Score it as
+rule metrics scores the run's own:
 
     OMP_NUM_THREADS=2 python benchmarks/retrain_seed.py --results results/<run> --offset 1 --out M
     OMP_NUM_THREADS=2 python benchmarks/clamp_step_table2.py --results results/<run> --steps 0 --model M
@@ -45,6 +46,7 @@ def main():
     seed = int(bundle["seed"]) + a.offset
     activation = a.activation or cli.Run(run).activation()
     out = Path(a.out)
+    checkpoint = out.with_name(out.stem + ".checkpoint.pt")
     out.parent.mkdir(parents=True, exist_ok=True)
     print(f"machine: {machine.describe()}; {run}: {len(rows)} training rows, seed {seed} "
           f"(the run's {bundle['seed']} + {a.offset}), activation {activation}")
@@ -52,10 +54,11 @@ def main():
     result = train(weights[rows], labels, bundle["class_names"],
                    DenoiserConfig.from_dict(bundle["model_cfg"]),
                    ScheduleConfig(**bundle["sched_cfg"]), TrainConfig(**bundle["train_cfg"]),
-                   out, out.with_name(out.stem + ".checkpoint.pt"), seed, "cpu",
+                   out, checkpoint, seed, "cpu",
                    activation=activation)
     print(f"{out}: {time.perf_counter() - t0:.0f} s wall this process, "
-          f"{result['train_seconds']:.0f} s training in all, final loss {result['history'][-1][1]:.4g}")
+          f"{result['train_seconds']:.0f} s training in all, "
+          f"final loss {result['history'][-1][1]:.4g}")
 
 
 if __name__ == "__main__":
