@@ -36,6 +36,7 @@ same settings and seeds; the check is then skipped.
         [--type-prior]   # each variant also sampled with types drawn as in training
         [--keep-look 25]  # each lambda > 0 also mixed with lambda 0's draws (below)
         [--particle-step 0 0.1]  # each variant at each particle guidance step (below)
+        [--temperature 1 1.1]    # each variant at each DDIM start temperature (below)
 
 `--keep-look X ...` (dB): per lambda > 0, a column per X that keeps each sample's clamp-step
 draw unless the step changed its look: where the PSNR between the metric-view renders (sRGB)
@@ -47,6 +48,10 @@ samples so kept.
 `--particle-step X ...`: each variant is sampled at each particle guidance step
 (`diffusion.sample.particle_step`, neumat.diffusion.constraints.ParticleGuidance; 0 = off), a
 column " + particles X" where X > 0. Without it, at the run's setting.
+
+`--temperature X ...`: each variant is sampled with its DDIM start x_T scaled by X
+(`diffusion.sample.temperature`, neumat.diffusion.schedule.RowNoise; 1 = off), a column
+" + temperature X" where X != 1. Without it, at the run's setting.
 """
 from __future__ import annotations
 
@@ -130,6 +135,9 @@ def main():
     ap.add_argument("--particle-step", type=float, nargs="+", default=None,
                     help="particle guidance steps (diffusion.sample.particle_step) per variant; "
                          "default: the run's")
+    ap.add_argument("--temperature", type=float, nargs="+", default=None,
+                    help="DDIM start temperatures (diffusion.sample.temperature) per variant; "
+                         "default: the run's")
     ap.add_argument("--keep-look", type=float, nargs="+", default=[],
                     help="dB: per lambda > 0, also a column keeping the lambda-0 draw of every "
                          "sample whose look the step changed by more (render PSNR below X)")
@@ -147,9 +155,11 @@ def main():
     run_rgb = bool(setting("diffusion", "sample", "rgb_permute"))
     run_tp = bool(setting("diffusion", "sample", "type_prior"))
     run_ps = float(setting("diffusion", "sample", "particle_step"))
-    variants = [(lam, r, tp, ps) for lam in a.steps for r in a.refit
+    run_tau = float(setting("diffusion", "sample", "temperature"))
+    variants = [(lam, r, tp, ps, tau) for lam in a.steps for r in a.refit
                 for tp in ([False, True] if a.type_prior else [run_tp])
-                for ps in (a.particle_step if a.particle_step is not None else [run_ps])]
+                for ps in (a.particle_step if a.particle_step is not None else [run_ps])
+                for tau in (a.temperature if a.temperature is not None else [run_tau])]
     kw = dict(resolution=setting("render", "resolution"), activation=activation,
               bins=distances.brdf_sample(setting("metrics", "brdf_samples"),
                                          seeds.seed_for(seed, "metrics")),
@@ -173,30 +183,30 @@ def main():
                   m, f"samples/{m}/weights.npy")), slice(0, n_ref)), kw["resolution"], activation)
               for m in ["training_set", *others]))
     cols, clamp = {}, {}
-    drawn_at = {}  # (lambda, refit, types, particles) -> draws: lambda 0's reused by --keep-look
+    drawn_at = {}  # (lambda, refit, types, particles, temperature) -> draws: lambda 0's reused
 
-    def draw(lam, r, tp, ps):
-        if (lam, r, tp, ps) in drawn_at:
-            return drawn_at[(lam, r, tp, ps)]
-        # as rule sample_uncond: each draw's types from its own stream
-        drawn_at[(lam, r, tp, ps)] = [
-            sampler.sample(n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(
-                d, "type_prior")) if tp else None, s["steps"], s["eta"], 1.0, s["batch_size"],
-                s["clip"], lam, activation, refit_steps=r, particle_step=ps) for d in draw_seeds]
-        return drawn_at[(lam, r, tp, ps)]
+    def draw(*v):  # v: a variant
+        lam, r, tp, ps, tau = v
+        if v not in drawn_at:  # as rule sample_uncond: each draw's types from its own stream
+            drawn_at[v] = [sampler.sample(
+                n_ref, d, dataset.prior_types(man, n_ref, seeds.seed_for(d, "type_prior"))
+                if tp else None, s["steps"], s["eta"], 1.0, s["batch_size"], s["clip"], lam,
+                activation, refit_steps=r, particle_step=ps, temperature=tau) for d in draw_seeds]
+        return drawn_at[v]
 
     def sampled_variants():
         """(column, draws, seconds, is the run's own setting) per variant, with the --keep-look
         mixtures after their lambda."""
-        for lam, r, tp, ps in variants:
+        for lam, r, tp, ps, tau in variants:
             t0 = time.perf_counter()
-            drawn = draw(lam, r, tp, ps)
-            col = name(lam, r) + (" + types" if tp else "") + (f" + particles {ps:g}" if ps else "")
+            drawn = draw(lam, r, tp, ps, tau)
+            col = name(lam, r) + (" + types" if tp else "") + (f" + particles {ps:g}" if ps else "") \
+                + (f" + temperature {tau:g}" if tau != 1.0 else "")
             yield col, drawn, time.perf_counter() - t0, \
-                (lam, r, tp, ps) == (*run_variant, run_tp, run_ps)
+                (lam, r, tp, ps, tau) == (*run_variant, run_tp, run_ps, run_tau)
             if not (a.keep_look and lam > 0):
                 continue
-            base = draw(0.0, r, tp, ps)
+            base = draw(0.0, r, tp, ps, tau)
             for x in a.keep_look:  # as rule sample_uncond with diffusion.sample.keep_look x
                 mixed, kept = zip(*[keep_look(z, y, x, kw["resolution"], activation)
                                     for z, y in zip(drawn, base)])

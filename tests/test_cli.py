@@ -907,6 +907,29 @@ def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
                                   np.load(tmp_path / "plain_t/weights.npy"))
 
 
+def test_unconditional_draws_follow_the_runs_temperature(run, tmp_path):
+    """A run with diffusion.sample.temperature: unconditional `sample` draws of ours start from
+    the scaled x_T, the library's draw, recorded in samples.tsv; a --type draw, conditioned,
+    starts from unit noise as before."""
+    from neumat.diffusion import Sampler
+    from neumat.seeds import seed_for
+    rec = _recorded(run, tmp_path, "{temperature: 1.5}")
+    common = ["-n", 6, "--steps", 3, "--no-binary"]
+    for r, out in ((run, "plain"), (rec, "warm")):
+        assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
+        assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
+    want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
+        6, seed_for(0, "cli_sample"), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
+        temperature=1.5)
+    got = np.load(tmp_path / "warm/weights.npy")
+    np.testing.assert_array_equal(got, want)
+    assert not np.array_equal(got, np.load(tmp_path / "plain/weights.npy"))
+    assert set(pd.read_csv(tmp_path / "warm/samples.tsv", sep="\t")["temperature"]) == {1.5}
+    assert "temperature" not in pd.read_csv(tmp_path / "plain/samples.tsv", sep="\t")
+    np.testing.assert_array_equal(np.load(tmp_path / "warm_t/weights.npy"),
+                                  np.load(tmp_path / "plain_t/weights.npy"))
+
+
 def test_damaged_models_name_their_rule_and_info_goes_on(run, mm_run, tmp_path, capsys):
     """A damaged or foreign model file: `sample` names the rule that writes it (train_multimodal,
     train_refiner, train_diffusion, train_image_encoder) and a target Snakemake accepts

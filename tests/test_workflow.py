@@ -548,11 +548,13 @@ def test_clamp_keys_rerun_only_sampling(tiny_run, key, value):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("key", ["rgb_permute", "type_prior", "keep_look", "particle_step"])
+@pytest.mark.parametrize("key", ["rgb_permute", "type_prior", "keep_look", "particle_step",
+                                 "temperature"])
 def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run, key):
     """diffusion.sample.rgb_permute and type_prior (neutral false; the tiny config sets both
     true) are params of the unconditional draws of `ours` (and `ours_plain`, drawn with the same
-    seeds) alone, particle_step (neutral 0; the tiny config sets 0.1) too, keep_look (neutral
+    seeds) alone, particle_step (neutral 0; the tiny config sets 0.1) and temperature (neutral
+    1; the tiny config sets 1.1) too, keep_look (neutral
     0; the tiny config sets 25) of `ours`' alone: off,
     merl100's, the type-conditioned, the conditioned and the constrained samples stay, and
     nothing retrains."""
@@ -562,7 +564,8 @@ def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run,
     import yaml
     says = {"rgb_permute": "random RGB channel order", "type_prior": "drawn as in training",
             "keep_look": "keep look (diffusion.sample.keep_look 25 dB)",
-            "particle_step": "particle guidance (diffusion.sample.particle_step 0.1)"}
+            "particle_step": "particle guidance (diffusion.sample.particle_step 0.1)",
+            "temperature": "scaled by diffusion.sample.temperature 1.1"}
     log = (tiny_run / "results/tiny/logs/sample_uncond/ours.log").read_text()
     merl100 = (tiny_run / "results/tiny/logs/sample_uncond/merl100.log").read_text()
     assert says[key] in log and says[key] not in merl100
@@ -575,7 +578,8 @@ def test_unconditional_ours_keys_rerun_only_its_unconditional_sampling(tiny_run,
         n = re.search(r"keep_look 25 dB\): (\d+) of (\d+) samples", log)
         assert n and int(n[1]) == t["kept_look"].sum() and int(n[2]) == len(t)
     cfg = yaml.safe_load((tiny_run / "config/tiny.yaml").read_text())
-    _set(cfg, f"diffusion.sample.{key}", 0.0 if key in ("keep_look", "particle_step") else False)
+    _set(cfg, f"diffusion.sample.{key}", 0.0 if key in ("keep_look", "particle_step") else
+         1.0 if key == "temperature" else False)
     (tiny_run / f"config/{key}_off.yaml").write_text(yaml.safe_dump(cfg))
     res = _snakemake(tiny_run, "report", "--dry-run", "--quiet", "rules", "--configfile",
                      f"config/{key}_off.yaml")

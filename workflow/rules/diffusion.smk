@@ -19,7 +19,7 @@ FIELD_PARAMS = {"activation": DIFF_ACTIVATION} if DIFF["train"]["field_loss"] el
 # diffusion.sample keys for the unconditional draws of `ours` alone (and ours_plain): merl100's
 # rows are not closed under channel permutation and are all typed, and conditioned draws keep
 # their channel order, their condition, and draws independent of one another
-OURS_UNCOND_ONLY = ["rgb_permute", "type_prior", "keep_look", "particle_step"]
+OURS_UNCOND_ONLY = ["rgb_permute", "type_prior", "keep_look", "particle_step", "temperature"]
 # diffusion.sample.batch_size is a memory knob: each 64-row block of sampling noise has its own
 # stream, so samples are the same at any batch size to float rounding (with the clamp step,
 # refit, types and category guidance too; tests/test_diffusion.py), and scripts read it from
@@ -79,8 +79,8 @@ rule sample_uncond:
         table=out("samples/{model}/samples.tsv"),
         timing=out("samples/{model}/timing.tsv"),
     params:
-        # unguided; diffusion.sample.rgb_permute, type_prior, keep_look and particle_step for
-        # `ours` only (OURS_UNCOND_ONLY)
+        # unguided; diffusion.sample.rgb_permute, type_prior, keep_look, particle_step and
+        # temperature for `ours` only (OURS_UNCOND_ONLY)
         # keep_look compares metric-view renders: their size, only where it is on; it acts
         # only with the clamp step (negative_step), so without it keep_look is no param either
         cfg=lambda wc: {"sample": settings("diffusion.sample", drop=["guidance"] + (

@@ -12,7 +12,9 @@ diffusion.sample.keep_look (dB, unconditional draws of `ours`, with the clamp st
 sample again from its seed without the step and keeps that draw where the step moved its
 metric-view render by more (neumat.diffusion.sample.keep_look; column `kept_look`).
 diffusion.sample.particle_step (unconditional draws of `ours` and `ours_plain`) draws the samples
-of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance).
+of each DDIM batch jointly, pushed apart in look (neumat.diffusion.constraints.ParticleGuidance),
+and diffusion.sample.temperature (the same draws) scales their DDIM start x_T
+(neumat.diffusion.schedule.RowNoise).
 Unconditional draws are kept one by one in draws.partial/ beside the output
 (neumat.diffusion.draws), each with its sampling time: a killed job resumes at its next draw,
 timing.tsv counts every draw, and the folder goes once the output is written."""
@@ -87,6 +89,8 @@ with script_logging(snakemake) as log:
         if s.get("particle_step"):  # neutral 0: absent from params
             log.info("particle guidance (diffusion.sample.particle_step %g) over batches of %d",
                      s["particle_step"], s["batch_size"])
+        if s.get("temperature", 1.0) != 1.0:  # neutral 1: absent from params
+            log.info("DDIM start x_T scaled by diffusion.sample.temperature %g", s["temperature"])
         if look:
             log.info("keep look (diffusion.sample.keep_look %g dB): %d of %d samples keep "
                      "their draw without the clamp step (each drawn again from its seed)", look,

@@ -126,11 +126,15 @@ class Composed:
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
                category_step: float = 0.0, refit_steps: int = 0,
-               particle_step: float = 0.0, offset: int = 0) -> np.ndarray:
+               particle_step: float = 0.0, offset: int = 0,
+               temperature: float = 1.0) -> np.ndarray:
         from neumat.diffusion.sample import sample
         if particle_step:  # Sampler.sample's signature; the run's key is for unconditional draws
             raise ValueError("particle guidance (diffusion.sample.particle_step) applies to "
                              "unconditional draws of ours, not conditioned ones")
+        if temperature != 1.0:
+            raise ValueError("diffusion.sample.temperature applies to unconditional draws of "
+                             "ours, not conditioned ones")
         cond = {k: np.repeat(v, n, 0) for k, v in self.fixed.items()}
         scales = {k: self.scales[k] for k in self.fixed}
         if types is not None:
@@ -257,9 +261,12 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     look = float(run.setting("diffusion", "sample", "keep_look")) if uncond_ours and neg else 0.0
     # and its particle guidance (diffusion.sample.particle_step), over each batch of --batch
     particles = float(run.setting("diffusion", "sample", "particle_step")) if uncond_ours else 0.0
+    # and its DDIM start temperature (diffusion.sample.temperature)
+    temperature = float(run.setting("diffusion", "sample", "temperature")) if uncond_ours else 1.0
     from neumat.diffusion.sample import draw_keeping_look
     sample_cfg = {"steps": args.steps, "eta": args.eta, "batch_size": args.batch, "clip": args.clip,
-              "negative_step": neg, "refit_steps": refit, "particle_step": particles}
+                  "negative_step": neg, "refit_steps": refit, "particle_step": particles,
+                  "temperature": temperature}
     look_res = int(run.setting("render", "resolution")) if look else None
     ws, kept = [], []
     with _progress(args.n, "sampling") as bar:
@@ -276,6 +283,8 @@ def _draw(args, run: Run, bundle: dict, model_path: Path, asked: list[str]):
     w = np.concatenate(ws)
     if particles:
         info["particle_step"] = particles
+    if temperature != 1.0:
+        info["temperature"] = temperature
     if uncond_ours and run.setting("diffusion", "sample", "rgb_permute"):
         # unconditional draws of ours in random channel orders, as the run's sample_uncond
         from neumat.diffusion import symmetry

@@ -78,14 +78,15 @@ def draw_keeping_look(sampler, n: int, seed: int, s: dict, activation: str = "re
                       offset: int = 0) -> tuple[np.ndarray, np.ndarray | None]:
     """(weights, kept or None): n draws of `sampler` (a Sampler, or anything with its `sample`)
     from `seed`, rows offset ... offset + n - 1, under the diffusion.sample settings `s` (steps,
-    eta, batch_size, clip, negative_step; refit_steps and particle_step 0 where absent). With
-    `look` > 0 and the clamp step on, keep_look: the same rows drawn again without the step,
-    kept where the step moved the metric-view render by more than `look` dB. Shared by rule
+    eta, batch_size, clip, negative_step; refit_steps and particle_step 0, temperature 1 where
+    absent). With `look` > 0 and the clamp step on, keep_look: the same rows drawn again without
+    the step, kept where the step moved the metric-view render by more than `look` dB. Shared by rule
     sample_uncond and `neumat sample`, so the command draws as the workflow does."""
     def at(step):
         return sampler.sample(n, seed, types, s["steps"], s["eta"], guidance, s["batch_size"],
                               s["clip"], step, activation, refit_steps=s.get("refit_steps", 0),
-                              particle_step=s.get("particle_step", 0.0), offset=offset)
+                              particle_step=s.get("particle_step", 0.0), offset=offset,
+                              temperature=s.get("temperature", 1.0))
     w = at(s["negative_step"])
     if not (look and s["negative_step"]):
         return w, None

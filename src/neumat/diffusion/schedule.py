@@ -186,18 +186,24 @@ class RowNoise:
     (0 = x_T, i + 1 = DDIM step i) of rows s ... s + b - 1, each block of CHUNK rows from its own
     stream of `seed`. One generator consumed batch by batch made diffusion.sample.batch_size
     change the samples: torch's CPU randn fills in blocks of 16, so 8 + 12 rows are not the
-    first 20 (tests/test_diffusion.py samples in batches of 8, 13 and 20)."""
+    first 20 (tests/test_diffusion.py samples in batches of 8, 13 and 20).
+
+    `temperature` scales stage 0, the DDIM start x_T (diffusion.sample.temperature): with
+    eta 0 the sampler is deterministic in x_T, so a wider start spreads the samples."""
     CHUNK = 64
 
-    def __init__(self, seed: int, dim: int):
-        self.seed, self.dim = int(seed), int(dim)
+    def __init__(self, seed: int, dim: int, temperature: float = 1.0):
+        if not temperature > 0:
+            raise ValueError(f"diffusion.sample.temperature must be > 0, got {temperature}")
+        self.seed, self.dim, self.temperature = int(seed), int(dim), float(temperature)
 
     def __call__(self, k: int, s: int, b: int) -> torch.Tensor:
         c0, c1 = s // self.CHUNK, (s + b - 1) // self.CHUNK + 1
         blocks = [torch.randn((self.CHUNK, self.dim), generator=torch.Generator().manual_seed(
             int(np.random.SeedSequence(self.seed, spawn_key=(k, c)).generate_state(1)[0])))
             for c in range(c0, c1)]
-        return torch.cat(blocks)[s - c0 * self.CHUNK:s - c0 * self.CHUNK + b]
+        z = torch.cat(blocks)[s - c0 * self.CHUNK:s - c0 * self.CHUNK + b]
+        return z * self.temperature if k == 0 and self.temperature != 1.0 else z
 
     def batch(self, s: int, b: int) -> Callable:
         """`ddim_sample`'s `noise` for the batch of rows s ... s + b - 1."""

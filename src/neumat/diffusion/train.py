@@ -320,13 +320,15 @@ class Sampler:
                clip: float | None = None, negative_step: float = 30.0,
                activation: str = "relu", category: str | None = None,
                category_step: float = 0.0, refit_steps: int = 0,
-               particle_step: float = 0.0, offset: int = 0) -> np.ndarray:
+               particle_step: float = 0.0, offset: int = 0,
+               temperature: float = 1.0) -> np.ndarray:
         """n weight vectors (n, 675) float32; `types` (len n) conditions on material type with
         classifier-free guidance scale `guidance`, None samples unconditionally.
         `negative_step` > 0: clamp-aware constraint at every DDIM step
         (`neumat.diffusion.constraints.NegativeConstraint`, NBRDF `activation`); `category` and
         `category_step` > 0: category guidance after it (`CategoryConstraint`); `particle_step`
-        > 0: particle guidance over each batch after those (`ParticleGuidance`); `refit_steps`
+        > 0: particle guidance over each batch after those (`ParticleGuidance`); `temperature`:
+        the DDIM start x_T scaled by it (`RowNoise`); `refit_steps`
         > 0: the clamp-aware refit of the samples (`neumat.diffusion.refit`). `offset`: these
         are rows offset ... offset + n - 1 of the draw of `seed`, so a draw made in several calls
         (the `neumat sample` progress batches) equals one call (but for particle guidance,
@@ -334,7 +336,8 @@ class Sampler:
         if types is not None and len(types) != n:
             raise ValueError(f"{len(types)} types for {n} samples")
         labels = self.labels_of(types) if types is not None else None
-        rows = RowNoise(seed_for(seed, "ddim"), nbrdf.N_PARAMS)  # the same draws at any batch_size
+        # the same draws at any batch_size
+        rows = RowNoise(seed_for(seed, "ddim"), nbrdf.N_PARAMS, temperature)
         constrain = constraint_for(self, negative_step, seed, activation, category, category_step,
                                    particle_step)
         out = []
