@@ -885,48 +885,29 @@ def test_large_xml_renders_bake_the_materials_in():
     assert inline_if_large(own, 64 * 32 * 1024) == own
 
 
-def test_unconditional_draws_follow_the_runs_particle_step(run, tmp_path):
-    """A run with diffusion.sample.particle_step: unconditional `sample` draws of ours are drawn
-    jointly per --batch under particle guidance, the library's draw, recorded in samples.tsv;
-    a --type draw, conditioned, is drawn independently as before."""
+@pytest.mark.parametrize("key, value", [("particle_step", 0.5), ("temperature", 1.5)])
+def test_unconditional_draws_follow_the_runs_particle_step_and_temperature(run, tmp_path, key,
+                                                                          value):
+    """A run with diffusion.sample.particle_step (or temperature): unconditional `sample` draws
+    of ours are drawn under it (particle guidance jointly per --batch; the DDIM start x_T
+    scaled), the library's draw, recorded in samples.tsv; a --type draw, conditioned, is drawn
+    as before."""
     from neumat.diffusion import Sampler
     from neumat.seeds import seed_for
-    rec = _recorded(run, tmp_path, "{particle_step: 0.5}")
+    rec = _recorded(run, tmp_path, f"{{{key}: {value}}}")
     common = ["-n", 6, "--steps", 3, "--no-binary"]
-    for r, out in ((run, "plain"), (rec, "pg")):
+    for r, out in ((run, "plain"), (rec, "on")):
         assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
         assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
     want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
         6, seed_for(0, "cli_sample"), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
-        particle_step=0.5)
-    got = np.load(tmp_path / "pg/weights.npy")
+        **{key: value})
+    got = np.load(tmp_path / "on/weights.npy")
     np.testing.assert_array_equal(got, want)
     assert not np.array_equal(got, np.load(tmp_path / "plain/weights.npy"))
-    assert set(pd.read_csv(tmp_path / "pg/samples.tsv", sep="\t")["particle_step"]) == {0.5}
-    np.testing.assert_array_equal(np.load(tmp_path / "pg_t/weights.npy"),
-                                  np.load(tmp_path / "plain_t/weights.npy"))
-
-
-def test_unconditional_draws_follow_the_runs_temperature(run, tmp_path):
-    """A run with diffusion.sample.temperature: unconditional `sample` draws of ours start from
-    the scaled x_T, the library's draw, recorded in samples.tsv; a --type draw, conditioned,
-    starts from unit noise as before."""
-    from neumat.diffusion import Sampler
-    from neumat.seeds import seed_for
-    rec = _recorded(run, tmp_path, "{temperature: 1.5}")
-    common = ["-n", 6, "--steps", 3, "--no-binary"]
-    for r, out in ((run, "plain"), (rec, "warm")):
-        assert main("sample", "--run", r, *common, "--out", tmp_path / out) == 0
-        assert main("sample", "--run", r, *common, "--type", "fabric", "--out", tmp_path / f"{out}_t") == 0
-    want = Sampler(str(run / "diffusion/ours/model.pt")).sample(
-        6, seed_for(0, "cli_sample"), None, 3, 0.0, 1.0, batch_size=8, negative_step=30.0,
-        temperature=1.5)
-    got = np.load(tmp_path / "warm/weights.npy")
-    np.testing.assert_array_equal(got, want)
-    assert not np.array_equal(got, np.load(tmp_path / "plain/weights.npy"))
-    assert set(pd.read_csv(tmp_path / "warm/samples.tsv", sep="\t")["temperature"]) == {1.5}
-    assert "temperature" not in pd.read_csv(tmp_path / "plain/samples.tsv", sep="\t")
-    np.testing.assert_array_equal(np.load(tmp_path / "warm_t/weights.npy"),
+    assert set(pd.read_csv(tmp_path / "on/samples.tsv", sep="\t")[key]) == {value}
+    assert key not in pd.read_csv(tmp_path / "plain/samples.tsv", sep="\t")
+    np.testing.assert_array_equal(np.load(tmp_path / "on_t/weights.npy"),
                                   np.load(tmp_path / "plain_t/weights.npy"))
 
 
