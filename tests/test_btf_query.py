@@ -1,5 +1,6 @@
 """The fused C Triple Plane query (neumat.btf.query) against the model's torch path."""
 
+import copy
 import platform
 
 import pytest
@@ -44,13 +45,18 @@ def queries(n, seed=0):
 @pytest.mark.parametrize("march", MARCHES)
 @pytest.mark.parametrize("n", [2, 203, 1000])
 def test_query_matches_the_torch_path(march, n):
+    """Within float32 rounding of the torch path run in float64: the float32 torch path is
+    itself 1.1e-4 off it on one of these queries, beyond the tolerance, where the kernel is
+    7e-6 off (2026-12-03)."""
     m, (u, wi, wo) = model(), queries(n)
-    ref, raw = m(u, wi, wo), m.raw(u, wi, wo)
+    m64, (u64, wi64, wo64) = copy.deepcopy(m).double(), (t.double() for t in (u, wi, wo))
+    ref, raw = m64(u64, wi64, wo64).float(), m64.raw(u64, wi64, wo64).float()
     got = query.query(m, u, wi, wo, march=march)
     assert ref.abs().max() > 0.1  # not all clamped to 0
-    # float32 rounding of sums in another order, at the scale of the MLP's outputs (~30 here)
+    # float32 rounding of sums in another order, at the scale of the MLP's outputs (~30 here);
+    # RGB = expm1(raw) turns raw's absolute error into a relative one
     scale = raw.abs().max().item()
-    torch.testing.assert_close(got, ref, rtol=1e-4, atol=3e-6 * scale)
+    torch.testing.assert_close(got, ref, rtol=1e-4 + 3e-6 * scale, atol=3e-6 * scale)
     torch.testing.assert_close(query.query(m, u, wi, wo, raw=True, march=march), raw,
                                rtol=1e-4, atol=3e-6 * scale)
 

@@ -150,6 +150,8 @@ def supported(model, *tensors, march: str = "native") -> bool:
         return False
     if model.f_h.shape != model.f_d.shape or model.f_h.shape[0] != model.f_h.shape[1]:
         return False
+    if model.f_u.numel() >= 2 ** 31:  # the kernel's plane offsets are int32
+        return False
     if torch.is_grad_enabled() and any(p.requires_grad for p in model.parameters()):
         return False
     return all(t.device.type == "cpu" for t in (model.f_u, *tensors))

@@ -109,51 +109,65 @@ static void layer(int J, int K, const float *A, const float *b, const float *X, 
     }
 }
 
-/* Bilinear taps of a plane (H, W, C) at (x, y) in [0, 1]^2, texel centres at (i + .5) / W:
- * offsets (in floats) of the 4 texels and their weights; wrap tiles the plane, else coordinates
- * clamp to the border (as neumat.btf.neural.fetch). */
-static inline void taps(int H, int W, int C, float px, float py, int wrap, long *off, float *w)
+/* A tile's bilinear taps: element offsets of each query's 4 texels and their weights. */
+struct taps4 {
+    int32_t off[4][T];
+    float w[4][T];
+};
+
+/* Bilinear taps of a plane (H, W, C) at the tile's T points (px, py) in [0, 1]^2, texel
+ * centres at (i + .5) / W, lane by lane (plain loops GCC vectorises); wrap (a constant after
+ * inlining) tiles the plane, else coordinates clamp to the border (as neumat.btf.neural.fetch).
+ * Offsets in int32: `query.supported` leaves planes of 2^31 elements or more to torch. */
+static inline __attribute__((always_inline)) void
+tile_taps(int H, int W, int C, const float *px, const float *py, const int wrap, struct taps4 *t)
 {
-    float x = px * W - 0.5f, y = py * H - 0.5f;
-    if (!wrap) {
-        x = x < 0 ? 0 : x > W - 1 ? W - 1 : x;
-        y = y < 0 ? 0 : y > H - 1 ? H - 1 : y;
+    for (int q = 0; q < T; q++) {
+        float x = px[q] * W - 0.5f, y = py[q] * H - 0.5f;
+        if (!wrap) {
+            x = x < 0 ? 0 : x > W - 1 ? W - 1 : x;
+            y = y < 0 ? 0 : y > H - 1 ? H - 1 : y;
+        }
+        float fx0 = floorf(x), fy0 = floorf(y), fx = x - fx0, fy = y - fy0;
+        int32_t x0, y0, x1, y1;
+        if (wrap) {  /* floor(x) modulo W in double: exact for any float, the division's
+                        rounding (off by one at most) mended by the two compares */
+            double kx = floor((double)fx0 / W), ky = floor((double)fy0 / H);
+            x0 = (int32_t)((double)fx0 - kx * W), y0 = (int32_t)((double)fy0 - ky * H);
+            x0 += x0 < 0 ? W : 0, y0 += y0 < 0 ? H : 0;
+            x0 -= x0 >= W ? W : 0, y0 -= y0 >= H ? H : 0;
+            x1 = x0 + 1 == W ? 0 : x0 + 1, y1 = y0 + 1 == H ? 0 : y0 + 1;
+        } else {
+            x0 = (int32_t)fx0, y0 = (int32_t)fy0;
+            x1 = x0 + 1 < W ? x0 + 1 : W - 1, y1 = y0 + 1 < H ? y0 + 1 : H - 1;
+        }
+        t->off[0][q] = (y0 * W + x0) * C, t->off[1][q] = (y0 * W + x1) * C;
+        t->off[2][q] = (y1 * W + x0) * C, t->off[3][q] = (y1 * W + x1) * C;
+        t->w[0][q] = (1 - fx) * (1 - fy), t->w[1][q] = fx * (1 - fy);
+        t->w[2][q] = (1 - fx) * fy, t->w[3][q] = fx * fy;
     }
-    float fx0 = floorf(x), fy0 = floorf(y), fx = x - fx0, fy = y - fy0;
-    long x0 = (long)fx0, y0 = (long)fy0, x1, y1;
-    if (wrap) {
-        x0 %= W; x0 += x0 < 0 ? W : 0;
-        y0 %= H; y0 += y0 < 0 ? H : 0;
-        x1 = x0 + 1 == W ? 0 : x0 + 1;
-        y1 = y0 + 1 == H ? 0 : y0 + 1;
-    } else {
-        x1 = x0 + 1 < W ? x0 + 1 : W - 1;
-        y1 = y0 + 1 < H ? y0 + 1 : H - 1;
-    }
-    off[0] = (y0 * W + x0) * C, off[1] = (y0 * W + x1) * C;
-    off[2] = (y1 * W + x0) * C, off[3] = (y1 * W + x1) * C;
-    w[0] = (1 - fx) * (1 - fy), w[1] = fx * (1 - fy), w[2] = (1 - fx) * fy, w[3] = fx * fy;
 }
 
-/* Rows c of X at column q = the bilinear interpolation of plane's taps (off, w). */
-static inline void interp(const float *plane, int C, const long *off, const float *w, float *X,
-                          int q)
+/* Rows c of X at column q = the bilinear interpolation of plane's taps t of query q. */
+static inline void interp(const float *plane, int C, const struct taps4 *t, int q, float *X)
 {
-    const float *p0 = plane + off[0], *p1 = plane + off[1], *p2 = plane + off[2],
-                *p3 = plane + off[3];
+    const float *p0 = plane + t->off[0][q], *p1 = plane + t->off[1][q],
+                *p2 = plane + t->off[2][q], *p3 = plane + t->off[3][q];
+    const float w0 = t->w[0][q], w1 = t->w[1][q], w2 = t->w[2][q], w3 = t->w[3][q];
     for (int c = 0; c < C; c++)
-        X[c * T + q] = w[0] * p0[c] + w[1] * p1[c] + w[2] * p2[c] + w[3] * p3[c];
+        X[c * T + q] = (w0 * p0[c] + w1 * p1[c]) + (w2 * p2[c] + w3 * p3[c]);
 }
 
 /* The f_U taps of the tile of queries t0 ... t0 + T - 1 (a short tile repeats its last query);
  * run() prefetches them (prefetch_taps) while the tile before runs. */
-static void prepare_u(const float *u, long t0, long N, int Hu, int Wu, int Cu,
-                      long (*off)[4], float (*w)[4])
+static void prepare_u(const float *u, long t0, long N, int Hu, int Wu, int Cu, struct taps4 *t)
 {
+    float px[T], py[T];
     for (int q = 0; q < T; q++) {
         long i = t0 + q < N ? t0 + q : N - 1;
-        taps(Hu, Wu, Cu, u[2 * i], u[2 * i + 1], 1, off[q], w[q]);
+        px[q] = u[2 * i], py[q] = u[2 * i + 1];
     }
+    tile_taps(Hu, Wu, Cu, px, py, 1, t);
 }
 
 /* neumat.btf.directions.half_diff, h = normalize(wi + wo), d = R_b(-theta_h) R_n(-phi_h) wi,
@@ -182,33 +196,17 @@ half_diff(const float *wi, const float *wo, float (*restrict px)[T], float (*res
     }
 }
 
-/* The half and difference planes' taps of a tile (both R x R x C, clamped at the border). */
-struct dir_taps {
-    int32_t off[2][4][T];   /* [plane][texel][query]: element offsets */
-    float w[2][4][T];       /* bilinear weights */
-};
-
-/* half_diff and `taps` (clamped) for the tile's T queries: plain loops GCC vectorises. Per
+/* half_diff and the taps (clamped) of the half and difference planes, d[0] and d[1], for
+ * the tile's T queries: plain loops GCC vectorises. Per
  * query one at a time, as scalar code, this was 38 % of the plain query's time (47.8 CPU-ms of
  * 125.4 a frame, measured by taking it out; AMD EPYC Zen 5, AVX-512 build, 2026-12-03). */
 static __attribute__((noinline)) void
-dir_prepare(const float *wi, const float *wo, int R, int C, struct dir_taps *d)
+dir_prepare(const float *wi, const float *wo, int R, int C, struct taps4 d[2])
 {
     float px[2][T], py[2][T];
     half_diff(wi, wo, px, py);
-    for (int k = 0; k < 2; k++)
-        for (int q = 0; q < T; q++) {
-            float x = px[k][q] * R - 0.5f, y = py[k][q] * R - 0.5f;
-            x = x < 0 ? 0 : x > R - 1 ? R - 1 : x;
-            y = y < 0 ? 0 : y > R - 1 ? R - 1 : y;
-            float fx0 = floorf(x), fy0 = floorf(y), fx = x - fx0, fy = y - fy0;
-            int32_t x0 = (int32_t)fx0, y0 = (int32_t)fy0;
-            int32_t x1 = x0 + 1 < R ? x0 + 1 : R - 1, y1 = y0 + 1 < R ? y0 + 1 : R - 1;
-            d->off[k][0][q] = (y0 * R + x0) * C, d->off[k][1][q] = (y0 * R + x1) * C;
-            d->off[k][2][q] = (y1 * R + x0) * C, d->off[k][3][q] = (y1 * R + x1) * C;
-            d->w[k][0][q] = (1 - fx) * (1 - fy), d->w[k][1][q] = fx * (1 - fy);
-            d->w[k][2][q] = (1 - fx) * fy, d->w[k][3][q] = fx * fy;
-        }
+    tile_taps(R, R, C, px[0], py[0], 0, &d[0]);
+    tile_taps(R, R, C, px[1], py[1], 0, &d[1]);
 }
 
 /* Histogram-preserving blending of f_U (neumat.btf.synthesis.hpb; the maths of its torch path
@@ -515,14 +513,14 @@ static inline __attribute__((always_inline)) IEEE void store8x8(const __m256 r[8
 #endif
 
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
-/* Query q's bilinear features from direction plane k (C = 8 float32 channels): one register. */
+/* Query q's bilinear features from a plane of C = 8 float32 channels: one register. */
 static inline __attribute__((always_inline)) __m256
-dir_bilerp8(const float *plane, const struct dir_taps *d, int k, int q)
+bilerp8(const float *plane, const struct taps4 *t, int q)
 {
-    __m256 a = _mm256_mul_ps(_mm256_loadu_ps(plane + d->off[k][0][q]), _mm256_set1_ps(d->w[k][0][q]));
-    __m256 b = _mm256_mul_ps(_mm256_loadu_ps(plane + d->off[k][2][q]), _mm256_set1_ps(d->w[k][2][q]));
-    a = _mm256_fmadd_ps(_mm256_loadu_ps(plane + d->off[k][1][q]), _mm256_set1_ps(d->w[k][1][q]), a);
-    b = _mm256_fmadd_ps(_mm256_loadu_ps(plane + d->off[k][3][q]), _mm256_set1_ps(d->w[k][3][q]), b);
+    __m256 a = _mm256_mul_ps(_mm256_loadu_ps(plane + t->off[0][q]), _mm256_set1_ps(t->w[0][q]));
+    __m256 b = _mm256_mul_ps(_mm256_loadu_ps(plane + t->off[2][q]), _mm256_set1_ps(t->w[2][q]));
+    a = _mm256_fmadd_ps(_mm256_loadu_ps(plane + t->off[1][q]), _mm256_set1_ps(t->w[1][q]), a);
+    b = _mm256_fmadd_ps(_mm256_loadu_ps(plane + t->off[3][q]), _mm256_set1_ps(t->w[3][q]), b);
     return _mm256_add_ps(a, b);
 }
 #endif
@@ -925,8 +923,7 @@ struct source {
 };
 
 struct prepared {           /* a tile's f_U fetches, prepared a tile ahead */
-    long off[T][4];
-    float w[T][4];
+    struct taps4 fu;
     struct hpb_taps hpb;
 };
 
@@ -940,7 +937,7 @@ static __attribute__((noinline)) void prepare(const struct source *src, long t0,
     else if (src->hpb)
         hpb_prepare(src->hpb, src->Cu, t0, N, &p->hpb);
     else if (!src->feat)
-        prepare_u(src->u, t0, N, src->Hu, src->Wu, src->Cu, p->off, p->w);
+        prepare_u(src->u, t0, N, src->Hu, src->Wu, src->Cu, &p->fu);
 }
 
 /* Query q's f_U texels of the next tile, prepared, into the cache: run() asks for one query's
@@ -968,8 +965,8 @@ prefetch_taps(const struct source *src, const struct prepared *p, int q)
                                           less time than with prefetcht0, which brings a
                                           tile's lines into L1 a tile early (btf_query.py,
                                           AMD EPYC AVX-512: 231.7 against 242.3 CPU-ms) */
-            __builtin_prefetch(src->fu + p->off[q][k], 0, 2);
-            __builtin_prefetch(src->fu + p->off[q][k] + src->Cu - 1, 0, 2);  /* a texel may
+            __builtin_prefetch(src->fu + p->fu.off[k][q], 0, 2);
+            __builtin_prefetch(src->fu + p->fu.off[k][q] + src->Cu - 1, 0, 2);  /* a texel may
                                                                        straddle two lines */
         }
 }
@@ -986,9 +983,21 @@ static void fill(const struct source *src, long t0, int nt, const struct prepare
             for (int c = 0; c < Cu; c++)
                 X[c * T + q] = src->feat[i * Cu + c];
         }
-    else
+    else {
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+        if (Cu == 8) {  /* 8 queries' features transposed into the rows of X in registers */
+            for (int q0 = 0; q0 < T; q0 += 8) {
+                __m256 r[8];
+                for (int j = 0; j < 8; j++)
+                    r[j] = bilerp8(src->fu, &p->fu, q0 + j);
+                store8x8(r, X + q0);
+            }
+            return;
+        }
+#endif
         for (int q = 0; q < T; q++)
-            interp(src->fu, Cu, p->off[q], p->w[q], X, q);
+            interp(src->fu, Cu, &p->fu, q, X);
+    }
 }
 
 /* The lines of [p, p + bytes) into the cache (rw 1: about to be written). */
@@ -1035,7 +1044,7 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
 {
     float bufa[MAXW * T], bufb[MAXW * T];  /* a tile's activations, ping-pong between layers */
     float wi_[3 * T], wo_[3 * T];
-    struct dir_taps dt;
+    struct taps4 dt[2];  /* the direction planes' */
     /* f_U fetches prepared, and their texels prefetched, a tile ahead */
     struct prepared pre[2];
     int Cu = src->Cu;
@@ -1053,7 +1062,7 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
                 wi_[3 * q + k] = wi[3 * i + k], wo_[3 * q + k] = wo[3 * i + k];
         }
         fill(src, t0, nt, &pre[tile], bufa);
-        dir_prepare(wi_, wo_, R, C, &dt);
+        dir_prepare(wi_, wo_, R, C, dt);
         float *Xh = bufa + Cu * T, *Xd = bufa + (Cu + C) * T;
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
         if (C == 8)  /* 8 queries' features transposed into the rows of X in registers */
@@ -1062,8 +1071,8 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
                 for (int j = 0; j < 8; j++) {
                     if (next)
                         prefetch_taps(src, next, q0 + j);
-                    rh[j] = dir_bilerp8(fh, &dt, 0, q0 + j);
-                    rd[j] = dir_bilerp8(fd, &dt, 1, q0 + j);
+                    rh[j] = bilerp8(fh, &dt[0], q0 + j);
+                    rd[j] = bilerp8(fd, &dt[1], q0 + j);
                 }
                 store8x8(rh, Xh + q0);
                 store8x8(rd, Xd + q0);
@@ -1073,16 +1082,8 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
             for (int q = 0; q < T; q++) {
                 if (next)
                     prefetch_taps(src, next, q);
-                for (int k = 0; k < 2; k++) {
-                    const float *pl = k ? fd : fh, *p0 = pl + dt.off[k][0][q],
-                                *p1 = pl + dt.off[k][1][q], *p2 = pl + dt.off[k][2][q],
-                                *p3 = pl + dt.off[k][3][q];
-                    const float w0 = dt.w[k][0][q], w1 = dt.w[k][1][q], w2 = dt.w[k][2][q],
-                                w3 = dt.w[k][3][q];
-                    float *X = k ? Xd : Xh;
-                    for (int c = 0; c < C; c++)
-                        X[c * T + q] = (w0 * p0[c] + w1 * p1[c]) + (w2 * p2[c] + w3 * p3[c]);
-                }
+                interp(fh, C, &dt[0], q, Xh);
+                interp(fd, C, &dt[1], q, Xd);
             }
         const float *p = params;
         float *X = bufa, *Y = bufb;
