@@ -4,8 +4,8 @@ given, each timed on the plain query and with HPB / hex-tiling inside it, on one
 frame of queries (random 400 x 400 Triple Plane, u float64 uniform over a x15 area, or with
 --coherent a x15 plane in pixel order, as a render queries it: `btf_synthesis.frame`). Per build: ms per frame (CPU time of this process, best of --repeat),
 each method's overhead over the same build's plain query, the plain query's fraction of this
-machine's FLOP bound (`btf_query.flops_per_query` over an fp32 torch.mm rate on the same
-threads), and whether its outputs on 4096 queries (log(1 + RGB), before the clamp at 0) equal the first
+machine's FLOP bound (`btf_query.flops_per_query` over the build's fp32 FMA rate on one thread,
+`neumat.btf.query.fma_peak`), and whether its outputs on 4096 queries (log(1 + RGB), before the clamp at 0) equal the first
 build's to the bit.
 
 A change to the kernel that must not change results shows "same" on every row. On a shared
@@ -145,13 +145,13 @@ def measure(a) -> tuple[dict, str]:
         else:
             os.environ["NEUMAT_TAP_PREFETCH"] = env0
 
-    _, peak_cpu = machine.sgemm_peak(torch.get_num_threads())
+    peak_cpu = query.fma_peak(a.march)  # this build's fp32 FMA rate, one thread
     bound = FRAME * flops_per_query(m) / peak_cpu  # CPU-s per frame at the FLOP bound
     first = next(iter(libs))
     times = {name: {k: best[name, k] for k in kinds} for name in libs}
     same = {name: all(torch.equal(outs[name][k], outs[first][k]) for k in kinds) for name in libs}
     where = (f"machine: {machine.describe(a.march)}; torch threads {torch.get_num_threads()}; "
-             f"fp32 matmul {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} "
+             f"fp32 FMA peak {peak_cpu / 1e9:.1f} GFLOP/CPU-s; FLOP bound {bound * 1e3:.1f} "
              f"CPU-ms/frame; u {'coherent (a x15 plane in pixel order)' if a.coherent else 'uniform random'}")
     return {"times": times, "same": same, "bound": bound}, where
 

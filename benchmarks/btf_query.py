@@ -169,6 +169,12 @@ def main():
         print(f"ratios    : fused/bound {FRAME / t_f / bound:.3f} (per CPU-s "
               f"{FRAME / c_f / bound_cpu:.3f}), fused/batched {t_b / t_f:.1f}x wall, "
               f"{c_b / c_f:.1f}x CPU  [{where}]")
+        # the matmul rate is not the fused query's bound: its MLP can beat MKL's sgemm (AMD
+        # Zen 5: about 200 against 100 GFLOP/CPU-s); the build's FMA rate is
+        fpk = query.fma_peak(a.march)
+        print(f"FMA bound : {FRAME * fq / fpk * 1e3:10.1f} CPU-ms/frame (the fused build's fp32 FMA "
+              f"peak {fpk / 1e9:.1f} GFLOP/CPU-s, one thread): fused {FRAME * fq / fpk / c_f:.3f} "
+              f"of it per CPU-s  [{where}]")
 
 SHAPES = ((32, 1), (32, 4), (64, 2), (64, 4), (128, 4), (128, 8), (256, 8))
 

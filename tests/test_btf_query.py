@@ -256,3 +256,16 @@ def test_fused_hpb_lut_in_registers_and_gathered_alike(channels, lut_size, march
     assert plane.dtype == torch.float16  # half the bytes, the same values (gaussianise rounds)
     assert torch.equal(plane[:H, :W].float(), s.gauss) and torch.equal(plane[H], plane[0])
     assert torch.equal(plane[:, W], plane[:, 0])
+
+
+@pytest.mark.parametrize("march", MARCHES)
+def test_fma_peak_runs_its_chains(march):
+    """The benchmarks' FLOP bound (query.fma_peak): the kernel's 12 chains a = a m + c start at
+    1 + 1e-3 i, and a = a / 2 + 1 / 2 converges on 1. The rate is one a core can reach: a loop
+    the compiler folded away (as it did with m and c constants) would give an absurd one."""
+    lib = query._library(march)
+    vl = lib.vector_lanes()
+    assert vl in (4, 8, 16)
+    assert lib.fma_peak(0, 0.5, 0.5) == pytest.approx(vl * sum(1 + 1e-3 * i for i in range(12)))
+    assert lib.fma_peak(200, 0.5, 0.5) == pytest.approx(12 * vl)
+    assert 1e9 < query.fma_peak(march, seconds=0.02, repeat=1) < 1e12

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import ctypes
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 from functools import cache
 from pathlib import Path
@@ -68,7 +69,38 @@ def _library(march: str = "native"):
     lib.btf_triple_plane_hex.restype = None
     lib.hpb_features.argtypes = [l, p, p, i, i, i, p, i, u32, p, p, p]
     lib.hpb_features.restype = None
+    if hasattr(lib, "fma_peak"):  # kernels before 2026-12-03 (btf_kernel_ab.py --rev) lack it
+        lib.fma_peak.argtypes = [l, f, f]
+        lib.fma_peak.restype = f
+        lib.vector_lanes.argtypes = []
+        lib.vector_lanes.restype = i
     return lib
+
+
+def fma_peak(march: str = "native", seconds: float = 0.2, repeat: int = 3) -> float | None:
+    """This kernel build's fp32 vector FMA rate, FLOP per CPU-second of one thread: the best of
+    `repeat` runs of query_kernel.c's `fma_peak` (12 independent FMA chains), each about
+    `seconds` long. The bound the benchmarks measure the query against, in place of a matmul
+    library's rate, which the query's MLP can beat (MKL's sgemm on an AMD Zen 5: about 100
+    GFLOP/CPU-s, the MLP about 200, docs/stages.md). None without the kernel."""
+    lib = _library(march)
+    if lib is None:
+        return None
+    flop = 24 * lib.vector_lanes()  # per round: 12 chains of a multiply and an add per lane
+    n = 1 << 16
+    while True:  # rounds that take about `seconds`
+        t = time.process_time()
+        lib.fma_peak(n, 0.999, 0.001)
+        dt = time.process_time() - t
+        if dt > seconds / 4 or n > 1 << 40:
+            break
+        n *= 4
+    best = float("inf")
+    for _ in range(repeat):
+        t = time.process_time()
+        lib.fma_peak(n, 0.999, 0.001)
+        best = min(best, time.process_time() - t)
+    return n * flop / best
 
 
 def lut_pairs(lut: torch.Tensor) -> torch.Tensor:

@@ -1172,3 +1172,34 @@ void hpb_features(long N, const double *u, const uint16_t *gauss, int H, int W, 
             }
     }
 }
+
+/* This build's fp32 vector FMA peak, for the benchmarks' bound (query.fma_peak): n rounds of
+ * 12 independent chains a = a m + c on VL-lane vectors, 24 VL FLOP a round (12 chains cover an
+ * FMA's latency times its ports on current x86 cores; builds without FMA count the multiply
+ * and the add). m and c are arguments: as constants GCC folded the loop away. Returns the
+ * chains' sum, so the work is kept. */
+float fma_peak(long n, float mf, float cf)
+{
+    const vf m = splat(mf), c = splat(cf);
+#define CHAIN(i) vf a##i = splat(1.0f + 1e-3f * i);
+    CHAIN(0) CHAIN(1) CHAIN(2) CHAIN(3) CHAIN(4) CHAIN(5)
+    CHAIN(6) CHAIN(7) CHAIN(8) CHAIN(9) CHAIN(10) CHAIN(11)
+#undef CHAIN
+    for (long k = 0; k < n; k++) {
+#define CHAIN(i) a##i = a##i * m + c;
+        CHAIN(0) CHAIN(1) CHAIN(2) CHAIN(3) CHAIN(4) CHAIN(5)
+        CHAIN(6) CHAIN(7) CHAIN(8) CHAIN(9) CHAIN(10) CHAIN(11)
+#undef CHAIN
+    }
+    vf t = ((a0 + a1) + (a2 + a3)) + ((a4 + a5) + (a6 + a7)) + ((a8 + a9) + (a10 + a11));
+    float s = 0;
+    for (int l = 0; l < VL; l++)
+        s += t[l];
+    return s;
+}
+
+/* The lanes of this build's vectors (VL), for fma_peak's FLOP count. */
+int vector_lanes(void)
+{
+    return VL;
+}
