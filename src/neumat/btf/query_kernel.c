@@ -130,8 +130,8 @@ tile_taps(int H, int W, int C, const float *px, const float *py, const int wrap,
         }
         float fx0 = floorf(x), fy0 = floorf(y), fx = x - fx0, fy = y - fy0;
         int32_t x0, y0, x1, y1;
-        if (wrap) {  /* floor(x) modulo W in double: exact for any float, the division's
-                        rounding (off by one at most) mended by the two compares */
+        if (wrap) {  /* floor(x) modulo W in double: exact while |x| < 2^53 / W, the
+                        division's rounding (off by one at most) mended by the two compares */
             double kx = floor((double)fx0 / W), ky = floor((double)fy0 / H);
             x0 = (int32_t)((double)fx0 - kx * W), y0 = (int32_t)((double)fy0 - ky * H);
             x0 += x0 < 0 ? W : 0, y0 += y0 < 0 ? H : 0;
@@ -172,8 +172,8 @@ static void prepare_u(const float *u, long t0, long N, int Hu, int Wu, int Cu, s
 
 /* neumat.btf.directions.half_diff, h = normalize(wi + wo), d = R_b(-theta_h) R_n(-phi_h) wi,
  * for the tile's T queries lane by lane: the plane coordinates (h.xy + 1) / 2 and
- * (d.xy + 1) / 2 in (px, py)[0] and [1]. No unsafe-math: vectorised under it, -ffast-math forms the
- * divisions and square roots from reciprocal estimates and a Newton step, whose error, grown
+ * (d.xy + 1) / 2 in (px, py)[0] and [1]. No unsafe-math: vectorised under it, -ffast-math
+ * forms the divisions and square roots from reciprocal estimates and a Newton step, whose error, grown
  * by 1 / sin(theta_h) near the normal, put a query outside the torch path's tolerance
  * (tests/test_btf_query.py); this optimize attribute is the switch that stops it (the IEEE one
  * and target("no-recip") do not). */
@@ -197,9 +197,9 @@ half_diff(const float *wi, const float *wo, float (*restrict px)[T], float (*res
 }
 
 /* half_diff and the taps (clamped) of the half and difference planes, d[0] and d[1], for
- * the tile's T queries: plain loops GCC vectorises. Per
- * query one at a time, as scalar code, this was 38 % of the plain query's time (47.8 CPU-ms of
- * 125.4 a frame, measured by taking it out; AMD EPYC Zen 5, AVX-512 build, 2026-12-03). */
+ * the tile's T queries: plain loops GCC vectorises. Per query one at a time, as scalar code,
+ * this was 38 % of the plain query's time (47.8 CPU-ms of 125.4 a frame, measured by taking it
+ * out; AMD EPYC Zen 5, AVX-512 build, 2026-12-03). */
 static __attribute__((noinline)) void
 dir_prepare(const float *wi, const float *wo, int R, int C, struct taps4 d[2])
 {
