@@ -269,3 +269,16 @@ def test_fma_peak_runs_its_chains(march):
     assert lib.fma_peak(0, 0.5, 0.5) == pytest.approx(vl * sum(1 + 1e-3 * i for i in range(12)))
     assert lib.fma_peak(200, 0.5, 0.5) == pytest.approx(12 * vl)
     assert 1e9 < query.fma_peak(march, seconds=0.02, repeat=1) < 1e12
+
+
+@pytest.mark.parametrize("march", MARCHES)
+def test_plain_query_wraps_u_by_whole_planes(march):
+    """The plain query tiles f_U: u and u + k for integer k (values exact in float32, so every
+    coordinate is too) give the same result to the bit, negative k included (the kernel's
+    floor-modulo in double)."""
+    m, (u, wi, wo) = model(), queries(300, 2)
+    u = torch.round(u * 64) / 64  # dyadic: (u + k) W - 0.5 exact in float32 for |k| <= 1000
+    ref = query.query(m, u, wi, wo, raw=True, march=march)
+    for k in (-1000.0, -1.0, 7.0, 1000.0):
+        torch.testing.assert_close(query.query(m, u + k, wi, wo, raw=True, march=march), ref,
+                                   rtol=0, atol=0)
