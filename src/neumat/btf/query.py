@@ -79,8 +79,8 @@ def _library(march: str = "native"):
 
 def fma_peak(march: str = "native", seconds: float = 0.2, repeat: int = 3) -> float | None:
     """This kernel build's fp32 vector FMA rate, FLOP per CPU-second of one thread: the best of
-    `repeat` runs of query_kernel.c's `fma_peak` (12 independent FMA chains), each about
-    `seconds` long. The bound the benchmarks measure the query against, in place of a matmul
+    `repeat` runs of query_kernel.c's `fma_peak` (12 independent FMA chains), each of a round
+    count that took between a quarter of `seconds` and `seconds` when calibrated. The bound the benchmarks measure the query against, in place of a matmul
     library's rate, which the query's MLP can beat (MKL's sgemm on an AMD Zen 5: about 100
     GFLOP/CPU-s, the MLP about 200, docs/stages.md). None without the kernel."""
     lib = _library(march)
@@ -88,7 +88,7 @@ def fma_peak(march: str = "native", seconds: float = 0.2, repeat: int = 3) -> fl
         return None
     flop = 24 * lib.vector_lanes()  # per round: 12 chains of a multiply and an add per lane
     n = 1 << 16
-    while True:  # rounds that take about `seconds`
+    while True:  # 4x the rounds until they take over a quarter of `seconds`
         t = time.process_time()
         lib.fma_peak(n, 0.999, 0.001)
         dt = time.process_time() - t
