@@ -80,9 +80,10 @@ def _library(march: str = "native"):
 def fma_peak(march: str = "native", seconds: float = 0.2, repeat: int = 3) -> float | None:
     """This kernel build's fp32 vector FMA rate, FLOP per CPU-second of one thread: the best of
     `repeat` runs of query_kernel.c's `fma_peak` (12 independent FMA chains), each of a round
-    count that took between a quarter of `seconds` and `seconds` when calibrated. The bound the benchmarks measure the query against, in place of a matmul
-    library's rate, which the query's MLP can beat (MKL's sgemm on an AMD Zen 5: about 100
-    GFLOP/CPU-s, the MLP about 200, docs/stages.md). None without the kernel."""
+    count that took between a quarter of `seconds` and `seconds` when calibrated. The bound the
+    benchmarks measure the query against, in place of a matmul library's rate, which the
+    query's MLP can beat (MKL's sgemm on an AMD Zen 5: about 100 GFLOP/CPU-s, the MLP about
+    200, docs/stages.md). None without the kernel."""
     lib = _library(march)
     if lib is None:
         return None

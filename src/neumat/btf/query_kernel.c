@@ -525,6 +525,19 @@ bilerp8(const float *plane, const struct taps4 *t, int q)
 }
 #endif
 
+#if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
+/* Queries q0 ... q0 + 7's bilinear features from a plane of C = 8 float32 channels into the
+ * rows of X: one register a query, transposed in registers (store8x8). */
+static inline __attribute__((always_inline)) void
+bilerp8x8(const float *plane, const struct taps4 *t, int q0, float *X)
+{
+    __m256 r[8];
+    for (int j = 0; j < 8; j++)
+        r[j] = bilerp8(plane, t, q0 + j);
+    store8x8(r, X + q0);
+}
+#endif
+
 /* Rows c < C of X: sum over the 3 vertices of the 2 x 2 footprints at element off[v] of the
  * float16 `plane` (texels of C), weighted by tw (the blend weights folded into the bilinear
  * ones), for a tile. Shared by HPB and hex-tiling; C is a constant after inlining. */
@@ -985,13 +998,9 @@ static void fill(const struct source *src, long t0, int nt, const struct prepare
         }
     else {
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
-        if (Cu == 8) {  /* 8 queries' features transposed into the rows of X in registers */
-            for (int q0 = 0; q0 < T; q0 += 8) {
-                __m256 r[8];
-                for (int j = 0; j < 8; j++)
-                    r[j] = bilerp8(src->fu, &p->fu, q0 + j);
-                store8x8(r, X + q0);
-            }
+        if (Cu == 8) {
+            for (int q0 = 0; q0 < T; q0 += 8)
+                bilerp8x8(src->fu, &p->fu, q0, X);
             return;
         }
 #endif
@@ -1065,17 +1074,12 @@ static inline __attribute__((always_inline)) void run(long N, const struct sourc
         dir_prepare(wi_, wo_, R, C, dt);
         float *Xh = bufa + Cu * T, *Xd = bufa + (Cu + C) * T;
 #if defined(__AVX2__) && defined(__FMA__) && defined(__F16C__)
-        if (C == 8)  /* 8 queries' features transposed into the rows of X in registers */
+        if (C == 8)
             for (int q0 = 0; q0 < T; q0 += 8) {
-                __m256 rh[8], rd[8];
-                for (int j = 0; j < 8; j++) {
-                    if (next)
-                        prefetch_taps(src, next, q0 + j);
-                    rh[j] = bilerp8(fh, &dt[0], q0 + j);
-                    rd[j] = bilerp8(fd, &dt[1], q0 + j);
-                }
-                store8x8(rh, Xh + q0);
-                store8x8(rd, Xd + q0);
+                for (int j = 0; j < 8 && next; j++)
+                    prefetch_taps(src, next, q0 + j);
+                bilerp8x8(fh, &dt[0], q0, Xh);
+                bilerp8x8(fd, &dt[1], q0, Xd);
             }
         else
 #endif
