@@ -953,8 +953,9 @@ static __attribute__((noinline)) void prepare(const struct source *src, long t0,
         prepare_u(src->u, t0, N, src->Hu, src->Wu, src->Cu, &p->fu);
 }
 
-/* Query q's f_U texels of the next tile, prepared, into the cache: run() asks for one query's
- * at a time, between the direction fetches of the tile before. Issued in one burst after the
+/* Query q's f_U texels of the next tile, prepared, into the cache: run() asks for them query by
+ * query between the direction fetches of the tile before (with C = 8, eight queries' before
+ * each eight queries' fetches). Issued in one burst after the
  * tile's preparation (768 prefetches for HPB's 3 footprints of 64 queries, 512 for the plain
  * query's 4 texels), they queued on the few lines a core has in flight; spread over the tile,
  * they overlap its work. Per 1920 x 1080 frame against the burst, and against no tap prefetch
